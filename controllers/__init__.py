@@ -1,0 +1,4 @@
+"""softhil controller side: kinematics, estimators, control laws and the controller node.
+
+Never imports `hil`: the controller sees the rig only through the CAN bus.
+"""

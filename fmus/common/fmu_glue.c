@@ -1,0 +1,500 @@
+/* FMI 2.0 co-simulation glue, written once and compiled into every softhil FMU together with one
+ * model's physics (see glue.h). It implements the FMI state machine, value-reference checks, type
+ * checks, non-finite and range checks, FMU state save/restore and serialisation. Invariant: every
+ * error returns fmi2Error after logging one message naming the instance, function and variable. */
+#include <math.h>
+#include <stdarg.h>
+#include <stdio.h>
+#include <string.h>
+
+#include "glue.h"
+
+static const char *const PHASE_NAMES[] = {"instantiated", "initialisation mode", "step mode",
+                                          "terminated", "error"};
+
+void log_message(Instance *inst, fmi2Status status, const char *fmt, ...) {
+    char buffer[1024];
+    va_list args;
+    if (!inst || !inst->cb.logger) return;
+    if (status == fmi2OK && !inst->logging_on) return;
+    va_start(args, fmt);
+    vsnprintf(buffer, sizeof buffer, fmt, args);
+    va_end(args);
+    inst->cb.logger(inst->cb.componentEnvironment, inst->name, status,
+                    status == fmi2Error ? "logStatusError" : "logStatusWarning", "%s", buffer);
+}
+
+/* Returns 1 if `inst` may make `function` now, else logs and returns 0. `allowed` is a bit mask
+ * of Phase values. */
+static int phase_allows(Instance *inst, const char *function, unsigned allowed) {
+    if (!inst) return 0;
+    if (allowed & (1u << inst->phase)) return 1;
+    log_message(inst, fmi2Error, "%s: not allowed in %s", function, PHASE_NAMES[inst->phase]);
+    if (inst->phase != PHASE_TERMINATED) inst->phase = PHASE_ERROR;
+    return 0;
+}
+
+#define ANY_LIVE ((1u << PHASE_INSTANTIATED) | (1u << PHASE_INIT) | (1u << PHASE_STEP) | \
+                  (1u << PHASE_TERMINATED))
+
+static int check_vr(Instance *inst, const char *function, fmi2ValueReference vr,
+                    VariableType type) {
+    static const char *const TYPE_NAMES[] = {"Real", "Integer", "Boolean"};
+    if (vr >= N_VARIABLES) {
+        log_message(inst, fmi2Error, "%s: unknown value reference %u", function, vr);
+        return 0;
+    }
+    if (VARIABLES[vr].type != type) {
+        log_message(inst, fmi2Error, "%s: variable %s is of type %s", function,
+                    VARIABLES[vr].name, TYPE_NAMES[VARIABLES[vr].type]);
+        return 0;
+    }
+    return 1;
+}
+
+/* Whether a variable of this causality may be set in the instance's current phase. */
+static int settable(Instance *inst, const char *function, fmi2ValueReference vr) {
+    const VariableInfo *info = &VARIABLES[vr];
+    if (info->causality == CAUS_OUTPUT) {
+        log_message(inst, fmi2Error, "%s: %s is an output and cannot be set", function, info->name);
+        return 0;
+    }
+    if (info->causality == CAUS_PARAMETER && inst->phase == PHASE_STEP) {
+        log_message(inst, fmi2Error, "%s: parameter %s is fixed after initialisation", function,
+                    info->name);
+        return 0;
+    }
+    return 1;
+}
+
+/* ---------------------------------------------------------------- common functions */
+
+const char *fmi2GetTypesPlatform(void) { return fmi2TypesPlatform; }
+const char *fmi2GetVersion(void) { return fmi2Version; }
+
+fmi2Status fmi2SetDebugLogging(fmi2Component c, fmi2Boolean loggingOn, size_t nCategories,
+                               const fmi2String categories[]) {
+    Instance *inst = (Instance *)c;
+    (void)nCategories;
+    (void)categories;
+    if (!phase_allows(inst, "fmi2SetDebugLogging", ANY_LIVE)) return fmi2Error;
+    inst->logging_on = loggingOn;
+    return fmi2OK;
+}
+
+fmi2Component fmi2Instantiate(fmi2String instanceName, fmi2Type fmuType, fmi2String fmuGUID,
+                              fmi2String fmuResourceLocation,
+                              const fmi2CallbackFunctions *functions, fmi2Boolean visible,
+                              fmi2Boolean loggingOn) {
+    Instance *inst;
+    size_t i;
+    (void)fmuResourceLocation;
+    (void)visible;
+    if (!functions || !functions->allocateMemory || !functions->freeMemory) return NULL;
+    if (!instanceName || !*instanceName) instanceName = MODEL_IDENTIFIER;
+    inst = functions->allocateMemory(1, sizeof(Instance));
+    if (!inst) return NULL;
+    inst->cb = *functions;
+    inst->logging_on = loggingOn;
+    inst->name = functions->allocateMemory(strlen(instanceName) + 1, 1);
+    inst->state = functions->allocateMemory(1, model_state_size());
+    if (!inst->name || !inst->state) {
+        if (inst->name) functions->freeMemory(inst->name);
+        if (inst->state) functions->freeMemory(inst->state);
+        functions->freeMemory(inst);
+        return NULL;
+    }
+    strcpy(inst->name, instanceName);
+    if (fmuType != fmi2CoSimulation) {
+        log_message(inst, fmi2Error, "fmi2Instantiate: %s supports co-simulation only",
+                    MODEL_IDENTIFIER);
+        goto fail;
+    }
+    if (!fmuGUID || strcmp(fmuGUID, MODEL_GUID) != 0) {
+        log_message(inst, fmi2Error, "fmi2Instantiate: GUID %s does not match %s (rebuild the FMU)",
+                    fmuGUID ? fmuGUID : "(null)", MODEL_GUID);
+        goto fail;
+    }
+    for (i = 0; i < N_VARIABLES; i++) inst->v[i] = VARIABLES[i].start;
+    inst->phase = PHASE_INSTANTIATED;
+    return inst;
+fail:
+    functions->freeMemory(inst->state);
+    functions->freeMemory(inst->name);
+    functions->freeMemory(inst);
+    return NULL;
+}
+
+void fmi2FreeInstance(fmi2Component c) {
+    Instance *inst = (Instance *)c;
+    if (!inst) return;
+    inst->cb.freeMemory(inst->state);
+    inst->cb.freeMemory(inst->name);
+    inst->cb.freeMemory(inst);
+}
+
+fmi2Status fmi2SetupExperiment(fmi2Component c, fmi2Boolean toleranceDefined, fmi2Real tolerance,
+                               fmi2Real startTime, fmi2Boolean stopTimeDefined,
+                               fmi2Real stopTime) {
+    Instance *inst = (Instance *)c;
+    (void)toleranceDefined;
+    (void)tolerance;
+    (void)stopTimeDefined;
+    (void)stopTime;
+    if (!phase_allows(inst, "fmi2SetupExperiment", 1u << PHASE_INSTANTIATED)) return fmi2Error;
+    if (!isfinite(startTime)) {
+        log_message(inst, fmi2Error, "fmi2SetupExperiment: non-finite start time");
+        return fmi2Error;
+    }
+    inst->time = startTime;
+    return fmi2OK;
+}
+
+fmi2Status fmi2EnterInitializationMode(fmi2Component c) {
+    Instance *inst = (Instance *)c;
+    if (!phase_allows(inst, "fmi2EnterInitializationMode", 1u << PHASE_INSTANTIATED))
+        return fmi2Error;
+    inst->phase = PHASE_INIT;
+    return fmi2OK;
+}
+
+fmi2Status fmi2ExitInitializationMode(fmi2Component c) {
+    Instance *inst = (Instance *)c;
+    size_t i;
+    if (!phase_allows(inst, "fmi2ExitInitializationMode", 1u << PHASE_INIT)) return fmi2Error;
+    for (i = 0; i < N_VARIABLES; i++) {
+        const VariableInfo *info = &VARIABLES[i];
+        if (info->causality != CAUS_PARAMETER) continue;
+        if ((info->has_min && inst->v[i] < info->min) || (info->has_max && inst->v[i] > info->max)) {
+            log_message(inst, fmi2Error, "invalid parameter %s = %g: allowed range is [%g, %g]",
+                        info->name, inst->v[i], info->has_min ? info->min : -INFINITY,
+                        info->has_max ? info->max : INFINITY);
+            inst->phase = PHASE_ERROR;
+            return fmi2Error;
+        }
+    }
+    if (model_initialize(inst) != fmi2OK) {
+        inst->phase = PHASE_ERROR;
+        return fmi2Error;
+    }
+    inst->phase = PHASE_STEP;
+    return fmi2OK;
+}
+
+fmi2Status fmi2Terminate(fmi2Component c) {
+    Instance *inst = (Instance *)c;
+    if (!phase_allows(inst, "fmi2Terminate", (1u << PHASE_STEP) | (1u << PHASE_ERROR)))
+        return fmi2Error;
+    inst->phase = PHASE_TERMINATED;
+    return fmi2OK;
+}
+
+fmi2Status fmi2Reset(fmi2Component c) {
+    Instance *inst = (Instance *)c;
+    size_t i;
+    if (!inst) return fmi2Error;
+    for (i = 0; i < N_VARIABLES; i++) inst->v[i] = VARIABLES[i].start;
+    memset(inst->state, 0, model_state_size());
+    inst->time = 0.0;
+    inst->phase = PHASE_INSTANTIATED;
+    return fmi2OK;
+}
+
+/* ---------------------------------------------------------------- getters and setters */
+
+fmi2Status fmi2GetReal(fmi2Component c, const fmi2ValueReference vr[], size_t nvr,
+                       fmi2Real value[]) {
+    Instance *inst = (Instance *)c;
+    size_t i;
+    if (!phase_allows(inst, "fmi2GetReal", ANY_LIVE | (1u << PHASE_ERROR))) return fmi2Error;
+    for (i = 0; i < nvr; i++) {
+        if (!check_vr(inst, "fmi2GetReal", vr[i], VT_REAL)) return fmi2Error;
+        value[i] = inst->v[vr[i]];
+    }
+    return fmi2OK;
+}
+
+fmi2Status fmi2GetInteger(fmi2Component c, const fmi2ValueReference vr[], size_t nvr,
+                          fmi2Integer value[]) {
+    Instance *inst = (Instance *)c;
+    size_t i;
+    if (!phase_allows(inst, "fmi2GetInteger", ANY_LIVE | (1u << PHASE_ERROR))) return fmi2Error;
+    for (i = 0; i < nvr; i++) {
+        if (!check_vr(inst, "fmi2GetInteger", vr[i], VT_INTEGER)) return fmi2Error;
+        value[i] = (fmi2Integer)inst->v[vr[i]];
+    }
+    return fmi2OK;
+}
+
+fmi2Status fmi2GetBoolean(fmi2Component c, const fmi2ValueReference vr[], size_t nvr,
+                          fmi2Boolean value[]) {
+    Instance *inst = (Instance *)c;
+    size_t i;
+    if (!phase_allows(inst, "fmi2GetBoolean", ANY_LIVE | (1u << PHASE_ERROR))) return fmi2Error;
+    for (i = 0; i < nvr; i++) {
+        if (!check_vr(inst, "fmi2GetBoolean", vr[i], VT_BOOLEAN)) return fmi2Error;
+        value[i] = inst->v[vr[i]] != 0.0 ? fmi2True : fmi2False;
+    }
+    return fmi2OK;
+}
+
+fmi2Status fmi2GetString(fmi2Component c, const fmi2ValueReference vr[], size_t nvr,
+                         fmi2String value[]) {
+    Instance *inst = (Instance *)c;
+    (void)vr;
+    (void)value;
+    if (nvr == 0) return fmi2OK;
+    log_message(inst, fmi2Error, "fmi2GetString: %s has no String variables", MODEL_IDENTIFIER);
+    return fmi2Error;
+}
+
+fmi2Status fmi2SetReal(fmi2Component c, const fmi2ValueReference vr[], size_t nvr,
+                       const fmi2Real value[]) {
+    Instance *inst = (Instance *)c;
+    size_t i;
+    if (!phase_allows(inst, "fmi2SetReal", ANY_LIVE & ~(1u << PHASE_TERMINATED))) return fmi2Error;
+    for (i = 0; i < nvr; i++) {
+        if (!check_vr(inst, "fmi2SetReal", vr[i], VT_REAL) || !settable(inst, "fmi2SetReal", vr[i]))
+            return fmi2Error;
+        if (!isfinite(value[i])) {
+            log_message(inst, fmi2Error, "fmi2SetReal: non-finite value for %s",
+                        VARIABLES[vr[i]].name);
+            return fmi2Error;
+        }
+        inst->v[vr[i]] = value[i];
+    }
+    return fmi2OK;
+}
+
+fmi2Status fmi2SetInteger(fmi2Component c, const fmi2ValueReference vr[], size_t nvr,
+                          const fmi2Integer value[]) {
+    Instance *inst = (Instance *)c;
+    size_t i;
+    if (!phase_allows(inst, "fmi2SetInteger", ANY_LIVE & ~(1u << PHASE_TERMINATED)))
+        return fmi2Error;
+    for (i = 0; i < nvr; i++) {
+        if (!check_vr(inst, "fmi2SetInteger", vr[i], VT_INTEGER) ||
+            !settable(inst, "fmi2SetInteger", vr[i]))
+            return fmi2Error;
+        inst->v[vr[i]] = (double)value[i];
+    }
+    return fmi2OK;
+}
+
+fmi2Status fmi2SetBoolean(fmi2Component c, const fmi2ValueReference vr[], size_t nvr,
+                          const fmi2Boolean value[]) {
+    Instance *inst = (Instance *)c;
+    size_t i;
+    if (!phase_allows(inst, "fmi2SetBoolean", ANY_LIVE & ~(1u << PHASE_TERMINATED)))
+        return fmi2Error;
+    for (i = 0; i < nvr; i++) {
+        if (!check_vr(inst, "fmi2SetBoolean", vr[i], VT_BOOLEAN) ||
+            !settable(inst, "fmi2SetBoolean", vr[i]))
+            return fmi2Error;
+        inst->v[vr[i]] = value[i] ? 1.0 : 0.0;
+    }
+    return fmi2OK;
+}
+
+fmi2Status fmi2SetString(fmi2Component c, const fmi2ValueReference vr[], size_t nvr,
+                         const fmi2String value[]) {
+    Instance *inst = (Instance *)c;
+    (void)vr;
+    (void)value;
+    if (nvr == 0) return fmi2OK;
+    log_message(inst, fmi2Error, "fmi2SetString: %s has no String variables", MODEL_IDENTIFIER);
+    return fmi2Error;
+}
+
+/* ---------------------------------------------------------------- FMU state */
+
+typedef struct {
+    Phase phase;
+    double time;
+    double v[N_VARIABLES];
+} Snapshot; /* followed by model_state_size() bytes of model state */
+
+static size_t snapshot_size(void) { return sizeof(Snapshot) + model_state_size(); }
+
+static void save_snapshot(const Instance *inst, unsigned char *buffer) {
+    Snapshot *s = (Snapshot *)buffer;
+    s->phase = inst->phase;
+    s->time = inst->time;
+    memcpy(s->v, inst->v, sizeof s->v);
+    memcpy(buffer + sizeof(Snapshot), inst->state, model_state_size());
+}
+
+static void load_snapshot(Instance *inst, const unsigned char *buffer) {
+    const Snapshot *s = (const Snapshot *)buffer;
+    inst->phase = s->phase;
+    inst->time = s->time;
+    memcpy(inst->v, s->v, sizeof s->v);
+    memcpy(inst->state, buffer + sizeof(Snapshot), model_state_size());
+}
+
+fmi2Status fmi2GetFMUstate(fmi2Component c, fmi2FMUstate *FMUstate) {
+    Instance *inst = (Instance *)c;
+    if (!phase_allows(inst, "fmi2GetFMUstate", ANY_LIVE)) return fmi2Error;
+    if (!*FMUstate) *FMUstate = inst->cb.allocateMemory(1, snapshot_size());
+    if (!*FMUstate) {
+        log_message(inst, fmi2Error, "fmi2GetFMUstate: out of memory");
+        return fmi2Error;
+    }
+    save_snapshot(inst, (unsigned char *)*FMUstate);
+    return fmi2OK;
+}
+
+fmi2Status fmi2SetFMUstate(fmi2Component c, fmi2FMUstate FMUstate) {
+    Instance *inst = (Instance *)c;
+    if (!phase_allows(inst, "fmi2SetFMUstate", ANY_LIVE | (1u << PHASE_ERROR))) return fmi2Error;
+    if (!FMUstate) {
+        log_message(inst, fmi2Error, "fmi2SetFMUstate: null state");
+        return fmi2Error;
+    }
+    load_snapshot(inst, (const unsigned char *)FMUstate);
+    return fmi2OK;
+}
+
+fmi2Status fmi2FreeFMUstate(fmi2Component c, fmi2FMUstate *FMUstate) {
+    Instance *inst = (Instance *)c;
+    if (!inst || !FMUstate) return fmi2Error;
+    if (*FMUstate) inst->cb.freeMemory(*FMUstate);
+    *FMUstate = NULL;
+    return fmi2OK;
+}
+
+fmi2Status fmi2SerializedFMUstateSize(fmi2Component c, fmi2FMUstate FMUstate, size_t *size) {
+    (void)c;
+    (void)FMUstate;
+    *size = snapshot_size();
+    return fmi2OK;
+}
+
+fmi2Status fmi2SerializeFMUstate(fmi2Component c, fmi2FMUstate FMUstate, fmi2Byte serializedState[],
+                                 size_t size) {
+    Instance *inst = (Instance *)c;
+    if (!inst) return fmi2Error;
+    if (size < snapshot_size()) {
+        log_message(inst, fmi2Error, "fmi2SerializeFMUstate: buffer of %zu bytes, need %zu", size,
+                    snapshot_size());
+        return fmi2Error;
+    }
+    memcpy(serializedState, FMUstate, snapshot_size());
+    return fmi2OK;
+}
+
+fmi2Status fmi2DeSerializeFMUstate(fmi2Component c, const fmi2Byte serializedState[], size_t size,
+                                   fmi2FMUstate *FMUstate) {
+    Instance *inst = (Instance *)c;
+    if (!inst) return fmi2Error;
+    if (size != snapshot_size()) {
+        log_message(inst, fmi2Error, "fmi2DeSerializeFMUstate: %zu bytes, expected %zu", size,
+                    snapshot_size());
+        return fmi2Error;
+    }
+    if (!*FMUstate) *FMUstate = inst->cb.allocateMemory(1, snapshot_size());
+    if (!*FMUstate) return fmi2Error;
+    memcpy(*FMUstate, serializedState, size);
+    return fmi2OK;
+}
+
+fmi2Status fmi2GetDirectionalDerivative(fmi2Component c, const fmi2ValueReference vUnknown_ref[],
+                                        size_t nUnknown, const fmi2ValueReference vKnown_ref[],
+                                        size_t nKnown, const fmi2Real dvKnown[],
+                                        fmi2Real dvUnknown[]) {
+    (void)vUnknown_ref;
+    (void)nUnknown;
+    (void)vKnown_ref;
+    (void)nKnown;
+    (void)dvKnown;
+    (void)dvUnknown;
+    log_message((Instance *)c, fmi2Error, "fmi2GetDirectionalDerivative: not provided");
+    return fmi2Error;
+}
+
+/* ---------------------------------------------------------------- co-simulation */
+
+fmi2Status fmi2SetRealInputDerivatives(fmi2Component c, const fmi2ValueReference vr[], size_t nvr,
+                                       const fmi2Integer order[], const fmi2Real value[]) {
+    (void)vr;
+    (void)nvr;
+    (void)order;
+    (void)value;
+    log_message((Instance *)c, fmi2Error, "fmi2SetRealInputDerivatives: not provided");
+    return fmi2Error;
+}
+
+fmi2Status fmi2GetRealOutputDerivatives(fmi2Component c, const fmi2ValueReference vr[],
+                                        size_t nvr, const fmi2Integer order[], fmi2Real value[]) {
+    (void)vr;
+    (void)nvr;
+    (void)order;
+    (void)value;
+    log_message((Instance *)c, fmi2Error, "fmi2GetRealOutputDerivatives: not provided");
+    return fmi2Error;
+}
+
+fmi2Status fmi2DoStep(fmi2Component c, fmi2Real currentCommunicationPoint,
+                      fmi2Real communicationStepSize, fmi2Boolean noSetFMUStatePriorToCurrentPoint) {
+    Instance *inst = (Instance *)c;
+    (void)noSetFMUStatePriorToCurrentPoint;
+    if (!phase_allows(inst, "fmi2DoStep", 1u << PHASE_STEP)) return fmi2Error;
+    if (!(communicationStepSize > 0.0) || !isfinite(communicationStepSize)) {
+        log_message(inst, fmi2Error, "fmi2DoStep: step size %g must be positive and finite",
+                    communicationStepSize);
+        return fmi2Error;
+    }
+    if (fabs(currentCommunicationPoint - inst->time) > 1e-9 * (1.0 + fabs(inst->time))) {
+        log_message(inst, fmi2Error, "fmi2DoStep: communication point %.12g but the FMU is at %.12g",
+                    currentCommunicationPoint, inst->time);
+        return fmi2Error;
+    }
+    if (model_do_step(inst, communicationStepSize) != fmi2OK) {
+        inst->phase = PHASE_ERROR;
+        return fmi2Error;
+    }
+    inst->time = currentCommunicationPoint + communicationStepSize;
+    return fmi2OK;
+}
+
+fmi2Status fmi2CancelStep(fmi2Component c) {
+    log_message((Instance *)c, fmi2Error, "fmi2CancelStep: steps are synchronous");
+    return fmi2Error;
+}
+
+fmi2Status fmi2GetStatus(fmi2Component c, const fmi2StatusKind s, fmi2Status *value) {
+    (void)c;
+    (void)s;
+    *value = fmi2OK;
+    return fmi2Discard;
+}
+
+fmi2Status fmi2GetRealStatus(fmi2Component c, const fmi2StatusKind s, fmi2Real *value) {
+    Instance *inst = (Instance *)c;
+    if (inst && s == fmi2LastSuccessfulTime) {
+        *value = inst->time;
+        return fmi2OK;
+    }
+    return fmi2Discard;
+}
+
+fmi2Status fmi2GetIntegerStatus(fmi2Component c, const fmi2StatusKind s, fmi2Integer *value) {
+    (void)c;
+    (void)s;
+    (void)value;
+    return fmi2Discard;
+}
+
+fmi2Status fmi2GetBooleanStatus(fmi2Component c, const fmi2StatusKind s, fmi2Boolean *value) {
+    (void)c;
+    (void)s;
+    (void)value;
+    return fmi2Discard;
+}
+
+fmi2Status fmi2GetStringStatus(fmi2Component c, const fmi2StatusKind s, fmi2String *value) {
+    (void)c;
+    (void)s;
+    (void)value;
+    return fmi2Discard;
+}

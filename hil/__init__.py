@@ -1,0 +1,1 @@
+"""softhil plant side: FMU build and loading, co-simulation master, device nodes, bus layer, CLI."""

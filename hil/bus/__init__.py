@@ -1,0 +1,1 @@
+"""CAN bus layer: transports (python-can), the DBC protocol, and the loopback inter-process bus."""

@@ -1,0 +1,136 @@
+"""`hil fmu build|list|check`: the FMU toolchain from the command line."""
+
+from __future__ import annotations
+
+import argparse
+import math
+from pathlib import Path
+
+import fmus
+from hil.errors import HilError
+from hil.fmu.build import build_fmu
+
+
+def add_parser(commands: argparse._SubParsersAction) -> None:
+    from hil.cli import example_parser
+
+    parser = example_parser(
+        commands,
+        "fmu",
+        "build, list and check the softhil FMUs",
+        "  hil fmu build                 build all models (cached until a source changes)\n"
+        "  hil fmu build FeaSegment -f   force a rebuild of one model\n"
+        "  hil fmu list                  models, variables, units and defaults\n"
+        "  hil fmu check DriveCylinder   fmpy validation plus a short simulation\n",
+    )
+    sub = parser.add_subparsers(dest="fmu_command", metavar="ACTION", required=True)
+    build = example_parser(
+        sub, "build", "build FMUs from their C sources", "  hil fmu build DriveCylinder\n"
+    )
+    build.add_argument("names", nargs="*", metavar="NAME", help="models to build (default: all)")
+    build.add_argument("-f", "--force", action="store_true", help="rebuild even if cached")
+    build.set_defaults(handler=_build)
+    listing = example_parser(
+        sub, "list", "list the models and their variables", "  hil fmu list FeaSegment\n"
+    )
+    listing.add_argument("names", nargs="*", metavar="NAME", help="models to list (default: all)")
+    listing.set_defaults(handler=_list)
+    check = example_parser(
+        sub,
+        "check",
+        "validate an FMU with fmpy and simulate it for a short time",
+        "  hil fmu check FeaSegment\n  hil fmu check path/to/Other.fmu\n",
+    )
+    check.add_argument("name", metavar="NAME", help="a softhil model name or a path to an .fmu")
+    check.add_argument("--stop-time", type=float, default=0.5, help="simulated time [s]")
+    check.set_defaults(handler=_check)
+
+
+def _names(requested: list[str]) -> list[str]:
+    return requested or fmus.model_names()
+
+
+def _build(args: argparse.Namespace) -> int:
+    for name in _names(args.names):
+        built = build_fmu(name, force=args.force)
+        print(f"{name}: {built.path}")
+    return 0
+
+
+def _format_value(value: float | None, vtype: str) -> str:
+    if value is None:
+        return "-"
+    if vtype == "Boolean":
+        return "true" if value else "false"
+    return f"{value:g}"
+
+
+def _list(args: argparse.Namespace) -> int:
+    from hil.fmu.build import model_folder
+    from hil.fmu.spec import load_spec
+
+    for name in _names(args.names):
+        spec = load_spec(model_folder(name))
+        print(f"{spec.name}: {spec.description}")
+        rows = [("name", "causality", "type", "unit", "start", "description")]
+        rows += [
+            (
+                v.name,
+                v.causality,
+                v.type,
+                v.unit or "",
+                _format_value(v.start, v.type),
+                v.description,
+            )
+            for v in spec.variables
+        ]
+        widths = [max(len(row[i]) for row in rows) for i in range(5)]
+        for row in rows:
+            print(
+                "  "
+                + "  ".join(cell.ljust(w) for cell, w in zip(row[:5], widths, strict=True))
+                + "  "
+                + row[5]
+            )
+        print()
+    return 0
+
+
+def _check(args: argparse.Namespace) -> int:
+    from fmpy import read_model_description, simulate_fmu
+    from fmpy.validation import validate_fmu
+
+    path = Path(args.name)
+    if path.suffix == ".fmu":
+        if not path.is_file():
+            raise HilError(f"{path}: no such FMU file")
+        fmu_path = path
+    else:
+        fmu_path = build_fmu(args.name).path
+    try:
+        problems = validate_fmu(str(fmu_path))
+    except Exception as exc:  # fmpy lets zipfile and XML errors through
+        raise HilError(f"{fmu_path}: not a readable FMU: {exc}") from exc
+    if problems:
+        for problem in problems:
+            print(f"{fmu_path}: {problem}")
+        raise HilError(f"{fmu_path}: fmpy validation found {len(problems)} problem(s)")
+    description = read_model_description(str(fmu_path))
+    outputs = [v.name for v in description.modelVariables if v.causality == "output"]
+    try:
+        result = simulate_fmu(
+            str(fmu_path), stop_time=args.stop_time, output=outputs, fmi_type="CoSimulation"
+        )
+    except Exception as exc:  # fmpy raises plain exceptions for FMI errors
+        raise HilError(f"{fmu_path}: simulation in fmpy failed: {exc}") from exc
+    bad = [name for name in outputs if not all(math.isfinite(float(x)) for x in result[name])]
+    if bad:
+        raise HilError(f"{fmu_path}: non-finite outputs in fmpy simulation: {', '.join(bad)}")
+    print(f"{description.modelName}: fmpy validation passed")
+    print(
+        f"{description.modelName}: simulated {args.stop_time:g} s in fmpy, "
+        f"{len(result)} samples, outputs finite"
+    )
+    for name in outputs:
+        print(f"  {name} = {float(result[name][-1]):.6g}")
+    return 0

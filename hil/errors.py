@@ -1,0 +1,30 @@
+"""The error hierarchy of softhil: one clear line for the user, with the context that locates it.
+
+Every error a user can cause (a bad scenario, a corrupt log, an unknown CAN id, a dead controller,
+an FMU that fails) is raised as a subclass of `HilError`; the CLI prints `str(error)` as one line
+and exits non-zero, and shows the traceback only with `--debug`.
+"""
+
+
+class HilError(Exception):
+    """Base of every error softhil reports to its user."""
+
+
+class BuildError(HilError):
+    """An FMU could not be generated, compiled or packed."""
+
+
+class FmuError(HilError):
+    """An FMU rejected a call (instantiation, initialisation, a step, a value)."""
+
+
+class ScenarioError(HilError):
+    """A scenario file is malformed or impossible: names the file, the key and the reason."""
+
+
+class BusError(HilError):
+    """A CAN transport, frame or protocol problem: names the CAN id or the transport."""
+
+
+class ProtocolError(BusError):
+    """The lockstep protocol was violated: a missing, late or stale frame, or a dead peer."""

@@ -1,0 +1,1 @@
+"""FMU sources to FMUs (build), and FMUs to co-simulation participants (fmpy)."""

@@ -1,0 +1,209 @@
+"""One FMI 2.0 co-simulation FMU instance, driven through fmpy.
+
+`FmuSlave` loads an FMU (a softhil model name, a built FMU, or any `.fmu` file), applies parameters
+by name, initialises it and steps it. It captures the FMU's log messages so that every failure
+becomes one `FmuError` line naming the instance, the FMI function and what the FMU said.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+from collections.abc import Iterable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+from fmpy import extract, read_model_description
+from fmpy.fmi1 import FMICallException
+from fmpy.fmi2 import (
+    FMU2Slave,
+    fmi2CallbackAllocateMemoryTYPE,
+    fmi2CallbackFreeMemoryTYPE,
+    fmi2CallbackFunctions,
+    fmi2CallbackLoggerTYPE,
+)
+
+from hil.errors import FmuError
+from hil.fmu.build import BuiltFmu, build_fmu
+
+_libc = ctypes.CDLL(None)
+_calloc = _libc.calloc
+_calloc.restype = ctypes.c_void_p
+_calloc.argtypes = [ctypes.c_size_t, ctypes.c_size_t]
+_free = _libc.free
+_free.argtypes = [ctypes.c_void_p]
+
+Value = float | int | bool
+
+
+class FmuSlave:
+    """A co-simulation FMU instance with named variables.
+
+    Parameters
+    ----------
+    fmu
+        softhil model name ("DriveCylinder"), a `BuiltFmu`, or a path to an `.fmu` file.
+    instance_name
+        Name used in log messages and errors, e.g. "cylinder1".
+    parameters
+        Start values by variable name, applied before initialisation.
+    start_time
+        Simulation time of the first communication point [s].
+    """
+
+    def __init__(
+        self,
+        fmu: str | Path | BuiltFmu,
+        instance_name: str,
+        parameters: Mapping[str, Value] | None = None,
+        start_time: float = 0.0,
+    ) -> None:
+        self.instance_name = instance_name
+        self.messages: list[str] = []
+        unzipdir = self._locate(fmu)
+        self.description = read_model_description(str(unzipdir))
+        if self.description.coSimulation is None:
+            raise FmuError(
+                f"{instance_name}: {self.description.modelName} is not a co-simulation FMU"
+            )
+        self.model_name = self.description.modelName
+        self._variables = {v.name: v for v in self.description.modelVariables}
+        self._fmu = FMU2Slave(
+            guid=self.description.guid,
+            unzipDirectory=str(unzipdir),
+            modelIdentifier=self.description.coSimulation.modelIdentifier,
+            instanceName=instance_name,
+        )
+        self._callbacks = self._make_callbacks()
+        self.time = start_time
+        self._alive = False
+        self._call("fmi2Instantiate", self._fmu.instantiate, callbacks=self._callbacks)
+        self._alive = True
+        try:
+            self._initialise(parameters or {}, start_time)
+        except BaseException:
+            self.close()
+            raise
+
+    def _initialise(self, parameters: Mapping[str, Value], start_time: float) -> None:
+        self._call("fmi2SetupExperiment", self._fmu.setupExperiment, startTime=start_time)
+        self._call("fmi2EnterInitializationMode", self._fmu.enterInitializationMode)
+        for name, value in parameters.items():
+            variable = self._variable(name)
+            if variable.causality not in ("parameter", "input"):
+                raise FmuError(
+                    f"{self.instance_name}: {name} is an {variable.causality} of "
+                    f"{self.model_name} and cannot be given a value"
+                )
+            self.set(name, value)
+        self._call("fmi2ExitInitializationMode", self._fmu.exitInitializationMode)
+
+    @staticmethod
+    def _locate(fmu: str | Path | BuiltFmu) -> Path:
+        if isinstance(fmu, BuiltFmu):
+            return fmu.unzipdir
+        path = Path(fmu)
+        if path.suffix == ".fmu":
+            if not path.is_file():
+                raise FmuError(f"{path}: no such FMU file")
+            return Path(extract(str(path)))
+        return build_fmu(str(fmu)).unzipdir
+
+    def _make_callbacks(self) -> fmi2CallbackFunctions:
+        def logger(
+            component: object, instance: bytes, status: int, category: bytes, message: bytes
+        ) -> None:
+            self.messages.append(message.decode("utf-8", "replace"))
+
+        callbacks = fmi2CallbackFunctions()
+        callbacks.logger = fmi2CallbackLoggerTYPE(logger)
+        callbacks.allocateMemory = fmi2CallbackAllocateMemoryTYPE(_calloc)
+        callbacks.freeMemory = fmi2CallbackFreeMemoryTYPE(_free)
+        from fmpy.logging import addLoggerProxy  # formats the C varargs before our logger
+
+        addLoggerProxy(ctypes.byref(callbacks))
+        return callbacks
+
+    def _call(self, function: str, method: Any, *args: Any, **kwargs: Any) -> Any:
+        before = len(self.messages)
+        try:
+            return method(*args, **kwargs)
+        except (FMICallException, Exception) as exc:
+            said = "; ".join(self.messages[before:]) or str(exc)
+            raise FmuError(
+                f"{self.instance_name} ({self.model_name}): {function} failed: {said}"
+            ) from exc
+
+    def _variable(self, name: str):  # noqa: ANN202 - fmpy's ScalarVariable
+        try:
+            return self._variables[name]
+        except KeyError:
+            known = ", ".join(self._variables)
+            raise FmuError(
+                f"{self.instance_name}: {self.model_name} has no variable {name!r} (known: {known})"
+            ) from None
+
+    def value_reference(self, name: str) -> int:
+        return int(self._variable(name).valueReference)
+
+    def variable_type(self, name: str) -> str:
+        return str(self._variable(name).type)
+
+    def causality(self, name: str) -> str:
+        return str(self._variable(name).causality)
+
+    def names(self, causality: str) -> list[str]:
+        """Variable names of a causality ("parameter", "input", "output") in declaration order."""
+        return [v.name for v in self.description.modelVariables if v.causality == causality]
+
+    def set(self, name: str, value: Value) -> None:
+        variable = self._variable(name)
+        vr = [variable.valueReference]
+        if variable.type == "Real":
+            self._call(f"fmi2SetReal({name})", self._fmu.setReal, vr, [float(value)])
+        elif variable.type == "Integer":
+            self._call(f"fmi2SetInteger({name})", self._fmu.setInteger, vr, [int(value)])
+        elif variable.type == "Boolean":
+            self._call(f"fmi2SetBoolean({name})", self._fmu.setBoolean, vr, [bool(value)])
+        else:
+            raise FmuError(f"{self.instance_name}: {name} has unsupported type {variable.type}")
+
+    def get(self, name: str) -> Value:
+        variable = self._variable(name)
+        vr = [variable.valueReference]
+        if variable.type == "Real":
+            return float(self._call(f"fmi2GetReal({name})", self._fmu.getReal, vr)[0])
+        if variable.type == "Integer":
+            return int(self._call(f"fmi2GetInteger({name})", self._fmu.getInteger, vr)[0])
+        if variable.type == "Boolean":
+            return bool(self._call(f"fmi2GetBoolean({name})", self._fmu.getBoolean, vr)[0])
+        raise FmuError(f"{self.instance_name}: {name} has unsupported type {variable.type}")
+
+    def get_reals(self, vrs: Sequence[int]) -> list[float]:
+        """Fast path for the master: Real values by value reference."""
+        return list(self._call("fmi2GetReal", self._fmu.getReal, list(vrs)))
+
+    def set_reals(self, vrs: Sequence[int], values: Iterable[float]) -> None:
+        """Fast path for the master: set Real values by value reference."""
+        self._call("fmi2SetReal", self._fmu.setReal, list(vrs), [float(v) for v in values])
+
+    def do_step(self, time: float, step: float) -> None:
+        """Advance from communication point `time` by `step` seconds (the master passes
+        time = k * h from its integer tick, so no time is ever accumulated in floats here)."""
+        self._call(f"fmi2DoStep(t={time:.6f})", self._fmu.doStep, time, step)
+        self.time = time + step
+
+    def close(self) -> None:
+        """Terminate (if possible) and free the instance; idempotent."""
+        if not self._alive:
+            return
+        self._alive = False
+        with contextlib.suppress(Exception):  # an instance in error may refuse; free it anyway
+            self._fmu.terminate()
+        self._fmu.freeInstance()
+
+    def __enter__(self) -> FmuSlave:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

@@ -1,0 +1,288 @@
+"""Model specifications: each FMU's variables, declared once in `fmus/NAME/model.toml`.
+
+From a `ModelSpec` this module generates everything else that names a variable: the C header
+`model_variables.h` (value references, the variable table with start values and ranges) and
+`modelDescription.xml` (names, causality, variability, units, start values, descriptions, model
+structure). Invariant: value references are positions in the declaration order (parameters, then
+inputs, then outputs), so C and XML cannot disagree.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import tomllib
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass
+from pathlib import Path
+
+from hil.errors import BuildError
+
+GENERATOR = "softhil"
+
+# SI units the models may use, as exponents of the base units (FMI 2.0 BaseUnit) and a factor.
+_UNITS: dict[str, dict[str, float]] = {
+    "1": {},
+    "m": {"m": 1},
+    "m/s": {"m": 1, "s": -1},
+    "m2": {"m": 2},
+    "m3": {"m": 3},
+    "m3/Pa": {"kg": -1, "m": 4, "s": 2},
+    "kg": {"kg": 1},
+    "kg.m2": {"kg": 1, "m": 2},
+    "s": {"s": 1},
+    "Hz": {"s": -1},
+    "rad": {"rad": 1},
+    "rad/s": {"rad": 1, "s": -1},
+    "1/m": {"m": -1},
+    "N": {"kg": 1, "m": 1, "s": -2},
+    "N.s/m": {"kg": 1, "s": -1},
+    "N.m": {"kg": 1, "m": 2, "s": -2},
+    "N.m/rad": {"kg": 1, "m": 2, "s": -2, "rad": -1},
+    "N.m.s/rad": {"kg": 1, "m": 2, "s": -1, "rad": -1},
+    "N.m/A": {"kg": 1, "m": 2, "s": -2, "A": -1},
+    "Pa": {"kg": 1, "m": -1, "s": -2},
+    "K": {"K": 1},
+    "J/(kg.K)": {"m": 2, "s": -2, "K": -1},
+    "kg/(s.Pa)": {"m": 1, "s": 1},
+    "A": {"A": 1},
+    "V": {"kg": 1, "m": 2, "s": -3, "A": -1},
+    "V/m": {"kg": 1, "m": 1, "s": -3, "A": -1},
+    "V/(m.s)": {"kg": 1, "m": 1, "s": -4, "A": -1},
+    "V.s/m": {"kg": 1, "m": 1, "s": -2, "A": -1},
+    "V.s/rad": {"kg": 1, "m": 2, "s": -2, "A": -1, "rad": -1},
+    "Ohm": {"kg": 1, "m": 2, "s": -3, "A": -2},
+    "H": {"kg": 1, "m": 2, "s": -2, "A": -2},
+}
+# Human-facing display units (CONVENTIONS: mm and kPa only in human-facing text).
+_DISPLAY_UNITS: dict[str, list[tuple[str, float]]] = {
+    "m": [("mm", 1e-3)],
+    "Pa": [("kPa", 1e3)],
+    "rad": [("deg", math.pi / 180.0)],
+    "m3": [("mL", 1e-6)],
+}
+
+CAUSALITIES = ("parameters", "inputs", "outputs")
+_TYPES = ("Real", "Integer", "Boolean")
+_VARIABLE_KEYS = {"type", "unit", "start", "min", "max", "description"}
+
+
+@dataclass(frozen=True)
+class Variable:
+    """One model variable as declared in model.toml."""
+
+    name: str
+    causality: str  # "parameter" | "input" | "output"
+    type: str  # "Real" | "Integer" | "Boolean"
+    value_reference: int
+    description: str
+    unit: str | None = None
+    start: float | None = None
+    min: float | None = None
+    max: float | None = None
+
+    @property
+    def variability(self) -> str:
+        if self.causality == "parameter":
+            return "fixed"
+        return "continuous" if self.type == "Real" else "discrete"
+
+
+@dataclass(frozen=True)
+class ModelSpec:
+    """A model: its identifier, description, default step and variables."""
+
+    name: str
+    description: str
+    step_size: float
+    variables: tuple[Variable, ...]
+    folder: Path
+
+    def variable(self, name: str) -> Variable:
+        for v in self.variables:
+            if v.name == name:
+                return v
+        raise KeyError(name)
+
+    def by_causality(self, causality: str) -> list[Variable]:
+        return [v for v in self.variables if v.causality == causality]
+
+
+def load_spec(folder: Path) -> ModelSpec:
+    """Read and check `folder/model.toml`; every problem names the file and key."""
+    path = folder / "model.toml"
+    try:
+        data = tomllib.loads(path.read_text())
+    except (OSError, tomllib.TOMLDecodeError) as exc:
+        raise BuildError(f"{path}: {exc}") from exc
+    model = data.get("model")
+    if not isinstance(model, dict) or "name" not in model:
+        raise BuildError(f"{path}: [model] with a name is required")
+    name = str(model["name"])
+    if name != folder.name or not name.isidentifier():
+        raise BuildError(f"{path}: model.name {name!r} must equal the folder name {folder.name!r}")
+    variables: list[Variable] = []
+    for group in CAUSALITIES:
+        for var_name, decl in data.get(group, {}).items():
+            variables.append(_variable(path, group, var_name, decl, len(variables)))
+    unknown = set(data) - {"model", *CAUSALITIES}
+    if unknown:
+        raise BuildError(f"{path}: unknown table(s) {sorted(unknown)}")
+    return ModelSpec(
+        name=name,
+        description=str(model.get("description", "")),
+        step_size=float(model.get("step_size", 1e-3)),
+        variables=tuple(variables),
+        folder=folder,
+    )
+
+
+def _variable(path: Path, group: str, name: str, decl: object, vr: int) -> Variable:
+    key = f"{group}.{name}"
+    if not isinstance(decl, dict):
+        raise BuildError(f"{path}: {key} must be a table")
+    extra = set(decl) - _VARIABLE_KEYS
+    if extra:
+        raise BuildError(f"{path}: {key}: unknown key(s) {sorted(extra)}")
+    if not name.isidentifier():
+        raise BuildError(f"{path}: {key}: not a C identifier")
+    vtype = decl.get("type", "Real")
+    if vtype not in _TYPES:
+        raise BuildError(f"{path}: {key}.type must be one of {_TYPES}")
+    unit = decl.get("unit")
+    if unit is not None and unit not in _UNITS:
+        raise BuildError(f"{path}: {key}.unit {unit!r} is not a known unit")
+    causality = group[:-1]
+    start = decl.get("start")
+    if causality != "output" and start is None:
+        raise BuildError(f"{path}: {key}.start is required for a {causality}")
+    if causality == "output" and start is not None:
+        raise BuildError(f"{path}: {key}: outputs are calculated and take no start value")
+    return Variable(
+        name=name,
+        causality=causality,
+        type=vtype,
+        value_reference=vr,
+        description=str(decl.get("description", "")),
+        unit=unit,
+        start=None if start is None else float(start),
+        min=None if decl.get("min") is None else float(decl["min"]),
+        max=None if decl.get("max") is None else float(decl["max"]),
+    )
+
+
+def guid(spec: ModelSpec, sources_digest: str) -> str:
+    """GUID derived from the sources, so a changed model can never load a stale description."""
+    h = hashlib.sha256(f"{spec.name}:{sources_digest}".encode()).hexdigest()
+    return "{" + f"{h[:8]}-{h[8:12]}-{h[12:16]}-{h[16:20]}-{h[20:32]}" + "}"
+
+
+def _c_double(value: float) -> str:
+    return repr(float(value)) if math.isfinite(value) else "0.0"
+
+
+def generate_header(spec: ModelSpec, model_guid: str) -> str:
+    """The C header with value references and the variable table (see fmus/common/glue.h)."""
+    causality = {"parameter": "CAUS_PARAMETER", "input": "CAUS_INPUT", "output": "CAUS_OUTPUT"}
+    vtype = {"Real": "VT_REAL", "Integer": "VT_INTEGER", "Boolean": "VT_BOOLEAN"}
+    lines = [
+        f"/* Generated by {GENERATOR} from {spec.name}/model.toml. Do not edit. */",
+        "#ifndef MODEL_VARIABLES_H",
+        "#define MODEL_VARIABLES_H",
+        f'#define MODEL_IDENTIFIER "{spec.name}"',
+        f'#define MODEL_GUID "{model_guid}"',
+        f"#define N_VARIABLES {len(spec.variables)}",
+        "enum {",
+        *[f"    VR_{v.name} = {v.value_reference}," for v in spec.variables],
+        "};",
+        "static const VariableInfo VARIABLES[N_VARIABLES] = {",
+    ]
+    for v in spec.variables:
+        start = _c_double(v.start if v.start is not None else 0.0)
+        lines.append(
+            f'    {{"{v.name}", {vtype[v.type]}, {causality[v.causality]}, {start}, '
+            f"{int(v.min is not None)}, {int(v.max is not None)}, "
+            f"{_c_double(v.min or 0.0)}, {_c_double(v.max or 0.0)}}},"
+        )
+    lines += ["};", "#endif", ""]
+    return "\n".join(lines)
+
+
+def _format_number(value: float, vtype: str) -> str:
+    if vtype == "Boolean":
+        return "true" if value else "false"
+    if vtype == "Integer":
+        return str(int(value))
+    return repr(float(value))
+
+
+def generate_model_description(
+    spec: ModelSpec, model_guid: str, source_files: list[str] | None = None
+) -> str:
+    """modelDescription.xml (FMI 2.0 co-simulation) for the spec."""
+    root = ET.Element(
+        "fmiModelDescription",
+        fmiVersion="2.0",
+        modelName=spec.name,
+        guid=model_guid,
+        description=spec.description,
+        generationTool=GENERATOR,
+        variableNamingConvention="flat",
+        numberOfEventIndicators="0",
+    )
+    cosim = ET.SubElement(
+        root,
+        "CoSimulation",
+        modelIdentifier=spec.name,
+        canHandleVariableCommunicationStepSize="true",
+        canGetAndSetFMUstate="true",
+        canSerializeFMUstate="true",
+    )
+    if source_files:
+        listed = ET.SubElement(cosim, "SourceFiles")
+        for name in source_files:
+            ET.SubElement(listed, "File", name=name)
+    used = sorted({v.unit for v in spec.variables if v.unit is not None})
+    if used:
+        units = ET.SubElement(root, "UnitDefinitions")
+        for name in used:
+            unit = ET.SubElement(units, "Unit", name=name)
+            ET.SubElement(unit, "BaseUnit", {k: str(e) for k, e in _UNITS[name].items()})
+            for display, factor in _DISPLAY_UNITS.get(name, []):
+                ET.SubElement(unit, "DisplayUnit", name=display, factor=repr(1.0 / factor))
+    categories = ET.SubElement(root, "LogCategories")
+    for category in ("logStatusError", "logStatusWarning"):
+        ET.SubElement(categories, "Category", name=category)
+    ET.SubElement(root, "DefaultExperiment", startTime="0.0", stepSize=repr(spec.step_size))
+    variables = ET.SubElement(root, "ModelVariables")
+    for v in spec.variables:
+        attrs = {
+            "name": v.name,
+            "valueReference": str(v.value_reference),
+            "description": v.description,
+            "causality": v.causality,
+            "variability": v.variability,
+        }
+        if v.causality == "parameter":
+            attrs["initial"] = "exact"
+        element = ET.SubElement(variables, "ScalarVariable", attrs)
+        type_attrs: dict[str, str] = {}
+        if v.unit is not None:
+            type_attrs["unit"] = v.unit
+        if v.min is not None:
+            type_attrs["min"] = _format_number(v.min, v.type)
+        if v.max is not None:
+            type_attrs["max"] = _format_number(v.max, v.type)
+        if v.start is not None:
+            type_attrs["start"] = _format_number(v.start, v.type)
+        ET.SubElement(element, v.type, type_attrs)
+    structure = ET.SubElement(root, "ModelStructure")
+    indices = [i + 1 for i, v in enumerate(spec.variables) if v.causality == "output"]
+    if indices:
+        outputs = ET.SubElement(structure, "Outputs")
+        initial = ET.SubElement(structure, "InitialUnknowns")
+        for index in indices:
+            ET.SubElement(outputs, "Unknown", index=str(index))
+            ET.SubElement(initial, "Unknown", index=str(index))
+    ET.indent(root)
+    return '<?xml version="1.0" encoding="UTF-8"?>\n' + ET.tostring(root, encoding="unicode") + "\n"

@@ -1,0 +1,113 @@
+"""DriveCylinder physics and servo (PHYSICS.md section 1), simulated through fmpy."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import fmus
+from controllers.servo_design import DrivePlant, ServoGains, ServoSpec, analyse
+from hil.errors import FmuError
+from hil.fmu.slave import FmuSlave
+from tests.conftest import simulate
+
+STROKE = 0.05
+MID = 0.025
+OUTPUTS = ["x", "v", "i_motor", "u_motor", "fault"]
+
+
+def test_default_servo_gains_meet_the_design_specification() -> None:
+    toml = fmus.source_root() / "DriveCylinder" / "model.toml"
+    import tomllib
+
+    params = tomllib.loads(toml.read_text())["parameters"]
+    gains = ServoGains(*(params[k]["start"] for k in ("Kp", "Ki", "Kd", "Tf")))
+    spec = ServoSpec()
+    design = analyse(DrivePlant.from_model_toml(toml), gains, spec)
+    assert design.phase_margin_deg >= 45.0
+    assert design.bandwidth_hz >= 10.0
+    assert design.meets(spec)
+
+
+def test_servo_follows_a_10mm_step_within_the_designed_time(drive_cylinder_fmu) -> None:
+    spec = ServoSpec()
+    target = MID + spec.step
+    r = simulate(drive_cylinder_fmu, 1.0, OUTPUTS, inputs=lambda t: {"x_ref": target})
+    x, t = r["x"], r["time"]
+    assert np.all(x <= STROKE) and np.all(x >= 0.0)
+    overshoot = (x.max() - target) / spec.step
+    assert overshoot < 0.10
+    outside = np.nonzero(np.abs(x - target) > 0.02 * spec.step)[0]
+    settling = t[outside[-1] + 1]
+    assert settling <= spec.settling_time
+    assert abs(x[-1] - target) < 0.02 * spec.step
+    # the move is voltage-limited: the servo saturates at the supply and never beyond it
+    assert np.max(np.abs(r["u_motor"])) == pytest.approx(12.0)
+
+
+def test_end_stops_hold_under_a_large_setpoint(drive_cylinder_fmu) -> None:
+    for x_ref, stop in [(1.0, STROKE), (-1.0, 0.0)]:
+        r = simulate(
+            drive_cylinder_fmu, 1.5, OUTPUTS, inputs=lambda t, x_ref=x_ref: {"x_ref": x_ref}
+        )
+        x = r["x"]
+        assert np.all(x <= STROKE) and np.all(x >= 0.0)
+        assert x[-1] == stop
+        assert abs(r["v"][-1]) == 0.0
+        fault = int(r["fault"][-1])
+        assert fault & 1 and fault & 2  # end stop contact, setpoint clamped
+
+
+def test_servo_holds_position_against_chamber_pressure(drive_cylinder_fmu) -> None:
+    # 40 kPa in front of the piston pushes it back with 11 N; integral action removes the offset
+    r = simulate(
+        drive_cylinder_fmu,
+        3.0,
+        OUTPUTS,
+        inputs=lambda t: {"x_ref": 0.030, "p_a": 40e3, "p_b": 0.0},
+    )
+    assert abs(r["x"][-1] - 0.030) < 2e-5
+    # the motor now carries the load: current ~ torque / Kt, torque = r F / efficiency
+    force = 40e3 * np.pi * 0.01905**2 / 4
+    torque = 1e-3 / (2 * np.pi) * force / 0.5
+    assert r["i_motor"][-1] == pytest.approx(torque / 0.0382, rel=0.3)
+
+
+def test_disabled_servo_applies_no_voltage(drive_cylinder_fmu) -> None:
+    r = simulate(drive_cylinder_fmu, 0.3, OUTPUTS, inputs=lambda t: {"x_ref": 0.04, "enable": 0})
+    assert np.all(r["u_motor"] == 0.0)
+    assert np.all(r["x"] == MID)
+
+
+def test_stall_fault_when_blocked_by_pressure(drive_cylinder_fmu) -> None:
+    # 250 kPa on 285 mm^2 is 71 N, more than the 50 N the motor can push: back-driven, it stalls
+    r = simulate(drive_cylinder_fmu, 1.5, OUTPUTS, inputs=lambda t: {"x_ref": 0.04, "p_a": 250e3})
+    assert int(r["fault"][-1]) & 4
+    assert r["x"][-1] < MID + 1e-3
+
+
+@pytest.mark.parametrize(
+    ("parameters", "message"),
+    [
+        ({"stroke": -0.05}, "invalid parameter stroke = -0.05"),
+        ({"efficiency": 0.0}, "invalid parameter efficiency"),
+        ({"x_start": 0.08}, "invalid parameter x_start = 0.08: outside the stroke"),
+        ({"substep": 5e-3}, "invalid parameter substep"),
+    ],
+)
+def test_invalid_parameter_fails_initialisation_with_a_message(
+    drive_cylinder_fmu, parameters: dict[str, float], message: str
+) -> None:
+    with pytest.raises(FmuError, match="fmi2ExitInitializationMode failed") as info:
+        FmuSlave(drive_cylinder_fmu, "cyl", parameters)
+    assert message in str(info.value)
+
+
+def test_non_finite_input_is_an_error(drive_cylinder_fmu) -> None:
+    with FmuSlave(drive_cylinder_fmu, "cyl") as slave:
+        with pytest.raises(FmuError, match="non-finite value for p_a"):
+            slave.set("p_a", float("inf"))
+        with pytest.raises(FmuError, match="x is an output and cannot be set"):
+            slave.set("x", 0.01)
+        with pytest.raises(FmuError, match="parameter stroke is fixed after initialisation"):
+            slave.set("stroke", 0.01)

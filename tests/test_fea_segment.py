@@ -1,0 +1,117 @@
+"""FeaSegment physics (PHYSICS.md section 2): gas laws, pressures, bending equilibrium, limits."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from hil.errors import FmuError
+from hil.fmu.slave import FmuSlave
+from tests.conftest import simulate
+
+P_ATM = 101325.0
+A_BORE = math.pi * 0.01905**2 / 4
+G_A, K_BEND = 7.7e-7, 0.025
+OUTPUTS = ["kappa", "theta", "theta_dot", "p_a", "p_b", "v_a", "v_b"]
+
+
+def piston_sine(amplitude: float = 0.02, frequency: float = 2.0):
+    return lambda t: {"x_piston": 0.025 + amplitude * math.sin(2 * math.pi * frequency * t)}
+
+
+@pytest.mark.parametrize("stationary", [{"G_a": 0.0}, {"theta_max": 0.0}])
+def test_isothermal_gas_law_pv_constant_without_compliance(fea_segment_fmu, stationary) -> None:
+    r = simulate(fea_segment_fmu, 1.0, OUTPUTS, {"C_a": 0.0, **stationary}, piston_sine())
+    assert np.ptp(r["theta"]) == 0.0  # the body does not move
+    assert np.ptp(r["p_a"]) > 30e3  # the piston really compressed the gas
+    for side in "ab":
+        pv = (r[f"p_{side}"] + P_ATM) * r[f"v_{side}"]
+        assert np.max(np.abs(pv / pv[0] - 1.0)) < 1e-9
+        # and the volume is the geometric one: chamber + dead volume + channel
+        swept = 0.025  # both sides at mid-stroke at t = 0
+        assert r[f"v_{side}"][0] == pytest.approx(A_BORE * swept + 5e-6 + 8e-6, rel=1e-12)
+
+
+def test_polytropic_gas_law(fea_segment_fmu) -> None:
+    r = simulate(
+        fea_segment_fmu, 0.5, OUTPUTS, {"C_a": 0.0, "G_a": 0.0, "n_poly": 1.4}, piston_sine()
+    )
+    pvn = (r["p_a"] + P_ATM) * r["v_a"] ** 1.4
+    assert np.max(np.abs(pvn / pvn[0] - 1.0)) < 1e-9
+    # stiffer than isothermal for the same compression
+    iso = simulate(fea_segment_fmu, 0.5, OUTPUTS, {"C_a": 0.0, "G_a": 0.0}, piston_sine())
+    assert r["p_a"].max() > 1.2 * iso["p_a"].max()
+
+
+def test_compliance_adds_volume_in_proportion_to_pressure(fea_segment_fmu) -> None:
+    r = simulate(fea_segment_fmu, 1.0, OUTPUTS, None, lambda t: {"x_piston": 0.045})
+    rigid_a = A_BORE * 0.005 + 5e-6 + 8e-6 + G_A * r["theta"][-1]
+    assert r["v_a"][-1] - rigid_a == pytest.approx(1e-10 * r["p_a"][-1], rel=1e-9)
+
+
+@pytest.mark.parametrize("x_piston", [0.0, 0.05])
+def test_full_piston_travel_gives_the_operating_pressure_range(fea_segment_fmu, x_piston) -> None:
+    r = simulate(fea_segment_fmu, 2.0, OUTPUTS, None, lambda t: {"x_piston": x_piston})
+    differential = abs(r["p_a"][-1] - r["p_b"][-1])
+    assert 20e3 <= differential <= 55e3
+    # pushing the piston forward (towards stroke) compresses side a and bends positively
+    assert np.sign(r["theta"][-1]) == (1 if x_piston > 0.025 else -1)
+
+
+@pytest.mark.parametrize("x_piston", [0.01, 0.035, 0.05])
+def test_steady_bend_angle_balances_pressure_torque(fea_segment_fmu, x_piston) -> None:
+    # overdamped (the arm lies on a table): the slow pole is near k/d = 4 1/s, so 5 s is steady
+    r = simulate(fea_segment_fmu, 5.0, OUTPUTS, None, lambda t: {"x_piston": x_piston})
+    theta = r["theta"][-1]
+    expected = G_A * (r["p_a"][-1] - r["p_b"][-1]) / K_BEND
+    assert abs(r["theta_dot"][-1]) < 1e-6
+    assert theta == pytest.approx(expected, rel=0.01)
+    assert r["kappa"][-1] == pytest.approx(theta / 0.06, rel=1e-12)
+
+
+def test_external_torque_shifts_the_equilibrium(fea_segment_fmu) -> None:
+    r = simulate(fea_segment_fmu, 2.0, OUTPUTS, None, lambda t: {"tau_ext": 0.01})
+    theta = r["theta"][-1]
+    assert theta == pytest.approx((G_A * (r["p_a"][-1] - r["p_b"][-1]) + 0.01) / K_BEND, rel=0.01)
+    assert theta > 0.3  # the closed gas circuit resists bending only weakly
+
+
+def test_bend_angle_is_clamped_at_the_mechanical_limit(fea_segment_fmu) -> None:
+    r = simulate(fea_segment_fmu, 1.0, OUTPUTS, None, lambda t: {"tau_ext": -1.0})
+    assert r["theta"].min() == -1.6
+    assert r["theta"][-1] == -1.6 and r["theta_dot"][-1] == 0.0
+
+
+def test_leak_drains_pressure_towards_atmosphere(fea_segment_fmu) -> None:
+    r = simulate(
+        fea_segment_fmu, 3.0, OUTPUTS, {"leak_conductance": 1e-10}, lambda t: {"x_piston": 0.045}
+    )
+    peak = r["p_a"][np.argmax(r["p_a"])]
+    assert peak > 15e3
+    assert 0.0 < r["p_a"][-1] < 0.6 * peak
+    assert abs(r["theta"][-1]) < 0.6 * np.max(np.abs(r["theta"]))
+
+
+@pytest.mark.parametrize(
+    ("parameters", "message"),
+    [
+        ({"V_dead": 0.0, "V_ch0": 0.0}, "a gas volume can reach zero"),
+        ({"stroke": -0.05}, "invalid parameter stroke = -0.05"),
+        ({"n_poly": 2.0}, "invalid parameter n_poly = 2"),
+        ({"theta_start": 2.0}, "invalid parameter theta_start = 2"),
+        ({"x_seal": 0.07}, "invalid parameter x_seal = 0.07"),
+    ],
+)
+def test_invalid_parameter_fails_initialisation(fea_segment_fmu, parameters, message) -> None:
+    with pytest.raises(FmuError, match="fmi2ExitInitializationMode failed") as info:
+        FmuSlave(fea_segment_fmu, "seg", parameters)
+    assert message in str(info.value)
+
+
+def test_piston_outside_the_stroke_is_an_error(fea_segment_fmu) -> None:
+    with FmuSlave(fea_segment_fmu, "seg") as slave:
+        slave.set("x_piston", 0.06)
+        with pytest.raises(FmuError, match="x_piston = 0.06 is outside the stroke"):
+            slave.do_step(0.0, 1e-3)

@@ -1,0 +1,128 @@
+"""The FMU toolchain: generation from one declaration, fmpy validation, caching, clear errors."""
+
+from __future__ import annotations
+
+import re
+import shutil
+import zipfile
+from pathlib import Path
+
+import fmpy
+import pytest
+from fmpy.validation import validate_fmu
+
+import fmus
+from hil.errors import BuildError
+from hil.fmu import build as build_module
+from hil.fmu.build import build_fmu
+from hil.fmu.spec import load_spec
+
+MODELS = ["DriveCylinder", "FeaSegment"]
+
+
+@pytest.mark.parametrize("name", MODELS)
+def test_fmu_passes_fmpy_validation(name: str) -> None:
+    built = build_fmu(name)
+    assert validate_fmu(str(built.path)) == []
+
+
+@pytest.mark.parametrize("name", MODELS)
+def test_xml_and_c_value_references_come_from_the_one_declaration(name: str) -> None:
+    built = build_fmu(name)
+    spec = load_spec(fmus.source_root() / name)
+    description = fmpy.read_model_description(str(built.path))
+    header = (built.unzipdir / "sources" / "model_variables.h").read_text()
+    c_refs = {m[1]: int(m[2]) for m in re.finditer(r"VR_(\w+) = (\d+),", header)}
+    xml_refs = {v.name: v.valueReference for v in description.modelVariables}
+    declared = {v.name: v.value_reference for v in spec.variables}
+    assert c_refs == xml_refs == declared
+    assert description.guid in header
+    for variable in description.modelVariables:
+        declared_variable = spec.variable(variable.name)
+        assert variable.causality == declared_variable.causality
+        assert variable.unit == declared_variable.unit
+
+
+@pytest.mark.parametrize("name", MODELS)
+def test_fmu_zip_layout_and_fmpy_simulation(name: str) -> None:
+    built = build_fmu(name)
+    with zipfile.ZipFile(built.path) as zf:
+        names = set(zf.namelist())
+    assert {
+        "modelDescription.xml",
+        f"binaries/linux64/{name}.so",
+        "sources/model.c",
+        "sources/fmu_glue.c",
+        "sources/model_variables.h",
+    } <= names
+    result = fmpy.simulate_fmu(str(built.path), stop_time=0.2)
+    assert len(result) > 10
+
+
+@pytest.fixture
+def private_sources(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    """A copy of the FMU sources and an empty cache, so tests may edit and rebuild."""
+    root = tmp_path / "fmus"
+    shutil.copytree(fmus.source_root(), root)
+    monkeypatch.setattr(fmus, "source_root", lambda: root)
+    monkeypatch.setenv("SOFTHIL_CACHE_DIR", str(tmp_path / "cache"))
+    return root
+
+
+def test_build_is_cached_until_a_source_changes(private_sources: Path) -> None:
+    first = build_fmu("FeaSegment")
+    mtime = first.path.stat().st_mtime_ns
+    again = build_fmu("FeaSegment")
+    assert again.path == first.path and again.path.stat().st_mtime_ns == mtime
+    model_c = private_sources / "FeaSegment" / "model.c"
+    model_c.write_text(model_c.read_text() + "\n/* an edit */\n")
+    changed = build_fmu("FeaSegment")
+    assert changed.path != first.path
+    assert changed.guid != first.guid
+
+
+def test_build_is_reproducible(private_sources: Path) -> None:
+    first = build_fmu("DriveCylinder").path.read_bytes()
+    second = build_fmu("DriveCylinder", force=True).path.read_bytes()
+    assert first == second
+
+
+def test_compile_error_names_file_and_line(private_sources: Path) -> None:
+    model_c = private_sources / "DriveCylinder" / "model.c"
+    lines = model_c.read_text().splitlines()
+    index = next(i for i, line in enumerate(lines) if "static double clamp" in line)
+    lines.insert(index, "this is not C;")
+    model_c.write_text("\n".join(lines) + "\n")
+    with pytest.raises(BuildError) as info:
+        build_fmu("DriveCylinder")
+    message = str(info.value)
+    assert message.startswith(f"{model_c}:{index + 1}: error:")
+    assert "\n" not in message
+
+
+def test_missing_compiler_says_what_to_install(
+    private_sources: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setenv("CC", "no-such-compiler-cc")
+    with pytest.raises(BuildError, match="not found: install gcc"):
+        build_fmu("DriveCylinder")
+
+
+def test_unknown_model_lists_known_ones() -> None:
+    with pytest.raises(BuildError, match="unknown FMU model 'Nope'.*DriveCylinder"):
+        build_fmu("Nope")
+
+
+def test_malformed_model_toml_names_file_and_key(private_sources: Path) -> None:
+    toml = private_sources / "FeaSegment" / "model.toml"
+    toml.write_text(toml.read_text().replace('unit = "kg"', 'unit = "furlong"', 1))
+    with pytest.raises(BuildError, match=r"model.toml: parameters.mass.unit 'furlong'"):
+        build_fmu("FeaSegment")
+
+
+def test_cache_location_follows_environment(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    monkeypatch.delenv("SOFTHIL_CACHE_DIR", raising=False)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    assert build_module.cache_root() == tmp_path / "softhil"
