@@ -1,17 +1,71 @@
-"""`hil run`: run a scenario (placeholder until the closed loop lands)."""
+"""`hil run`: run a scenario and write its results folder."""
 
 from __future__ import annotations
 
 import argparse
+import sys
+from pathlib import Path
+
+from hil.run import RunOptions, run_scenario
+from hil.scenario import load_scenario
 
 
 def add_parser(commands: argparse._SubParsersAction) -> None:
     from hil.cli import example_parser
 
-    parser = example_parser(commands, "run", "run a scenario", "  hil run\n")
+    parser = example_parser(
+        commands,
+        "run",
+        "run a scenario: the plant here, the controller as a separate program, over CAN",
+        "  hil run                                  the default scenario\n"
+        "  hil run my.toml --out runs/try1 --seed 7\n"
+        "  hil run --inprocess                      controller in this process, virtual bus\n"
+        "  hil run --realtime                       SYNC paced by the wall clock\n"
+        "  hil run --bus loopback:127.0.0.1:29536   join a hub started by `hil bus serve`\n",
+    )
+    parser.add_argument("scenario", nargs="?", type=Path, help="scenario TOML (default: built-in)")
+    parser.add_argument("--out", type=Path, help="results folder (default: runs/NAME-SEED)")
+    parser.add_argument("--bus", help="bus spec: loopback[:HOST:PORT], socketcan:IFACE, virtual")
+    parser.add_argument(
+        "--inprocess",
+        action="store_true",
+        help="run the controller in this process over the virtual bus",
+    )
+    parser.add_argument("--realtime", action="store_true", help="pace SYNC on the wall clock")
+    parser.add_argument("--seed", type=int, help="override the scenario's seed")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.set_defaults(handler=_run)
 
 
 def _run(args: argparse.Namespace) -> int:
-    print("hil run: the closed loop over CAN is not built yet")
+    scenario = load_scenario(args.scenario, seed=args.seed)
+    out = args.out or Path("runs") / f"{scenario.name}-{scenario.seed}"
+    result = run_scenario(
+        scenario,
+        RunOptions(
+            out=out,
+            bus=args.bus,
+            inprocess=args.inprocess,
+            realtime=args.realtime,
+            progress=not args.no_progress,
+        ),
+    )
+    s = result.summary
+    print(
+        f"{scenario.name}: {scenario.duration:g} s simulated in {s['wall_time']:.2f} s "
+        f"(real-time factor {s['real_time_factor']:.1f}) over {s['bus']}"
+    )
+    print(
+        f"  rms tracking error {s['rms_tracking_error']:.3f} 1/m, max overshoot "
+        f"{100 * s['max_overshoot']:.1f} %, settling {s['settling_time']:.2f} s, "
+        f"steady-state error {s['steady_state_error']:.4f} 1/m"
+    )
+    f = s["frames"]
+    print(
+        f"  bus load {100 * s['bus_load']:.1f} % at {s['bitrate'] // 1000} kbit/s; frames sent "
+        f"{f['sent']}, received {f['received']}, missed {f['missed']}"
+    )
+    for warning in s["warnings"]:
+        print(f"  warning: {warning}", file=sys.stderr)
+    print(f"  results in {result.out}/ (signals.csv, can.log, *.png, summary.json)")
     return 0

@@ -1,0 +1,127 @@
+"""Outer curvature loop (PHYSICS.md section 4): one PI per segment from curvature error to the
+piston position setpoint, with its design from the segment's linearised physics.
+
+Linearised at sealing (both sides at p_atm, mid-stroke, unbent), a segment's curvature answers
+the piston position as a first-order lag: the gas law with compliance gives each side a
+stiffness dp/dV = p_atm / (V_seal + p_atm C_a), the antagonistic pair a torque G_a (p_a - p_b),
+and the bending equation (inertia negligible against damping, I/d ~ 6 ms) a pole at
+(k + k_gas) / d. Hence
+    kappa / x_piston = K / (tau s + 1),  K = 2 s_p G_a A / (L (k + 2 s_p G_a^2)),
+    tau = d / (k + 2 s_p G_a^2),  s_p = p_atm / (V_seal + p_atm C_a).
+The PI zero cancels the lag (Ki = Kp / tau) and Kp sets the crossover: Kp = wc tau / K.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class SegmentModel:
+    """Segment and circuit parameters (defaults as the FeaSegment FMU) in SI units."""
+
+    length: float = 0.06
+    k_bend: float = 0.025
+    d_bend: float = 6e-3
+    G_a: float = 7.7e-7
+    V_dead: float = 5e-6
+    V_ch0: float = 8e-6
+    C_a: float = 1e-10
+    bore: float = 0.01905
+    stroke: float = 0.05
+    p_atm: float = 101325.0
+
+    @property
+    def bore_area(self) -> float:
+        return math.pi * self.bore**2 / 4.0
+
+    def pressure_stiffness(self) -> float:
+        """dp/dV of one sealed side at sealing [Pa/m^3]."""
+        v_seal = self.bore_area * self.stroke / 2.0 + self.V_dead + self.V_ch0
+        return self.p_atm / (v_seal + self.p_atm * self.C_a)
+
+    def gas_stiffness(self) -> float:
+        """Bending stiffness added by the closed gas circuits [N m/rad]."""
+        return 2.0 * self.pressure_stiffness() * self.G_a**2
+
+    def static_gain(self) -> float:
+        """d kappa / d x_piston at equilibrium [(1/m)/m]."""
+        torque_per_metre = 2.0 * self.pressure_stiffness() * self.G_a * self.bore_area
+        return torque_per_metre / (self.length * (self.k_bend + self.gas_stiffness()))
+
+    def time_constant(self) -> float:
+        """The lag of the overdamped bend [s]."""
+        return self.d_bend / (self.k_bend + self.gas_stiffness())
+
+
+@dataclass(frozen=True)
+class PiGains:
+    """Kp [m per 1/m], Ki [m per (1/m) s]."""
+
+    Kp: float
+    Ki: float
+
+
+def design_pi(model: SegmentModel, crossover_hz: float = 2.0) -> PiGains:
+    """Pole-zero cancelling PI for the given crossover. 2 Hz keeps the loop well inside what the
+    drive can follow (50 mm/s moves the curvature by K * 0.05 ~ 40 1/m/s) and leaves ~75 deg of
+    phase margin after the 10 ms control period, one period of computation delay and ~6 ms of
+    camera latency (together ~25 ms, 18 deg at 2 Hz)."""
+    wc = 2.0 * math.pi * crossover_hz
+    tau = model.time_constant()
+    Kp = wc * tau / model.static_gain()
+    return PiGains(Kp=Kp, Ki=Kp / tau)
+
+
+@dataclass
+class CurvaturePI:
+    """Curvature PI for one segment with static feedforward:
+        setpoint = x_mid + kappa_ref / K + Kp e + integral,
+    clamped to the stroke. Anti-windup by conditional integration: the integral stops while the
+    setpoint is clamped in the error's direction, and while the drive is still slewing towards
+    the previous setpoint (it is rate-limited at about 50 mm/s, far slower than the loop) by
+    more than `lag_tolerance`.
+
+    Parameters
+    ----------
+    gains
+        PI gains.
+    period
+        Control period T [s].
+    x_mid, x_min, x_max
+        Piston position at zero curvature and the usable stroke [m].
+    feedforward
+        1 / K: piston offset per unit curvature reference [m per 1/m] (0 disables it).
+    lag_tolerance
+        Piston lag behind the previous setpoint that counts as slewing [m].
+    """
+
+    gains: PiGains
+    period: float
+    x_mid: float
+    x_min: float
+    x_max: float
+    feedforward: float = 0.0
+    lag_tolerance: float = 1e-3
+    integral: float = 0.0
+    previous: float | None = None
+
+    def update(self, kappa_ref: float, kappa_est: float, piston: float | None = None) -> float:
+        """One control step from the reference, the estimate and the measured piston: the
+        piston setpoint [m]."""
+        error = kappa_ref - kappa_est
+        proposed = self.integral + self.gains.Ki * error * self.period
+        base = self.x_mid + self.feedforward * kappa_ref + self.gains.Kp * error
+        unclamped = base + proposed
+        setpoint = min(max(unclamped, self.x_min), self.x_max)
+        clamped_against = setpoint != unclamped and (unclamped > self.x_max) == (error > 0.0)
+        slewing = (
+            piston is not None
+            and self.previous is not None
+            and abs(self.previous - piston) > self.lag_tolerance
+        )
+        if not clamped_against and not slewing:
+            self.integral = proposed
+        self.previous = setpoint
+        return setpoint

@@ -1,0 +1,301 @@
+"""Running a scenario: the plant, the bus, the controller as a separate program, the results.
+
+`run_scenario` builds the FMUs and the co-simulation, opens the bus (by default it serves its own
+loopback hub on 127.0.0.1), starts the controller (a separate process by default, or a thread on
+the virtual bus with `inprocess`), serves SYNCs until the end, and writes one folder:
+`signals.csv`, `can.log` (candump, simulation time), `controller.json` (what the controller was
+told), `controller.log` (its stderr), plots (`*.png`) and `summary.json`. If anything stops the
+run, the files written so far stay complete and `summary.json` says why.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import threading
+import uuid
+from collections.abc import Callable
+from contextlib import ExitStack
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+from typing import Any
+
+from controllers.canbus import BusOpenError, BusSpec, open_bus
+from controllers.curvature import PiGains, SegmentModel, design_pi
+from controllers.node import (
+    ControllerConfig,
+    ControllerError,
+    ControllerNode,
+    LockstepClock,
+    RealtimeClock,
+)
+from controllers.protocol import Protocol
+from controllers.trajectories import CurvatureProfile, Sine
+from hil.bus.loopback import LoopbackHub
+from hil.errors import BusError, HilError
+from hil.master import Master
+from hil.plant import Plant, build_planar_arm
+from hil.recording import CanLogger, SignalRecorder
+from hil.scenario import Scenario
+from hil.summary import summarise
+
+
+@dataclass(frozen=True)
+class RunOptions:
+    out: Path
+    bus: str | None = None  # a bus spec overriding the scenario's
+    inprocess: bool = False
+    realtime: bool = False
+    progress: bool = True
+
+
+@dataclass(frozen=True)
+class RunResult:
+    out: Path
+    summary: dict[str, Any]
+
+
+def controller_config(scenario: Scenario) -> ControllerConfig:
+    """What the controller is told: geometry, period, task, gains (designed unless given)."""
+    robot = scenario.robot
+    merged = {**robot.cylinder, **robot.segment}
+    model_fields = SegmentModel.__dataclass_fields__
+    model = SegmentModel(**{k: float(v) for k, v in merged.items() if k in model_fields})
+    designed = design_pi(model, scenario.controller.crossover)
+    gains = PiGains(
+        Kp=scenario.controller.kp if scenario.controller.kp is not None else designed.Kp,
+        Ki=scenario.controller.ki if scenario.controller.ki is not None else designed.Ki,
+    )
+    stroke = float(robot.cylinder.get("stroke", 0.05))
+    task = scenario.task
+    return ControllerConfig(
+        lengths=(model.length,) * robot.segments,
+        base=robot.base,
+        control_period=scenario.timing.control_period,
+        cycles=scenario.cycles,
+        x_mid=float(robot.cylinder.get("x_start", stroke / 2)),
+        x_min=0.0,
+        x_max=stroke,
+        gains=gains,
+        feedforward=1.0 / model.static_gain() if scenario.controller.feedforward else 0.0,
+        profile=CurvatureProfile(
+            steps=task.steps,
+            sine=None if task.sine is None else Sine(**asdict(task.sine)),
+            scale=task.scale,
+        ),
+        policy=scenario.controller.policy,
+        timeout=scenario.controller.timeout,
+    )
+
+
+def run_scenario(scenario: Scenario, options: RunOptions) -> RunResult:
+    """Run `scenario`; raises HilError after writing what it could if the run fails."""
+    out = options.out
+    out.mkdir(parents=True, exist_ok=True)
+    for stale in ("summary.json", "signals.csv", "can.log"):
+        (out / stale).unlink(missing_ok=True)
+    config = controller_config(scenario)
+    (out / "controller.json").write_text(config.to_json() + "\n")
+    (out / "scenario.toml").write_text(
+        Path(scenario.source).read_text() if Path(scenario.source).is_file() else ""
+    )
+    protocol = Protocol()
+    summary: dict[str, Any] = {"scenario": scenario.name, "seed": scenario.seed, "status": "failed"}
+    with ExitStack() as stack:
+        participants, connections = build_planar_arm(scenario)
+        for participant in participants:
+            stack.callback(participant.close)
+        master = Master(participants, connections, scenario.timing.step)
+        plant_spec, controller_spec = _bus_specs(scenario, options, stack)
+        plant_bus = _open(plant_spec)
+        stack.callback(plant_bus.shutdown)
+        signals = SignalRecorder(out / "signals.csv", scenario.robot.segments)
+        stack.callback(signals.close)
+        can_log = CanLogger(out / "can.log")
+        stack.callback(can_log.close)
+        plant = Plant(scenario, plant_bus, master, signals, can_log, protocol)
+        peer = _start_controller(config, controller_spec, options, out, stack)
+        progress = _progress_bar(scenario, options, stack)
+        try:
+            stats = plant.run(peer.gone, progress)
+        except HilError as exc:
+            summary["error"] = str(exc)
+            peer.stop()
+            _write_summary(out, summary)
+            raise
+        except KeyboardInterrupt:
+            summary["error"] = "interrupted"
+            peer.stop()
+            _write_summary(out, summary)
+            raise
+        report = peer.finish()
+    summary = summarise(scenario, out / "signals.csv", stats, can_log, report, protocol)
+    summary["bus"] = str(plant_spec)
+    summary["controller_process"] = "thread" if options.inprocess else "process"
+    _write_summary(out, summary)
+    from hil.plots import plot_run
+
+    plot_run(out / "signals.csv", scenario.robot.segments, out)
+    return RunResult(out, summary)
+
+
+def _write_summary(out: Path, summary: dict[str, Any]) -> None:
+    (out / "summary.json").write_text(json.dumps(summary, indent=2, sort_keys=True) + "\n")
+
+
+def _open(spec: BusSpec):  # noqa: ANN202 - can.BusABC
+    try:
+        return open_bus(spec)
+    except BusOpenError as exc:
+        raise BusError(str(exc)) from exc
+
+
+def _bus_specs(
+    scenario: Scenario, options: RunOptions, stack: ExitStack
+) -> tuple[BusSpec, BusSpec]:
+    """(plant's spec, controller's spec). A loopback bus without a port gets its own hub."""
+    if options.inprocess:
+        if options.bus and not options.bus.startswith("virtual"):
+            raise HilError(f"--inprocess runs on the virtual bus, not {options.bus}")
+        channel = f"softhil-{uuid.uuid4().hex[:8]}"  # a private channel per run
+        spec = BusSpec("virtual", channel)
+        return spec, spec
+    if options.bus:
+        try:
+            spec = BusSpec.parse(options.bus)
+        except ValueError as exc:
+            raise HilError(str(exc)) from exc
+    else:
+        b = scenario.bus
+        spec = BusSpec(b.kind, b.channel, b.host, b.port or 0)
+    if spec.kind == "virtual":
+        raise HilError("a virtual bus only joins one process: use --inprocess, or --bus loopback")
+    if spec.kind == "loopback" and (options.bus is None and scenario.bus.port == 0):
+        hub = LoopbackHub(spec.host).start()
+        stack.callback(hub.stop)
+        spec = replace(spec, port=hub.port)
+    return spec, spec
+
+
+class _Peer:
+    """The controller, as a thread or a process, with one way to ask whether it is gone."""
+
+    def __init__(self) -> None:
+        self.process: subprocess.Popen[bytes] | None = None
+        self.thread: threading.Thread | None = None
+        self.error: BaseException | None = None
+        self.report: Any = None
+        self.log: Path | None = None
+
+    def gone(self) -> str | None:
+        if self.process is not None:
+            code = self.process.poll()
+            if code is None:
+                return None
+            return f"the controller exited with code {code}{self._last_words()}"
+        if self.thread is not None and not self.thread.is_alive():
+            return (
+                f"the controller stopped: {self.error}" if self.error else "the controller stopped"
+            )
+        return None
+
+    def _last_words(self) -> str:
+        if self.log is None or not self.log.is_file():
+            return ""
+        lines = self.log.read_text(errors="replace").strip().splitlines()
+        return f" ({lines[-1]})" if lines else ""
+
+    def stop(self) -> None:
+        if self.process is not None and self.process.poll() is None:
+            self.process.terminate()
+            try:
+                self.process.wait(timeout=5)
+            except subprocess.TimeoutExpired:
+                self.process.kill()
+                self.process.wait()
+
+    def finish(self) -> dict[str, Any]:
+        """Wait for a controller that has done its last cycle; its report."""
+        if self.process is not None:
+            code = self.process.wait(timeout=30)
+            if code != 0:
+                raise HilError(f"the controller failed with code {code}{self._last_words()}")
+            report_path = self.log.with_name("controller_report.json") if self.log else None
+            if report_path and report_path.is_file():
+                return dict(json.loads(report_path.read_text()))
+            return {}
+        if self.thread is not None:
+            self.thread.join(timeout=30)
+            if self.error is not None:
+                raise HilError(f"the controller failed: {self.error}")
+            return asdict(self.report) if self.report is not None else {}
+        return {}
+
+
+def _start_controller(
+    config: ControllerConfig, spec: BusSpec, options: RunOptions, out: Path, stack: ExitStack
+) -> _Peer:
+    peer = _Peer()
+    if options.inprocess:
+        bus = _open(spec)
+        stack.callback(bus.shutdown)
+        clock = RealtimeClock(config.control_period) if options.realtime else LockstepClock()
+        node = ControllerNode(config, bus, clock)
+
+        def work() -> None:
+            try:
+                peer.report = node.run()
+            except (ControllerError, Exception) as exc:  # reported through peer.gone()
+                peer.error = exc
+
+        peer.thread = threading.Thread(target=work, name="controller", daemon=True)
+        peer.thread.start()
+        return peer
+    peer.log = out / "controller.log"
+    command = [
+        sys.executable,
+        "-m",
+        "controllers",
+        "--config",
+        str(out / "controller.json"),
+        "--bus",
+        str(spec),
+        "--report",
+        str(out / "controller_report.json"),
+    ]
+    if options.realtime:
+        command.append("--realtime")
+    log = stack.enter_context(peer.log.open("wb"))
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    peer.process = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, env=env)
+    (out / "controller.pid").write_text(f"{peer.process.pid}\n")
+    stack.callback(peer.stop)
+    return peer
+
+
+def _progress_bar(
+    scenario: Scenario, options: RunOptions, stack: ExitStack
+) -> Callable[[int], None] | None:
+    if not options.progress:
+        return None
+    from tqdm import tqdm
+
+    bar = tqdm(
+        total=scenario.cycles,
+        unit="SYNC",
+        desc=scenario.name,
+        disable=None,
+        leave=False,
+        mininterval=0.2,
+    )
+    stack.callback(bar.close)
+    last = [0]
+
+    def update(cycle: int) -> None:
+        if cycle - last[0] >= 10 or cycle == scenario.cycles:
+            bar.update(cycle - last[0])
+            last[0] = cycle
+
+    return update

@@ -1,0 +1,340 @@
+"""Scenarios: TOML files that say what to run, validated completely before anything runs.
+
+A scenario names the robot (its FMUs and parameters), extra connections, rates, bus, camera,
+safety limits, controller and task, seed and duration. `load_scenario` returns a frozen
+`Scenario` or raises `ScenarioError` with one line naming the file, the key and the reason
+(unknown key, wrong type, missing FMU, impossible rate, value out of range). The default scenario
+ships inside the package (`hil/scenarios/default.toml`).
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+import types
+import typing
+from dataclasses import MISSING, dataclass, field, fields, replace
+from importlib.resources import files
+from pathlib import Path
+from typing import Any
+
+from controllers.canbus import KINDS as BUS_KINDS
+from controllers.node import POLICIES
+from controllers.protocol import MAX_DRIVES
+from hil.errors import HilError, ScenarioError
+
+DEFAULT_SCENARIO = Path(str(files("hil") / "scenarios" / "default.toml"))
+
+
+@dataclass(frozen=True)
+class TimingSpec:
+    step: float = 1e-3  # plant macro step h [s]
+    control_period: float = 1e-2  # SYNC period T [s], an integer multiple of step
+
+
+@dataclass(frozen=True)
+class RobotSpec:
+    kind: str = "planar_arm"
+    segments: int = 1
+    base: tuple[float, float, float] = (0.0, 0.0, math.pi / 2)  # x [m], y [m], heading [rad]
+    segment_fmu: str = "FeaSegment"  # model name or path to an .fmu
+    cylinder_fmu: str = "DriveCylinder"
+    segment: dict[str, float] = field(default_factory=dict)  # parameters of every segment
+    cylinder: dict[str, float] = field(default_factory=dict)  # parameters of every cylinder
+    segment_decimation: int = 1
+    cylinder_decimation: int = 1
+
+
+@dataclass(frozen=True)
+class ConnectionSpec:
+    source: str  # "participant.variable"
+    target: str
+    gain: float = 1.0
+    offset: float = 0.0
+
+
+@dataclass(frozen=True)
+class BusConfig:
+    kind: str = "loopback"
+    channel: str = "softhil"
+    host: str = "127.0.0.1"
+    port: int = 0  # 0: `hil run` serves its own hub on a free port
+    bitrate: int = 1_000_000
+
+
+@dataclass(frozen=True)
+class CameraSpec:
+    rate: float = 100.0  # [Hz]
+    latency: float = 0.006  # exposure to availability [s]
+    noise: float = 0.0  # marker position standard deviation [m]
+
+
+@dataclass(frozen=True)
+class SafetySpec:
+    max_pressure: float = 60e3  # gauge [Pa]: beyond it the drive holds and sends EMCY
+    command_timeout: float = 0.1  # [s] without a command: hold and EMCY
+
+
+@dataclass(frozen=True)
+class ControllerSpec:
+    kp: float | None = None  # [m per 1/m]; None: designed from the segment physics
+    ki: float | None = None  # [m per (1/m) s]
+    crossover: float = 1.0  # [Hz] for the designed gains
+    feedforward: bool = True  # static inverse of the segment's curvature per piston travel
+    policy: str = "strict"
+    timeout: float = 10.0  # wall-clock wait for a peer [s]
+
+
+@dataclass(frozen=True)
+class SineSpec:
+    start: float
+    amplitude: float
+    frequency: float
+    offset: float = 0.0
+
+
+@dataclass(frozen=True)
+class TaskSpec:
+    kind: str = "curvature_profile"
+    steps: tuple[tuple[float, float], ...] = ()
+    sine: SineSpec | None = None
+    scale: tuple[float, ...] = (1.0,)
+
+
+@dataclass(frozen=True)
+class Scenario:
+    name: str
+    seed: int
+    duration: float
+    description: str = ""
+    timing: TimingSpec = TimingSpec()
+    robot: RobotSpec = RobotSpec()
+    connections: tuple[ConnectionSpec, ...] = ()
+    bus: BusConfig = BusConfig()
+    camera: CameraSpec = CameraSpec()
+    safety: SafetySpec = SafetySpec()
+    controller: ControllerSpec = ControllerSpec()
+    task: TaskSpec = TaskSpec()
+    source: str = "<built-in>"
+
+    @property
+    def control_ticks(self) -> int:
+        return round(self.timing.control_period / self.timing.step)
+
+    @property
+    def cycles(self) -> int:
+        return round(self.duration / self.timing.control_period)
+
+    @property
+    def camera_ticks(self) -> int:
+        return round(1.0 / (self.camera.rate * self.timing.step))
+
+    @property
+    def latency_ticks(self) -> int:
+        return round(self.camera.latency / self.timing.step)
+
+
+# TOML key -> field name where Python needs another name
+_ALIASES = {"from": "source", "to": "target"}
+
+
+def load_scenario(path: Path | None = None, *, seed: int | None = None) -> Scenario:
+    """Read and validate a scenario file (the built-in default when `path` is None)."""
+    source = path or DEFAULT_SCENARIO
+    try:
+        data = tomllib.loads(source.read_text())
+    except FileNotFoundError:
+        raise ScenarioError(f"{source}: no such scenario file") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ScenarioError(f"{source}: cannot read: {exc}") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ScenarioError(f"{source}: not valid TOML: {exc}") from None
+    scenario = _build(Scenario, {**data, "source": str(source)}, str(source), "")
+    if seed is not None:
+        scenario = replace(scenario, seed=seed)
+    _check(scenario)
+    return scenario
+
+
+def _fail(file: str, key: str, reason: str) -> ScenarioError:
+    return ScenarioError(f"{file}: {key or '(top level)'}: {reason}")
+
+
+def _build(cls: type, data: Any, file: str, key: str) -> Any:
+    if not isinstance(data, dict):
+        raise _fail(file, key, f"must be a table, got {type(data).__name__}")
+    hints = typing.get_type_hints(cls)
+    known = {f.name: f for f in fields(cls)}
+    values: dict[str, Any] = {}
+    for raw_name, raw in data.items():
+        name = _ALIASES.get(raw_name, raw_name)
+        sub = f"{key}.{raw_name}" if key else raw_name
+        if name not in known:
+            allowed = ", ".join(k for k in ([*_ALIASES] if cls is ConnectionSpec else known))
+            raise _fail(file, sub, f"unknown key (allowed: {allowed})")
+        values[name] = _convert(hints[name], raw, file, sub)
+    for f in fields(cls):
+        if f.name not in values and f.default is MISSING and f.default_factory is MISSING:
+            raise _fail(file, f"{key}.{f.name}" if key else f.name, "missing required key")
+    return cls(**values)
+
+
+def _convert(hint: Any, raw: Any, file: str, key: str) -> Any:
+    origin = typing.get_origin(hint)
+    args = typing.get_args(hint)
+    if origin in (typing.Union, types.UnionType):
+        inner = [a for a in args if a is not type(None)]
+        return _convert(inner[0], raw, file, key)
+    if hint is float:
+        if isinstance(raw, bool) or not isinstance(raw, int | float):
+            raise _fail(file, key, f"must be a number, got {raw!r}")
+        if not math.isfinite(raw):
+            raise _fail(file, key, f"must be finite, got {raw!r}")
+        return float(raw)
+    if hint is int:
+        if isinstance(raw, bool) or not isinstance(raw, int):
+            raise _fail(file, key, f"must be an integer, got {raw!r}")
+        return raw
+    if hint is str:
+        if not isinstance(raw, str):
+            raise _fail(file, key, f"must be a string, got {raw!r}")
+        return raw
+    if origin is tuple:
+        if not isinstance(raw, list):
+            raise _fail(file, key, f"must be an array, got {raw!r}")
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_convert(args[0], item, file, f"{key}[{i}]") for i, item in enumerate(raw))
+        if len(raw) != len(args):
+            raise _fail(file, key, f"must have {len(args)} elements, got {len(raw)}")
+        return tuple(
+            _convert(a, item, file, f"{key}[{i}]")
+            for i, (a, item) in enumerate(zip(args, raw, strict=True))
+        )
+    if origin is dict:
+        if not isinstance(raw, dict):
+            raise _fail(file, key, f"must be a table, got {raw!r}")
+        return {k: _convert(args[1], v, file, f"{key}.{k}") for k, v in raw.items()}
+    if isinstance(hint, type) and hasattr(hint, "__dataclass_fields__"):
+        return _build(hint, raw, file, key)
+    raise _fail(file, key, f"unsupported type {hint}")  # pragma: no cover - schema bug
+
+
+def _check(s: Scenario) -> None:
+    """Semantic checks: rates, ranges, FMUs, parameters, connections, task."""
+    file = s.source
+    t = s.timing
+    if s.duration <= 0:
+        raise _fail(file, "duration", f"must be positive, got {s.duration}")
+    if t.step <= 0 or t.control_period <= 0:
+        raise _fail(file, "timing", "step and control_period must be positive")
+    _multiple(file, "timing.control_period", t.control_period, t.step, "timing.step")
+    _multiple(file, "duration", s.duration, t.control_period, "timing.control_period")
+    if s.camera.rate <= 0:
+        raise _fail(file, "camera.rate", f"must be positive, got {s.camera.rate}")
+    _multiple(file, "camera.rate", 1.0 / s.camera.rate, t.step, "timing.step", as_period=True)
+    if s.camera.latency < 0:
+        raise _fail(file, "camera.latency", "must not be negative")
+    _multiple(file, "camera.latency", s.camera.latency, t.step, "timing.step", allow_zero=True)
+    if s.camera.noise < 0:
+        raise _fail(file, "camera.noise", "must not be negative")
+    r = s.robot
+    if r.kind != "planar_arm":
+        raise _fail(file, "robot.kind", f"unknown robot {r.kind!r} (known: planar_arm)")
+    if not 1 <= r.segments <= MAX_DRIVES:
+        raise _fail(file, "robot.segments", f"must be 1..{MAX_DRIVES}, got {r.segments}")
+    for name in ("segment_decimation", "cylinder_decimation"):
+        d = getattr(r, name)
+        if d < 1 or s.control_ticks % d:
+            raise _fail(
+                file, f"robot.{name}", f"must divide the control period's {s.control_ticks} ticks"
+            )
+    segment_spec = _model_spec(file, "robot.segment_fmu", r.segment_fmu)
+    cylinder_spec = _model_spec(file, "robot.cylinder_fmu", r.cylinder_fmu)
+    for table, spec in (("segment", segment_spec), ("cylinder", cylinder_spec)):
+        if spec is None:
+            continue
+        parameters = {v.name for v in spec.variables if v.causality == "parameter"}
+        for name in getattr(r, table):
+            if name not in parameters:
+                raise _fail(file, f"robot.{table}.{name}", f"{spec.name} has no parameter {name!r}")
+    if s.bus.kind not in BUS_KINDS:
+        raise _fail(file, "bus.kind", f"must be one of {', '.join(BUS_KINDS)}")
+    if s.bus.bitrate <= 0:
+        raise _fail(file, "bus.bitrate", "must be positive")
+    if not 0 <= s.bus.port < 65536:
+        raise _fail(file, "bus.port", f"must be 0..65535, got {s.bus.port}")
+    if s.controller.policy not in POLICIES:
+        raise _fail(file, "controller.policy", f"must be one of {', '.join(POLICIES)}")
+    if s.controller.timeout <= 0 or s.controller.crossover <= 0:
+        raise _fail(file, "controller", "timeout and crossover must be positive")
+    if s.safety.max_pressure <= 0 or s.safety.command_timeout <= 0:
+        raise _fail(file, "safety", "max_pressure and command_timeout must be positive")
+    _check_task(s)
+    participants = {f"segment{i}" for i in range(1, r.segments + 1)} | {
+        f"cylinder{i}" for i in range(1, r.segments + 1)
+    }
+    for i, c in enumerate(s.connections):
+        for end in ("source", "target"):
+            value = getattr(c, end)
+            owner, _, variable = value.partition(".")
+            if owner not in participants or not variable:
+                raise _fail(
+                    file,
+                    f"connections[{i}].{'from' if end == 'source' else 'to'}",
+                    f"{value!r} is not participant.variable (participants: "
+                    f"{', '.join(sorted(participants))})",
+                )
+
+
+def _check_task(s: Scenario) -> None:
+    file, task = s.source, s.task
+    if task.kind != "curvature_profile":
+        raise _fail(file, "task.kind", f"unknown task {task.kind!r} (known: curvature_profile)")
+    times = [t for t, _ in task.steps]
+    if times != sorted(times):
+        raise _fail(file, "task.steps", "step times must be increasing")
+    length = float(s.robot.segment.get("length", 0.06))
+    theta_max = float(s.robot.segment.get("theta_max", 1.6))
+    limit = min(theta_max / length, 32.767)
+    levels = [abs(k) for _, k in task.steps]
+    if task.sine is not None:
+        levels.append(abs(task.sine.offset) + abs(task.sine.amplitude))
+        if task.sine.frequency <= 0:
+            raise _fail(file, "task.sine.frequency", "must be positive")
+    peak = max(levels, default=0.0) * max((abs(x) for x in task.scale), default=1.0)
+    if peak > limit:
+        raise _fail(file, "task", f"curvature {peak:g} 1/m is beyond the reachable {limit:.3g} 1/m")
+    if not task.scale:
+        raise _fail(file, "task.scale", "must not be empty")
+
+
+def _multiple(
+    file: str,
+    key: str,
+    value: float,
+    unit: float,
+    unit_key: str,
+    *,
+    as_period: bool = False,
+    allow_zero: bool = False,
+) -> None:
+    ratio = value / unit
+    n = round(ratio)
+    if abs(ratio - n) > 1e-9 * max(1.0, ratio) or (n < 1 and not allow_zero):
+        what = f"period {value:g} s" if as_period else f"{value:g} s"
+        raise _fail(file, key, f"{what} is not an integer multiple of {unit_key} = {unit:g} s")
+
+
+def _model_spec(file: str, key: str, fmu: str):  # noqa: ANN202 - ModelSpec | None
+    from hil.fmu.build import model_folder
+    from hil.fmu.spec import load_spec
+
+    if fmu.endswith(".fmu"):
+        path = Path(fmu) if Path(fmu).is_absolute() else Path(file).parent / fmu
+        if not path.is_file():
+            raise _fail(file, key, f"FMU file {str(path)!r} does not exist")
+        return None
+    try:
+        return load_spec(model_folder(fmu))
+    except HilError as exc:
+        raise _fail(file, key, str(exc)) from None

@@ -1,0 +1,170 @@
+"""Task metrics of a run (`summary.json`): tracking error, overshoot, settling, bus load, frames.
+
+Metrics are computed from the recorded signals against the plant's own evaluation of the
+reference profile (the same function the controller tracks). Step metrics use every step hold
+of the profile: overshoot as a fraction of the step, settling time into a +-5 % band of the step
+(measured from the step), steady-state error as the mean |error| over the last 20 % of the hold.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from controllers.protocol import (
+    COMMAND_BASE,
+    HEARTBEAT_BASE,
+    MARKER_BASE,
+    STATE_BASE,
+    STATUS_BASE,
+    SYNC_ID,
+    Protocol,
+    bus_load,
+)
+from hil.plant import HEARTBEAT_PERIOD, PlantStats
+from hil.recording import CanLogger
+from hil.scenario import Scenario
+
+SETTLING_BAND = 0.05
+BUS_LOAD_WARNING = 0.70
+
+
+def read_signals(path: Path) -> dict[str, np.ndarray]:
+    """The signals CSV as columns (empty cells are NaN)."""
+    with path.open(newline="") as f:
+        rows = list(csv.reader(f))
+    header, body = rows[0], rows[1:]
+    return {
+        name: np.array([float(r[i]) if r[i] else math.nan for r in body])
+        for i, name in enumerate(header)
+    }
+
+
+def bus_load_of(scenario: Scenario, protocol: Protocol) -> float:
+    """Bus load implied by the scenario's rates and the DBC's frame lengths, at its bitrate."""
+    n = scenario.robot.segments
+    per_period = 1.0 / scenario.timing.control_period
+    rates: dict[int, float] = {SYNC_ID: per_period}
+    for node in range(1, n + 1):
+        rates[STATUS_BASE + node] = per_period
+        rates[COMMAND_BASE + node] = per_period
+        rates[STATE_BASE + node] = per_period
+        rates[HEARTBEAT_BASE + node] = 1.0 / HEARTBEAT_PERIOD
+    for marker in range(n + 1):
+        rates[MARKER_BASE + marker] = scenario.camera.rate
+    return bus_load(rates, scenario.bus.bitrate, protocol)
+
+
+def step_metrics(
+    t: np.ndarray, kappa: np.ndarray, holds: list[tuple[float, float, float]], initial: float = 0.0
+) -> list[dict[str, float]]:
+    """Overshoot, settling time and steady-state error of each step hold."""
+    results = []
+    previous = initial
+    for start, end, level in holds:
+        step = level - previous
+        previous = level
+        if abs(step) < 1e-12:
+            continue
+        window = (t >= start) & (t < end)
+        tw, kw = t[window], kappa[window]
+        if tw.size < 2:
+            continue
+        overshoot = max(0.0, float(np.max(np.sign(step) * (kw - level))) / abs(step))
+        outside = np.nonzero(np.abs(kw - level) > SETTLING_BAND * abs(step))[0]
+        if outside.size == 0:
+            settling = 0.0
+        elif outside[-1] + 1 < tw.size:
+            settling = float(tw[outside[-1] + 1] - start)
+        else:
+            settling = math.inf
+        tail = tw >= end - 0.2 * (end - start)
+        steady = float(np.mean(np.abs(kw[tail] - level)))
+        results.append(
+            {
+                "start": start,
+                "level": level,
+                "step": step,
+                "overshoot": overshoot,
+                "settling_time": settling,
+                "steady_state_error": steady,
+            }
+        )
+    return results
+
+
+def summarise(
+    scenario: Scenario,
+    signals_path: Path,
+    stats: PlantStats,
+    can_log: CanLogger,
+    controller_report: dict[str, Any],
+    protocol: Protocol,
+) -> dict[str, Any]:
+    signals = read_signals(signals_path)
+    t = signals["time"]
+    n = scenario.robot.segments
+    errors = np.concatenate(
+        [signals[f"kappa_ref_{i}"] - signals[f"kappa_{i}"] for i in range(1, n + 1)]
+    )
+    from controllers.trajectories import CurvatureProfile, Sine
+
+    task = scenario.task
+    profile = CurvatureProfile(
+        task.steps,
+        None
+        if task.sine is None
+        else Sine(task.sine.start, task.sine.amplitude, task.sine.frequency, task.sine.offset),
+        task.scale,
+    )
+    segments: list[dict[str, Any]] = []
+    all_steps: list[dict[str, float]] = []
+    for i in range(1, n + 1):
+        scale = task.scale[(i - 1) % len(task.scale)]
+        holds = [(a, b, scale * level) for a, b, level in profile.step_times(scenario.duration)]
+        steps = step_metrics(t, signals[f"kappa_{i}"], holds)
+        sine = None
+        if task.sine is not None:
+            in_sine = t >= task.sine.start + 1.0 / task.sine.frequency  # after one period
+            if np.any(in_sine):
+                e = signals[f"kappa_ref_{i}"][in_sine] - signals[f"kappa_{i}"][in_sine]
+                sine = float(np.sqrt(np.mean(e**2)))
+        segments.append({"segment": i, "steps": steps, "sine_rms_error": sine})
+        all_steps += steps
+    duration = float(t[-1] - t[0]) if t.size > 1 else 0.0
+    load = bus_load_of(scenario, protocol)
+    warnings = []
+    if load > BUS_LOAD_WARNING:
+        warnings.append(f"bus load {100 * load:.0f} % exceeds {100 * BUS_LOAD_WARNING:.0f} %")
+    return {
+        "scenario": scenario.name,
+        "seed": scenario.seed,
+        "status": "completed",
+        "duration": scenario.duration,
+        "rms_tracking_error": float(np.sqrt(np.mean(errors**2))),
+        "max_overshoot": max((s["overshoot"] for s in all_steps), default=0.0),
+        "settling_time": max((s["settling_time"] for s in all_steps), default=0.0),
+        "steady_state_error": max((s["steady_state_error"] for s in all_steps), default=0.0),
+        "segments": segments,
+        "real_time_factor": scenario.duration / stats.wall_time if stats.wall_time > 0 else None,
+        "wall_time": stats.wall_time,
+        "bus_load": load,
+        "bus_load_measured": can_log.bits / scenario.bus.bitrate / duration if duration else None,
+        "bitrate": scenario.bus.bitrate,
+        "frames": {
+            "sent": can_log.sent,
+            "received": can_log.received,
+            "missed": stats.commands_missed + int(controller_report.get("status_missed", 0)),
+            "stale": stats.commands_stale + int(controller_report.get("stale_frames", 0)),
+            "unknown": stats.unknown_frames + int(controller_report.get("unknown_frames", 0)),
+            "emcy": stats.emcy_sent,
+        },
+        "controller": controller_report,
+        "plant": asdict(stats),
+        "warnings": warnings,
+    }
