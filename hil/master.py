@@ -14,6 +14,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from types import MappingProxyType
 from typing import Protocol
 
 from hil.errors import HilError
@@ -137,6 +138,7 @@ class Master:
             self._connections[target].append((variable, c.source, c.gain, c.offset))
         self._driven = driven
         self.values: dict[str, float] = {}
+        self._view = MappingProxyType(self.values)  # what observers get: read-only
         for p in participants:
             self._publish(p)
 
@@ -174,7 +176,7 @@ class Master:
 
     def add_observer(self, observer: Observer) -> None:
         self.observers.append(observer)
-        observer.observe(self.tick, self.values)
+        observer.observe(self.tick, self._view)
 
     def advance_to(self, tick: int) -> None:
         """Step all participants until simulation tick `tick`."""
@@ -198,4 +200,4 @@ class Master:
             self._publish(p)
         self.tick = k + 1
         for observer in self.observers:
-            observer.observe(self.tick, self.values)
+            observer.observe(self.tick, self._view)

@@ -10,14 +10,18 @@ import argparse
 import sys
 from collections.abc import Callable, Sequence
 
+from hil.cli import bus as bus_command
+from hil.cli import controller as controller_command
 from hil.cli import fmu as fmu_command
 from hil.cli import run as run_command
 from hil.errors import HilError
 
-SUBCOMMANDS = (run_command, fmu_command)
+SUBCOMMANDS = (run_command, controller_command, bus_command, fmu_command)
 
 EXAMPLES = """examples:
   hil run                         run the default scenario, results in ./runs/<name>-<seed>/
+  hil run my.toml --inprocess     controller in this process, virtual bus
+  hil bus load                    bus load of the default scenario
   hil fmu build                   build every FMU into the per-user cache
   hil fmu check DriveCylinder     validate an FMU with fmpy and simulate it briefly
 """

@@ -1,0 +1,21 @@
+"""`hil controller`: the controller node program (the same as `python -m controllers`)."""
+
+from __future__ import annotations
+
+import argparse
+
+from controllers.__main__ import add_arguments, run
+
+
+def add_parser(commands: argparse._SubParsersAction) -> None:
+    from hil.cli import example_parser
+
+    parser = example_parser(
+        commands,
+        "controller",
+        "run the controller node: SYNC producer and curvature control over CAN",
+        "  hil controller --config runs/default-1/controller.json --bus loopback:29536\n"
+        "  hil controller --config controller.json --bus socketcan:vcan0 --realtime\n",
+    )
+    add_arguments(parser)
+    parser.set_defaults(handler=run)
