@@ -9,7 +9,7 @@ import fmus
 from controllers.servo_design import DrivePlant, ServoGains, ServoSpec, analyse
 from hil.errors import FmuError
 from hil.fmu.slave import FmuSlave
-from tests.conftest import simulate
+from tests.helpers import simulate
 
 STROKE = 0.05
 MID = 0.025

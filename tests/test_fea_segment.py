@@ -9,7 +9,7 @@ import pytest
 
 from hil.errors import FmuError
 from hil.fmu.slave import FmuSlave
-from tests.conftest import simulate
+from tests.helpers import simulate
 
 P_ATM = 101325.0
 A_BORE = math.pi * 0.01905**2 / 4

@@ -1,0 +1,41 @@
+"""Helpers shared by the FMU tests."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+
+import numpy as np
+
+from hil.fmu.build import BuiltFmu
+from hil.fmu.slave import FmuSlave
+
+
+def simulate(
+    fmu: BuiltFmu,
+    duration: float,
+    outputs: list[str],
+    parameters: Mapping[str, float] | None = None,
+    inputs: Callable[[float], Mapping[str, float]] | None = None,
+    step: float = 1e-3,
+) -> dict[str, np.ndarray]:
+    """Step an FMU in fmpy with inputs(t) applied before each step; outputs sampled after it.
+
+    The returned arrays start with the values after initialisation (t = 0)."""
+    n = int(round(duration / step))
+    record: dict[str, list[float]] = {name: [] for name in ["time", *outputs]}
+    with FmuSlave(fmu, "under_test", parameters) as slave:
+
+        def sample(t: float) -> None:
+            record["time"].append(t)
+            for name in outputs:
+                record[name].append(float(slave.get(name)))
+
+        sample(0.0)
+        for k in range(n):
+            t = k * step
+            if inputs is not None:
+                for name, value in inputs(t).items():
+                    slave.set(name, value)
+            slave.do_step(t, step)
+            sample((k + 1) * step)
+    return {name: np.asarray(values) for name, values in record.items()}
