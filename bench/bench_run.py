@@ -51,13 +51,12 @@ def baseline(scenario: Scenario) -> float:
 
 
 def master_only(scenario: Scenario) -> float:
-    participants, connections = build_planar_arm(scenario)
-    master = Master(participants, connections, scenario.timing.step)
+    rig = build_planar_arm(scenario)
+    master = Master(rig.participants, rig.connections, scenario.timing.step)
     start = time.perf_counter()
     master.advance_to(round(scenario.duration / scenario.timing.step))
     elapsed = time.perf_counter() - start
-    for p in participants:
-        p.close()
+    rig.close()
     return elapsed
 
 

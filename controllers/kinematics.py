@@ -5,7 +5,8 @@ and the controller (which inverts markers back to curvatures). A planar segment 
 and curvature k, starting at pose (x0, y0, th0), ends at
     x = x0 + (sin(th0 + k L) - sin th0) / k,  y = y0 - (cos(th0 + k L) - cos th0) / k,
     th = th0 + k L,
-with the series limit for |k| < 1e-6. Markers sit on the base and on each segment's end.
+computed in the equivalent chord form (see `segment_end`), with the series limit of sin(u)/u for
+|k| < 1e-6. Markers sit on the base and on each segment's end.
 """
 
 from __future__ import annotations
@@ -23,16 +24,14 @@ def segment_end(
 ) -> tuple[float, float, float]:
     """End pose (x, y, heading) of a constant-curvature segment starting at `pose`."""
     x0, y0, th0 = pose
-    th = th0 + kappa * length
-    if abs(kappa) < SMALL_CURVATURE:
-        # second-order series of the arc: exact to O(k^2 L^3)
-        half = 0.5 * kappa * length
-        x = x0 + length * (math.cos(th0) - half * math.sin(th0))
-        y = y0 + length * (math.sin(th0) + half * math.cos(th0))
-    else:
-        x = x0 + (math.sin(th) - math.sin(th0)) / kappa
-        y = y0 - (math.cos(th) - math.cos(th0)) / kappa
-    return x, y, th
+    half = 0.5 * kappa * length
+    # the same end point written as a chord of length L sinc(kL/2) along th0 + kL/2: it has no
+    # cancellation, so it is exact to rounding for every curvature; below SMALL_CURVATURE the
+    # sinc takes its series
+    sinc = 1.0 - half * half / 6.0 if abs(kappa) < SMALL_CURVATURE else math.sin(half) / half
+    chord = length * sinc
+    direction = th0 + half
+    return x0 + chord * math.cos(direction), y0 + chord * math.sin(direction), th0 + 2.0 * half
 
 
 def forward(

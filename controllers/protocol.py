@@ -173,7 +173,7 @@ class Protocol:
     def decode(self, msg: can.Message) -> Frame:
         """The frame of a received message; unknown ids and malformed data raise FrameError."""
         if msg.is_extended_id or msg.is_error_frame or msg.is_remote_frame:
-            raise FrameError(f"unexpected extended/error/remote frame {msg.arbitration_id:#x}")
+            raise FrameError(f"unexpected extended/error/remote frame 0x{msg.arbitration_id:X}")
         entry = self._by_id.get(msg.arbitration_id)
         if entry is None:
             raise FrameError(f"unknown CAN id {frame_name(msg.arbitration_id)}")
@@ -186,6 +186,11 @@ class Protocol:
         values = message.decode(bytes(msg.data), decode_choices=False, scaling=True)
         fields: dict[str, Any] = dict(values)  # type: ignore[arg-type]
         if cls is CameraMarker:
+            if int(fields["marker_id"]) != index:
+                raise FrameError(
+                    f"{message.name} ({frame_name(msg.arbitration_id)}): marker_id "
+                    f"{int(fields['marker_id'])} does not match the CAN id"
+                )
             return CameraMarker(
                 marker_id=int(fields["marker_id"]),
                 x=float(fields["x"]),

@@ -118,11 +118,18 @@ class Master:
         connections: Sequence[Connection],
         step: float,
     ) -> None:
+        if not step > 0.0:
+            raise HilError(f"macro step must be positive, got {step}")
         self.step = step
         self.tick = 0
         self.participants = {p.name: p for p in participants}
         if len(self.participants) != len(participants):
             raise HilError("participant names must be unique")
+        for p in participants:
+            if not isinstance(p.decimation, int) or p.decimation < 1:
+                raise HilError(
+                    f"{p.name}: decimation must be a positive integer, got {p.decimation}"
+                )
         self.observers: list[Observer] = []
         self._externals: dict[str, dict[str, float]] = {p.name: {} for p in participants}
         self._connections: dict[str, list[tuple[str, str, float, float]]] = {
@@ -161,6 +168,25 @@ class Master:
         for name, value in participant.get_outputs().items():
             self.values[f"{participant.name}.{name}"] = value
 
+    def publish(self, participant: str) -> None:
+        """Refresh a participant's outputs after an event changed them between ticks (a device
+        node latching a command at SYNC), so the next tick transfers the new values."""
+        self._publish(self._participant(participant))
+
+    def _participant(self, name: str) -> Participant:
+        try:
+            return self.participants[name]
+        except KeyError:
+            raise HilError(f"no participant {name!r}") from None
+
+    def inputs_of(self, participant: str) -> dict[str, float]:
+        """The inputs `participant` would receive now: externals and connected outputs."""
+        self._participant(participant)
+        values = dict(self._externals[participant])
+        for variable, source, gain, offset in self._connections[participant]:
+            values[variable] = gain * self.values[source] + offset
+        return values
+
     @property
     def time(self) -> float:
         return self.tick * self.step
@@ -170,7 +196,7 @@ class Master:
         key = f"{participant}.{variable}"
         if key in self._driven:
             raise HilError(f"{key} is driven by a connection and cannot be set externally")
-        if variable not in self.participants[participant].input_names():
+        if variable not in self._participant(participant).input_names():
             raise HilError(f"{participant} has no input {variable!r}")
         self._externals[participant][variable] = value
 
@@ -186,12 +212,7 @@ class Master:
     def _step_once(self) -> None:
         k = self.tick
         due = [p for p in self.participants.values() if k % p.decimation == 0]
-        inputs = []
-        for p in due:
-            values = dict(self._externals[p.name])
-            for variable, source, gain, offset in self._connections[p.name]:
-                values[variable] = gain * self.values[source] + offset
-            inputs.append(values)
+        inputs = [self.inputs_of(p.name) for p in due]
         for p, values in zip(due, inputs, strict=True):
             if values:
                 p.set_inputs(values)

@@ -43,7 +43,7 @@ from controllers.protocol import (
 from controllers.trajectories import CurvatureProfile
 from hil.errors import BusError, FmuError, ProtocolError
 from hil.fmu.slave import FmuSlave
-from hil.master import Connection, FmuParticipant, Master
+from hil.master import Connection, FmuParticipant, Master, Participant
 from hil.recording import CanLogger, SignalRecorder
 from hil.scenario import Scenario
 
@@ -54,38 +54,70 @@ POSITION_RANGE = (0.0, 0.13107)  # DriveStatus.piston_position [m]
 HEARTBEAT_PERIOD = 1.0  # [s]
 
 
-def build_planar_arm(scenario: Scenario) -> tuple[list[FmuParticipant], list[Connection]]:
-    """FMU participants and connections of a planar arm: drive n moves segment n's piston, the
-    segment's chamber pressures load the drive. Scenario connections replace defaults that drive
-    the same input, and add the others."""
+@dataclass
+class Rig:
+    """Everything the master steps: FMUs, drive firmware nodes and the camera, and their wiring."""
+
+    participants: list[Participant]
+    connections: list[Connection]
+    drives: list[DriveNode]
+    camera: CameraNode
+
+    def close(self) -> None:
+        for participant in self.participants:
+            if isinstance(participant, FmuParticipant):
+                participant.close()
+
+
+def build_planar_arm(scenario: Scenario) -> Rig:
+    """The planar arm as participants and connections. For each n: drive n's firmware sets
+    cylinder n's setpoint and watches its position and segment n's pressures; cylinder n moves
+    segment n's piston and feels its pressures; the camera sees every segment's curvature.
+    Scenario connections replace defaults that drive the same input, and add the others."""
     robot = scenario.robot
-    participants: list[FmuParticipant] = []
+    fmus: list[FmuParticipant] = []
     connections: dict[str, Connection] = {}
+    x_start = float(robot.cylinder.get("x_start", 0.025))
+    timeout_ticks = round(scenario.safety.command_timeout / scenario.timing.step)
+    drives = [
+        DriveNode(n, x_start, x_start, scenario.safety.max_pressure, timeout_ticks)
+        for n in range(1, robot.segments + 1)
+    ]
+    lengths = [float(robot.segment.get("length", 0.06))] * robot.segments
+    camera = CameraNode(scenario, lengths, np.random.default_rng(scenario.seed))
     try:
         for n in range(1, robot.segments + 1):
             cylinder = FmuSlave(
                 _fmu_ref(scenario, robot.cylinder_fmu), f"cylinder{n}", robot.cylinder
             )
-            participants.append(FmuParticipant(cylinder, robot.cylinder_decimation))
+            fmus.append(FmuParticipant(cylinder, robot.cylinder_decimation))
             segment = FmuSlave(
                 _fmu_ref(scenario, robot.segment_fmu),
                 f"segment{n}",
                 {**_shared_geometry(robot.cylinder), **robot.segment},
             )
-            participants.append(FmuParticipant(segment, robot.segment_decimation))
+            fmus.append(FmuParticipant(segment, robot.segment_decimation))
             for source, target in (
                 (f"cylinder{n}.x", f"segment{n}.x_piston"),
                 (f"segment{n}.p_a", f"cylinder{n}.p_a"),
                 (f"segment{n}.p_b", f"cylinder{n}.p_b"),
+                (f"drive{n}.x_ref", f"cylinder{n}.x_ref"),
+                (f"drive{n}.enable", f"cylinder{n}.enable"),
+                (f"cylinder{n}.x", f"drive{n}.x"),
+                (f"segment{n}.p_a", f"drive{n}.p_a"),
+                (f"segment{n}.p_b", f"drive{n}.p_b"),
+                (f"cylinder{n}.fault", f"drive{n}.servo_fault"),
+                (f"segment{n}.kappa", f"camera.kappa_{n}"),
             ):
                 connections[target] = Connection(source, target)
     except BaseException:
-        for participant in participants:
+        for participant in fmus:
             participant.close()
         raise
     for c in scenario.connections:
         connections[c.target] = Connection(c.source, c.target, c.gain, c.offset)
-    return participants, list(connections.values())
+    participants: list[Participant] = [*fmus, *drives, camera]
+    return Rig(participants, list(connections.values()), drives, camera)
 
 
 def _fmu_ref(scenario: Scenario, fmu: str) -> str:
@@ -107,25 +139,43 @@ def _shared_geometry(cylinder: dict[str, float]) -> dict[str, float]:
 
 
 class CameraNode:
-    """The camera: exposes at its rate, sees the true shape (PCC from the true curvatures) and
-    delivers each frame `latency` later, with optional Gaussian marker noise."""
+    """The camera as a participant: it exposes at its rate (its decimation), sees the true shape
+    (PCC from the curvatures on its inputs) and delivers each frame `latency` later, with
+    optional Gaussian marker noise."""
+
+    name = "camera"
 
     def __init__(self, scenario: Scenario, lengths: list[float], rng: np.random.Generator) -> None:
         self.period_ticks = scenario.camera_ticks
         self.latency_ticks = scenario.latency_ticks
         self.noise = scenario.camera.noise
-        self.step = scenario.timing.step
+        self.macro_step = scenario.timing.step
         self.base = scenario.robot.base
         self.lengths = lengths
         self.segments = len(lengths)
         self.rng = rng
+        self.decimation = self.period_ticks
         self.frame_index = 0
         self.queue: deque[tuple[int, int, int, np.ndarray]] = deque()
+        self.kappas = [0.0] * self.segments
 
-    def observe(self, tick: int, values: Mapping[str, float]) -> None:
-        if tick % self.period_ticks:
-            return
-        kappas = [values[f"segment{n}.kappa"] for n in range(1, self.segments + 1)]
+    def input_names(self) -> list[str]:
+        return [f"kappa_{n}" for n in range(1, self.segments + 1)]
+
+    def output_names(self) -> list[str]:
+        return []
+
+    def set_inputs(self, values: Mapping[str, float]) -> None:
+        for name, value in values.items():
+            self.kappas[int(name.rpartition("_")[2]) - 1] = value
+
+    def get_outputs(self) -> dict[str, float]:
+        return {}
+
+    def step(self, time: float, step: float) -> None:
+        """An exposure at `time` of the shape on the inputs (set from the state at `time`)."""
+        tick = round(time / self.macro_step)
+        kappas = self.kappas
         points = kinematics.markers(kappas, self.lengths, self.base)
         if self.noise > 0.0:
             points = points + self.rng.normal(0.0, self.noise, points.shape)
@@ -137,7 +187,7 @@ class CameraNode:
         frames = []
         while self.queue and self.queue[0][0] <= sync_tick:
             _, exposure, index, points = self.queue.popleft()
-            offset = (sync_tick - exposure) * self.step
+            offset = (sync_tick - exposure) * self.macro_step
             for m, (x, y) in enumerate(points):
                 frames.append(CameraMarker(m, float(x), float(y), index, offset))
         return frames
@@ -145,7 +195,9 @@ class CameraNode:
 
 @dataclass
 class DriveNode:
-    """Drive n's firmware on the bus: latches commands at SYNC and guards its own safety."""
+    """Drive n's firmware as a participant: between SYNCs it holds its outputs (the servo
+    setpoint and enable); at SYNC it latches the last period's command and guards its own
+    safety from its inputs (piston position, chamber pressures, the servo's fault bits)."""
 
     node: int
     x_start: float
@@ -165,12 +217,37 @@ class DriveNode:
 
     def __post_init__(self) -> None:
         self.active_setpoint = self.x_start
+        self.setpoint = self.x_start
+        self.name = f"drive{self.node}"
+        self.decimation = 1
+        self.servo_fault = 0
+
+    def input_names(self) -> list[str]:
+        return ["x", "p_a", "p_b", "servo_fault"]
+
+    def output_names(self) -> list[str]:
+        return ["x_ref", "enable", "fault"]
+
+    def set_inputs(self, values: Mapping[str, float]) -> None:
+        """Inputs are read at SYNC through `latch`; between SYNCs the firmware only holds."""
+
+    def step(self, time: float, step: float) -> None:
+        """Nothing happens between SYNCs: the outputs hold."""
+
+    def get_outputs(self) -> dict[str, float]:
+        return {
+            "x_ref": self.setpoint,
+            "enable": 1.0 if self.active_enable else 0.0,
+            "fault": float((self.servo_fault | self.fault_bits) & 0xFF),
+        }
 
     def receive(self, command: DriveCommand) -> None:
         self.pending = command
 
-    def latch(self, sync_tick: int, counter: int, x: float, p_a: float, p_b: float) -> float:
-        """Apply the commands of the last period at this SYNC; returns the servo setpoint."""
+    def latch(self, sync_tick: int, counter: int, inputs: Mapping[str, float]) -> None:
+        """Apply the commands of the last period at this SYNC, from the inputs at this SYNC."""
+        x, p_a, p_b = inputs["x"], inputs["p_a"], inputs["p_b"]
+        self.servo_fault = int(inputs["servo_fault"])
         expected = (counter - 1) % COUNTER_MODULO
         if self.pending is not None and self.pending.counter == expected:
             self.active_setpoint = self.pending.piston_setpoint
@@ -197,7 +274,7 @@ class DriveNode:
         setpoint = self.hold_position if self.timed_out else self.active_setpoint
         if self.over_pressure and (setpoint - x) * (self.x_seal - x) <= 0.0:
             setpoint = x  # hold: only moves back towards the sealing position relieve pressure
-        return setpoint
+        self.setpoint = setpoint
 
     @property
     def fault_bits(self) -> int:
@@ -223,40 +300,25 @@ class Plant:
         self,
         scenario: Scenario,
         bus: can.BusABC,
-        master: Master,
+        rig: Rig,
         signals: SignalRecorder,
         can_log: CanLogger,
         protocol: Protocol | None = None,
     ) -> None:
         self.scenario = scenario
         self.bus = bus
-        self.master = master
+        self.master = Master(rig.participants, rig.connections, scenario.timing.step)
         self.signals = signals
         self.can_log = can_log
         self.protocol = protocol or Protocol()
         self.stats = PlantStats()
-        robot = scenario.robot
-        self.n = robot.segments
-        cylinder = robot.cylinder
-        x_start = float(cylinder.get("x_start", 0.025))
-        self.lengths = [float(robot.segment.get("length", 0.06))] * self.n
-        self.drives = [
-            DriveNode(
-                n,
-                x_start,
-                x_start,
-                scenario.safety.max_pressure,
-                round(scenario.safety.command_timeout / scenario.timing.step),
-            )
-            for n in range(1, self.n + 1)
-        ]
-        self.camera = CameraNode(scenario, self.lengths, np.random.default_rng(scenario.seed))
-        master.add_observer(self.camera)
+        self.n = scenario.robot.segments
+        self.drives = rig.drives
+        self.camera = rig.camera
         t = scenario.task
         self.profile = CurvatureProfile(
             steps=t.steps, sine=None if t.sine is None else _sine(t.sine), scale=t.scale
         )
-        self.x_refs = [x_start] * self.n
         self.sim_time = 0.0
         self.cycle = -1
         self.heartbeat_every = max(1, round(HEARTBEAT_PERIOD / scenario.timing.control_period))
@@ -345,23 +407,18 @@ class Plant:
 
     def _on_sync(self, cycle: int) -> None:
         sync_tick = cycle * self.scenario.control_ticks
+        master = self.master
         try:
-            self.master.advance_to(sync_tick)
+            master.advance_to(sync_tick)
         except FmuError as exc:
             raise FmuError(f"at t = {self.sim_time:.3f} s: {exc}") from exc
-        values = self.master.values
         emcy: list[Emcy] = []
         for drive in self.drives:
-            n = drive.node
-            x = values[f"cylinder{n}.x"]
-            p_a, p_b = values[f"segment{n}.p_a"], values[f"segment{n}.p_b"]
-            setpoint = drive.latch(sync_tick, cycle, x, p_a, p_b)
-            self.x_refs[n - 1] = setpoint
-            self.master.set_input(f"cylinder{n}", "x_ref", setpoint)
-            self.master.set_input(f"cylinder{n}", "enable", 1.0 if drive.active_enable else 0.0)
+            drive.latch(sync_tick, cycle, master.inputs_of(drive.name))
+            master.publish(drive.name)
             emcy += drive.emcy
             drive.emcy.clear()
-        self._record(cycle)
+        self._record()
         for frame in emcy:
             self._send(frame)
             self.stats.emcy_sent += 1
@@ -371,14 +428,14 @@ class Plant:
         for marker in self.camera.frames_due(sync_tick):
             self._send(marker)
         for drive in self.drives:
-            n = drive.node
+            seen = master.inputs_of(drive.name)  # what the firmware measures
             self._send(
                 DriveStatus(
-                    n,
-                    _clamp(values[f"cylinder{n}.x"], *POSITION_RANGE),
-                    _clamp(values[f"segment{n}.p_a"], *PRESSURE_RANGE),
-                    _clamp(values[f"segment{n}.p_b"], *PRESSURE_RANGE),
-                    (int(values[f"cylinder{n}.fault"]) | drive.fault_bits) & 0xFF,
+                    drive.node,
+                    _clamp(seen["x"], *POSITION_RANGE),
+                    _clamp(seen["p_a"], *PRESSURE_RANGE),
+                    _clamp(seen["p_b"], *PRESSURE_RANGE),
+                    int(master.values[f"{drive.name}.fault"]),
                     cycle,
                 )
             )
@@ -386,7 +443,7 @@ class Plant:
         self.stats.commands_stale = sum(d.stale for d in self.drives)
         self.can_log.flush()
 
-    def _record(self, cycle: int) -> None:
+    def _record(self) -> None:
         values = self.master.values
         row: dict[str, float] = {}
         for n in range(1, self.n + 1):
@@ -396,12 +453,10 @@ class Plant:
             row[f"p_a_{n}"] = values[f"segment{n}.p_a"]
             row[f"p_b_{n}"] = values[f"segment{n}.p_b"]
             row[f"x_{n}"] = values[f"cylinder{n}.x"]
-            row[f"x_ref_{n}"] = self.x_refs[n - 1]
+            row[f"x_ref_{n}"] = values[f"drive{n}.x_ref"]
             row[f"v_{n}"] = values[f"cylinder{n}.v"]
             row[f"i_motor_{n}"] = values[f"cylinder{n}.i_motor"]
-            row[f"fault_{n}"] = float(
-                int(values[f"cylinder{n}.fault"]) | self.drives[n - 1].fault_bits
-            )
+            row[f"fault_{n}"] = values[f"drive{n}.fault"]
         self.signals.begin_row(self.sim_time, row)
 
 

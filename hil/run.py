@@ -35,7 +35,6 @@ from controllers.protocol import Protocol
 from controllers.trajectories import CurvatureProfile, Sine
 from hil.bus.loopback import LoopbackHub
 from hil.errors import BusError, HilError
-from hil.master import Master
 from hil.plant import Plant, build_planar_arm
 from hil.recording import CanLogger, SignalRecorder
 from hil.scenario import Scenario
@@ -104,10 +103,8 @@ def run_scenario(scenario: Scenario, options: RunOptions) -> RunResult:
     protocol = Protocol()
     summary: dict[str, Any] = {"scenario": scenario.name, "seed": scenario.seed, "status": "failed"}
     with ExitStack() as stack:
-        participants, connections = build_planar_arm(scenario)
-        for participant in participants:
-            stack.callback(participant.close)
-        master = Master(participants, connections, scenario.timing.step)
+        rig = build_planar_arm(scenario)
+        stack.callback(rig.close)
         plant_spec, controller_spec = _bus_specs(scenario, options, stack)
         plant_bus = _open(plant_spec)
         stack.callback(plant_bus.shutdown)
@@ -115,7 +112,7 @@ def run_scenario(scenario: Scenario, options: RunOptions) -> RunResult:
         stack.callback(signals.close)
         can_log = CanLogger(out / "can.log")
         stack.callback(can_log.close)
-        plant = Plant(scenario, plant_bus, master, signals, can_log, protocol)
+        plant = Plant(scenario, plant_bus, rig, signals, can_log, protocol)
         peer = _start_controller(config, controller_spec, options, out, stack)
         progress = _progress_bar(scenario, options, stack)
         try:

@@ -136,19 +136,22 @@ class Scenario:
 
 # TOML key -> field name where Python needs another name
 _ALIASES = {"from": "source", "to": "target"}
+_DISPLAY = {"source": "from", "target": "to"}
 
 
 def load_scenario(path: Path | None = None, *, seed: int | None = None) -> Scenario:
     """Read and validate a scenario file (the built-in default when `path` is None)."""
     source = path or DEFAULT_SCENARIO
     try:
-        data = tomllib.loads(source.read_text())
+        data = tomllib.loads(source.read_bytes().decode("utf-8"))
     except FileNotFoundError:
         raise ScenarioError(f"{source}: no such scenario file") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise ScenarioError(f"{source}: cannot read: {exc}") from None
     except tomllib.TOMLDecodeError as exc:
         raise ScenarioError(f"{source}: not valid TOML: {exc}") from None
+    if "source" in data:
+        raise _fail(str(source), "source", "unknown key (the file's own path is implied)")
     scenario = _build(Scenario, {**data, "source": str(source)}, str(source), "")
     if seed is not None:
         scenario = replace(scenario, seed=seed)
@@ -170,7 +173,8 @@ def _build(cls: type, data: Any, file: str, key: str) -> Any:
         name = _ALIASES.get(raw_name, raw_name)
         sub = f"{key}.{raw_name}" if key else raw_name
         if name not in known:
-            allowed = ", ".join(k for k in ([*_ALIASES] if cls is ConnectionSpec else known))
+            shown = [_DISPLAY.get(k, k) for k in known if k != "source" or cls is not Scenario]
+            allowed = ", ".join(shown)
             raise _fail(file, sub, f"unknown key (allowed: {allowed})")
         values[name] = _convert(hints[name], raw, file, sub)
     for f in fields(cls):
@@ -225,6 +229,8 @@ def _check(s: Scenario) -> None:
     t = s.timing
     if s.duration <= 0:
         raise _fail(file, "duration", f"must be positive, got {s.duration}")
+    if s.seed < 0:
+        raise _fail(file, "seed", f"must not be negative, got {s.seed}")
     if t.step <= 0 or t.control_period <= 0:
         raise _fail(file, "timing", "step and control_period must be positive")
     _multiple(file, "timing.control_period", t.control_period, t.step, "timing.step")
@@ -270,8 +276,8 @@ def _check(s: Scenario) -> None:
     if s.safety.max_pressure <= 0 or s.safety.command_timeout <= 0:
         raise _fail(file, "safety", "max_pressure and command_timeout must be positive")
     _check_task(s)
-    participants = {f"segment{i}" for i in range(1, r.segments + 1)} | {
-        f"cylinder{i}" for i in range(1, r.segments + 1)
+    participants = {"camera"} | {
+        f"{kind}{i}" for i in range(1, r.segments + 1) for kind in ("segment", "cylinder", "drive")
     }
     for i, c in enumerate(s.connections):
         for end in ("source", "target"):
@@ -291,21 +297,42 @@ def _check_task(s: Scenario) -> None:
     if task.kind != "curvature_profile":
         raise _fail(file, "task.kind", f"unknown task {task.kind!r} (known: curvature_profile)")
     times = [t for t, _ in task.steps]
-    if times != sorted(times):
-        raise _fail(file, "task.steps", "step times must be increasing")
-    length = float(s.robot.segment.get("length", 0.06))
-    theta_max = float(s.robot.segment.get("theta_max", 1.6))
-    limit = min(theta_max / length, 32.767)
-    levels = [abs(k) for _, k in task.steps]
-    if task.sine is not None:
-        levels.append(abs(task.sine.offset) + abs(task.sine.amplitude))
-        if task.sine.frequency <= 0:
-            raise _fail(file, "task.sine.frequency", "must be positive")
-    peak = max(levels, default=0.0) * max((abs(x) for x in task.scale), default=1.0)
-    if peak > limit:
-        raise _fail(file, "task", f"curvature {peak:g} 1/m is beyond the reachable {limit:.3g} 1/m")
+    if any(b <= a for a, b in zip(times, times[1:], strict=False)):
+        raise _fail(file, "task.steps", "step times must be strictly increasing")
     if not task.scale:
         raise _fail(file, "task.scale", "must not be empty")
+    limit = min(_segment_parameter(s, "theta_max") / _segment_parameter(s, "length"), 32.767)
+    gain = max(abs(x) for x in task.scale)
+    for i, (_, kappa) in enumerate(task.steps):
+        if abs(kappa) * gain > limit:
+            raise _fail(
+                file,
+                f"task.steps[{i}]",
+                f"curvature {abs(kappa) * gain:g} 1/m is "
+                f"beyond the reachable {limit:.3g} 1/m (theta_max / length)",
+            )
+    if task.sine is not None:
+        if task.sine.frequency <= 0:
+            raise _fail(file, "task.sine.frequency", "must be positive")
+        peak = (abs(task.sine.offset) + abs(task.sine.amplitude)) * gain
+        if peak > limit:
+            raise _fail(
+                file,
+                "task.sine",
+                f"curvature {peak:g} 1/m is beyond the reachable "
+                f"{limit:.3g} 1/m (theta_max / length)",
+            )
+
+
+def _segment_parameter(s: Scenario, name: str) -> float:
+    """A segment parameter as the scenario sets it, else the model's declared default."""
+    if name in s.robot.segment:
+        return float(s.robot.segment[name])
+    spec = _model_spec(s.source, "robot.segment_fmu", s.robot.segment_fmu)
+    if spec is None:  # an external FMU: the softhil segment's defaults are the best guess
+        spec = _model_spec(s.source, "robot.segment_fmu", "FeaSegment")
+    start = spec.variable(name).start if spec is not None else None
+    return float(start) if start is not None else math.nan
 
 
 def _multiple(

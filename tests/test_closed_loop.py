@@ -35,7 +35,6 @@ from controllers.protocol import (
     Sync,
 )
 from hil.errors import BusError
-from hil.master import Master
 from hil.plant import Plant, build_planar_arm
 from hil.recording import CanLogger, SignalRecorder, signal_columns
 from hil.run import RunOptions, controller_config, run_scenario
@@ -241,11 +240,10 @@ class ScriptedController:
 def run_plant(
     tmp_path: Path, scenario: Scenario, controller: ScriptedController, plant_bus: can.BusABC
 ) -> Plant:
-    participants, connections = build_planar_arm(scenario)
-    master = Master(participants, connections, scenario.timing.step)
+    rig = build_planar_arm(scenario)
     signals = SignalRecorder(tmp_path / "signals.csv", 1)
     log = CanLogger(tmp_path / "can.log")
-    plant = Plant(scenario, plant_bus, master, signals, log)
+    plant = Plant(scenario, plant_bus, rig, signals, log)
     thread = threading.Thread(target=controller.run, daemon=True)
     thread.start()
     try:
@@ -253,8 +251,7 @@ def run_plant(
     finally:
         signals.close()
         log.close()
-        for p in participants:
-            p.close()
+        rig.close()
     thread.join(timeout=10)
     return plant
 
@@ -304,11 +301,10 @@ def test_unknown_can_id_on_the_plant_bus_is_a_clear_error(tmp_path: Path) -> Non
         controller_bus, 3, lambda c: 0.025, extra=lambda c: stray if c == 2 else None
     )
     threading.Thread(target=lambda: _swallow(controller.run), daemon=True).start()
-    participants, connections = build_planar_arm(scenario)
-    master = Master(participants, connections, scenario.timing.step)
+    rig = build_planar_arm(scenario)
     signals = SignalRecorder(tmp_path / "signals.csv", 1)
     log = CanLogger(tmp_path / "can.log")
-    plant = Plant(scenario, plant_bus, master, signals, log)
+    plant = Plant(scenario, plant_bus, rig, signals, log)
     try:
         with pytest.raises(BusError, match=r"unknown CAN id 0x123") as info:
             plant.run(lambda: None)
@@ -316,8 +312,7 @@ def test_unknown_can_id_on_the_plant_bus_is_a_clear_error(tmp_path: Path) -> Non
     finally:
         signals.close()
         log.close()
-        for p in participants:
-            p.close()
+        rig.close()
         plant_bus.shutdown()
         controller_bus.shutdown()
     # the offending frame is in the log, and so is everything before it

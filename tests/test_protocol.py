@@ -1,0 +1,436 @@
+"""Tests for controllers.protocol and the DBC file: ids, ranges, round trips, errors, bus load.
+
+Round trips run over every node (1..8) and every marker (0..15) with seeded random values; the
+decoded value must lie within half a scaling step of the encoded one (cantools rounds). The
+interoperability test writes a candump `.log` line with python-can and decodes it with cantools.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+from collections.abc import Callable
+from pathlib import Path
+
+import can
+import cantools
+import numpy as np
+import pytest
+from cantools.database.can import Database
+
+from controllers.protocol import (
+    DBC_PATH,
+    EMCY_COMMAND_TIMEOUT,
+    EMCY_FMU_FAULT,
+    EMCY_OVER_PRESSURE,
+    NMT_OPERATIONAL,
+    CameraMarker,
+    ControllerState,
+    DriveCommand,
+    DriveStatus,
+    Emcy,
+    Frame,
+    FrameError,
+    Heartbeat,
+    Protocol,
+    Sync,
+    bus_load,
+    frame_bits,
+)
+from hil.fmu.build import model_folder
+from hil.fmu.spec import load_spec
+
+NODES = range(1, 9)
+MARKERS = range(16)
+# scaling steps of the DBC signals
+PISTON_RES = 2e-6  # [m]
+PRESSURE_RES = 10.0  # [Pa]
+MARKER_RES = 2e-5  # [m]
+KAPPA_RES = 1e-3  # [1/m]
+EXPOSURE_RES = 1e-5  # [s]
+# the physics the ranges must cover
+PISTON_STROKE = 0.1  # [m] the 100 mm drive cylinder of the spatial arm
+P_VACUUM = -101325.0  # [Pa gauge] full vacuum
+P_MAX = 300e3  # [Pa gauge]
+KAPPA_REACH = 1.6 / 0.06  # [1/m] theta_max / L = 26.67
+MARKER_REACH = 0.5  # [m]
+
+
+@pytest.fixture(scope="module")
+def protocol() -> Protocol:
+    return Protocol()
+
+
+def close(decoded: float, encoded: float, resolution: float) -> bool:
+    """Within half a scaling step (plus float noise): what rounding to the nearest step gives."""
+    return abs(decoded - encoded) <= 0.5 * resolution * (1.0 + 1e-9)
+
+
+def round_trip(protocol: Protocol, frame: Frame) -> Frame:
+    message = protocol.encode(frame)
+    assert not message.is_extended_id
+    assert len(message.data) == protocol.message(message.arbitration_id).length
+    return protocol.decode(message)
+
+
+def test_sync_round_trip_for_every_counter(protocol: Protocol) -> None:
+    for counter in range(256):
+        assert round_trip(protocol, Sync(counter)) == Sync(counter)
+
+
+@pytest.mark.parametrize("node", NODES)
+def test_drive_status_round_trip(protocol: Protocol, node: int) -> None:
+    rng = np.random.default_rng(node)
+    cases = [(0.0, P_VACUUM, P_MAX), (PISTON_STROKE, P_MAX, P_VACUUM)]
+    cases += [
+        (rng.uniform(0, PISTON_STROKE), rng.uniform(P_VACUUM, P_MAX), rng.uniform(P_VACUUM, P_MAX))
+        for _ in range(20)
+    ]
+    for i, (x, p_a, p_b) in enumerate(cases):
+        frame = DriveStatus(node, float(x), float(p_a), float(p_b), fault=i % 256, counter=7 * i)
+        back = round_trip(protocol, frame)
+        assert isinstance(back, DriveStatus)
+        assert (back.node, back.fault, back.counter) == (node, i, 7 * i)
+        assert isinstance(back.fault, int) and isinstance(back.counter, int)
+        assert close(back.piston_position, x, PISTON_RES)
+        assert close(back.p_a, p_a, PRESSURE_RES)
+        assert close(back.p_b, p_b, PRESSURE_RES)
+
+
+@pytest.mark.parametrize("node", NODES)
+def test_drive_command_round_trip(protocol: Protocol, node: int) -> None:
+    rng = np.random.default_rng(100 + node)
+    setpoints = [0.0, PISTON_STROKE, *rng.uniform(0.0, PISTON_STROKE, 20)]
+    for i, x in enumerate(setpoints):
+        frame = DriveCommand(node, float(x), enable=bool(i % 2), counter=i)
+        back = round_trip(protocol, frame)
+        assert isinstance(back, DriveCommand)
+        assert (back.node, back.enable, back.counter) == (node, bool(i % 2), i)
+        assert isinstance(back.enable, bool)
+        assert close(back.piston_setpoint, x, PISTON_RES)
+
+
+@pytest.mark.parametrize("node", NODES)
+def test_controller_state_round_trip(protocol: Protocol, node: int) -> None:
+    rng = np.random.default_rng(200 + node)
+    pairs = [(-KAPPA_REACH, KAPPA_REACH), (KAPPA_REACH, -KAPPA_REACH), (0.0, 0.0)]
+    pairs += [tuple(rng.uniform(-KAPPA_REACH, KAPPA_REACH, 2)) for _ in range(20)]
+    for i, (ref, est) in enumerate(pairs):
+        back = round_trip(protocol, ControllerState(node, float(ref), float(est), counter=i))
+        assert isinstance(back, ControllerState)
+        assert (back.node, back.counter) == (node, i)
+        assert close(back.kappa_ref, ref, KAPPA_RES)
+        assert close(back.kappa_est, est, KAPPA_RES)
+
+
+@pytest.mark.parametrize("node", NODES)
+def test_emcy_round_trip(protocol: Protocol, node: int) -> None:
+    rng = np.random.default_rng(300 + node)
+    codes = (EMCY_OVER_PRESSURE, EMCY_COMMAND_TIMEOUT, EMCY_FMU_FAULT, 0, 0xFFFF)
+    for i, code in enumerate(codes):
+        pressure = float(rng.uniform(P_VACUUM, P_MAX))
+        back = round_trip(
+            protocol, Emcy(node, code, error_register=0x81, pressure=pressure, counter=i)
+        )
+        assert isinstance(back, Emcy)
+        assert (back.node, back.error_code, back.error_register, back.counter) == (
+            node,
+            code,
+            0x81,
+            i,
+        )
+        assert close(back.pressure, pressure, PRESSURE_RES)
+
+
+@pytest.mark.parametrize("node", NODES)
+def test_heartbeat_round_trip(protocol: Protocol, node: int) -> None:
+    for state in (0, 4, NMT_OPERATIONAL, 127, 255):
+        assert round_trip(protocol, Heartbeat(node, state)) == Heartbeat(node, state)
+
+
+@pytest.mark.parametrize("marker", MARKERS)
+def test_camera_marker_round_trip(protocol: Protocol, marker: int) -> None:
+    rng = np.random.default_rng(400 + marker)
+    cases = [(-MARKER_REACH, MARKER_REACH, 0.0), (MARKER_REACH, -MARKER_REACH, 0.6)]
+    cases += [
+        (*rng.uniform(-MARKER_REACH, MARKER_REACH, 2), rng.uniform(0.0, 0.6)) for _ in range(20)
+    ]
+    for i, (x, y, exposure) in enumerate(cases):
+        frame = CameraMarker(marker, float(x), float(y), frame_index=i, exposure_offset=exposure)
+        back = round_trip(protocol, frame)
+        assert isinstance(back, CameraMarker)
+        assert (back.marker_id, back.frame_index) == (marker, i)
+        assert close(back.x, x, MARKER_RES)
+        assert close(back.y, y, MARKER_RES)
+        assert close(back.exposure_offset, exposure, EXPOSURE_RES)
+
+
+def test_exact_bytes_of_a_drive_command(protocol: Protocol) -> None:
+    # 0.1 m / 2e-6 = 50000 = 0xC350 little-endian at bit 0, enable at bit 16, counter at byte 3
+    message = protocol.encode(DriveCommand(2, 0.1, enable=True, counter=3))
+    assert message.arbitration_id == 0x202
+    assert bytes(message.data) == bytes([0x50, 0xC3, 0x01, 0x03])
+
+
+IDS: list[tuple[Frame, int]] = [
+    (Sync(0), 0x080),
+    *[(DriveStatus(n, 0.0, 0.0, 0.0, 0, 0), 0x180 + n) for n in NODES],
+    *[(DriveCommand(n, 0.0, False, 0), 0x200 + n) for n in NODES],
+    *[(CameraMarker(m, 0.0, 0.0, 0, 0.0), 0x280 + m) for m in MARKERS],
+    *[(ControllerState(n, 0.0, 0.0, 0), 0x380 + n) for n in NODES],
+    *[(Emcy(n, 0, 0, 0.0, 0), 0x080 + n) for n in NODES],
+    *[(Heartbeat(n, NMT_OPERATIONAL), 0x700 + n) for n in NODES],
+]
+
+
+def test_ids_follow_canopen_ranges(protocol: Protocol) -> None:
+    for frame, expected in IDS:
+        assert protocol.frame_id(frame) == expected, frame
+        assert protocol.encode(frame).arbitration_id == expected, frame
+    ids = [expected for _, expected in IDS]
+    assert len(set(ids)) == len(ids) == 1 + 5 * 8 + 16
+
+
+def test_dbc_names_and_ids_agree(protocol: Protocol) -> None:
+    bases = {
+        "DriveStatus": 0x180,
+        "DriveCommand": 0x200,
+        "CameraMarker": 0x280,
+        "ControllerState": 0x380,
+        "EMCY": 0x080,
+        "Heartbeat": 0x700,
+    }
+    database = protocol.database
+    assert len(database.messages) == 57
+    assert database.get_message_by_name("SYNC").frame_id == 0x080
+    for message in database.messages:
+        if message.name == "SYNC":
+            continue
+        prefix = message.name.rstrip("0123456789")
+        index = int(message.name[len(prefix) :])
+        assert message.frame_id == bases[prefix] + index, message.name
+        assert not message.is_extended_frame
+
+
+@pytest.mark.parametrize(
+    ("prefix", "signal", "low", "high"),
+    [
+        ("DriveStatus", "piston_position", 0.0, PISTON_STROKE),
+        ("DriveStatus", "p_a", P_VACUUM, P_MAX),
+        ("DriveStatus", "p_b", P_VACUUM, P_MAX),
+        ("DriveCommand", "piston_setpoint", 0.0, PISTON_STROKE),
+        ("EMCY", "pressure", P_VACUUM, P_MAX),
+        ("ControllerState", "kappa_ref", -KAPPA_REACH, KAPPA_REACH),
+        ("ControllerState", "kappa_est", -KAPPA_REACH, KAPPA_REACH),
+        ("CameraMarker", "x", -MARKER_REACH, MARKER_REACH),
+        ("CameraMarker", "y", -MARKER_REACH, MARKER_REACH),
+    ],
+)
+def test_signal_ranges_cover_the_physics(
+    protocol: Protocol, prefix: str, signal: str, low: float, high: float
+) -> None:
+    first = 0 if prefix == "CameraMarker" else 1
+    for index in range(first, first + (16 if prefix == "CameraMarker" else 8)):
+        spec = protocol.database.get_message_by_name(f"{prefix}{index}").get_signal_by_name(signal)
+        assert spec.minimum is not None and spec.maximum is not None
+        assert spec.minimum <= low and high <= spec.maximum, (prefix, index, signal)
+        # and the raw integer holds the whole declared range (no clipping by the bit width)
+        raw_min = -(2 ** (spec.length - 1)) if spec.is_signed else 0
+        raw_max = 2 ** (spec.length - 1) - 1 if spec.is_signed else 2**spec.length - 1
+        assert raw_min * spec.scale <= low and high <= raw_max * spec.scale
+
+
+def test_kappa_reach_is_the_segment_models_theta_max_over_length() -> None:
+    spec = load_spec(model_folder("FeaSegment"))
+    theta_max, length = spec.variable("theta_max").start, spec.variable("length").start
+    assert theta_max is not None and length is not None
+    assert theta_max / length == pytest.approx(KAPPA_REACH, rel=1e-12)
+    assert round(KAPPA_REACH, 1) == 26.7
+
+
+@pytest.mark.parametrize(
+    ("frame", "expected"),
+    [
+        (Sync(256), Sync(0)),
+        (Sync(-1), Sync(255)),
+        (Sync(256 * 7 + 9), Sync(9)),
+        (DriveStatus(1, 0.0, 0.0, 0.0, 0, 300), DriveStatus(1, 0.0, 0.0, 0.0, 0, 44)),
+        (DriveCommand(3, 0.0, True, 511), DriveCommand(3, 0.0, True, 255)),
+        (ControllerState(8, 0.0, 0.0, 1000), ControllerState(8, 0.0, 0.0, 232)),
+        (Emcy(4, 1, 0, 0.0, 256), Emcy(4, 1, 0, 0.0, 0)),
+        (CameraMarker(5, 0.0, 0.0, 257, 0.0), CameraMarker(5, 0.0, 0.0, 1, 0.0)),
+    ],
+)
+def test_counters_wrap_modulo_256(protocol: Protocol, frame: Frame, expected: Frame) -> None:
+    assert round_trip(protocol, frame) == expected
+
+
+@pytest.mark.parametrize(
+    ("frame", "name", "signal"),
+    [
+        (DriveCommand(1, -1e-3, True, 0), "DriveCommand1", "piston_setpoint"),
+        (DriveCommand(1, 0.2, True, 0), "DriveCommand1", "piston_setpoint"),
+        (DriveStatus(2, 0.14, 0.0, 0.0, 0, 0), "DriveStatus2", "piston_position"),
+        (DriveStatus(2, 0.05, 4e5, 0.0, 0, 0), "DriveStatus2", "p_a"),
+        (DriveStatus(2, 0.05, 0.0, -4e5, 0, 0), "DriveStatus2", "p_b"),
+        (DriveStatus(2, 0.05, 0.0, 0.0, 256, 0), "DriveStatus2", "fault"),
+        (ControllerState(3, 40.0, 0.0, 0), "ControllerState3", "kappa_ref"),
+        (ControllerState(3, 0.0, -40.0, 0), "ControllerState3", "kappa_est"),
+        (Emcy(4, 0x10000, 0, 0.0, 0), "EMCY4", "error_code"),
+        (Emcy(4, 1, 0, 5e5, 0), "EMCY4", "pressure"),
+        (Heartbeat(5, 256), "Heartbeat5", "nmt_state"),
+        (CameraMarker(6, 0.7, 0.0, 0, 0.0), "CameraMarker6", '"x"'),
+        (CameraMarker(6, 0.0, -0.7, 0, 0.0), "CameraMarker6", '"y"'),
+        (CameraMarker(6, 0.0, 0.0, 0, -1e-3), "CameraMarker6", "exposure_offset"),
+        (CameraMarker(6, 0.0, 0.0, 0, 0.7), "CameraMarker6", "exposure_offset"),
+    ],
+)
+def test_out_of_range_names_frame_and_signal(
+    protocol: Protocol, frame: Frame, name: str, signal: str
+) -> None:
+    with pytest.raises(FrameError) as info:
+        protocol.encode(frame)
+    text = str(info.value)
+    assert text.startswith(f"{name} (0x{protocol.frame_id(frame):03X}): ")
+    assert signal in text
+    assert "\n" not in text
+
+
+@pytest.mark.parametrize("value", [math.nan, math.inf, -math.inf])
+@pytest.mark.parametrize(
+    ("make", "name", "signal"),
+    [
+        (lambda v: DriveCommand(1, v, True, 0), "DriveCommand1", "piston_setpoint"),
+        (lambda v: DriveStatus(8, 0.0, 0.0, v, 0, 0), "DriveStatus8", "p_b"),
+        (lambda v: ControllerState(2, 0.0, v, 0), "ControllerState2", "kappa_est"),
+        (lambda v: Emcy(1, 1, 0, v, 0), "EMCY1", "pressure"),
+        (lambda v: CameraMarker(0, v, 0.0, 0, 0.0), "CameraMarker0", "x"),
+        (lambda v: CameraMarker(0, 0.0, 0.0, 0, v), "CameraMarker0", "exposure_offset"),
+    ],
+)
+def test_non_finite_values_are_rejected(
+    protocol: Protocol, value: float, make: Callable[[float], Frame], name: str, signal: str
+) -> None:
+    with pytest.raises(FrameError, match=rf"^{name} \(0x[0-9A-F]{{3}}\): {signal} is "):
+        protocol.encode(make(value))
+
+
+@pytest.mark.parametrize(
+    ("frame", "message"),
+    [
+        (DriveStatus(0, 0.0, 0.0, 0.0, 0, 0), "DriveStatus0: no such frame"),
+        (DriveCommand(9, 0.0, True, 0), "DriveCommand9: no such frame"),
+        (Emcy(0, 0, 0, 0.0, 0), "EMCY0: no such frame"),  # 0x080 is SYNC, not an EMCY
+        (Heartbeat(9, 5), "Heartbeat9: no such frame"),
+        (CameraMarker(16, 0.0, 0.0, 0, 0.0), "CameraMarker16: no such frame"),
+        (CameraMarker(-1, 0.0, 0.0, 0, 0.0), "CameraMarker-1: no such frame"),
+    ],
+)
+def test_node_or_marker_out_of_range(protocol: Protocol, frame: Frame, message: str) -> None:
+    with pytest.raises(FrameError, match=f"^{message}"):
+        protocol.encode(frame)
+
+
+@pytest.mark.parametrize(
+    ("frame_id", "text"),
+    [(0x123, "0x123"), (0x180, "0x180"), (0x290, "0x290"), (0x709, "0x709"), (0x7FF, "0x7FF")],
+)
+def test_decoding_an_unknown_id(protocol: Protocol, frame_id: int, text: str) -> None:
+    message = can.Message(arbitration_id=frame_id, data=bytes(8), is_extended_id=False)
+    with pytest.raises(FrameError, match=f"^unknown CAN id {text}$"):
+        protocol.decode(message)
+
+
+@pytest.mark.parametrize(
+    "message",
+    [
+        can.Message(arbitration_id=0x181, data=bytes(8), is_extended_id=True),
+        can.Message(arbitration_id=0x181, is_remote_frame=True, dlc=8, is_extended_id=False),
+        can.Message(arbitration_id=0x181, is_error_frame=True, is_extended_id=False),
+    ],
+)
+def test_extended_remote_and_error_frames_are_rejected(
+    protocol: Protocol, message: can.Message
+) -> None:
+    with pytest.raises(FrameError, match="0x181"):
+        protocol.decode(message)
+
+
+@pytest.mark.parametrize(("frame_id", "length"), [(0x181, 7), (0x181, 0), (0x201, 5), (0x701, 2)])
+def test_wrong_data_length(protocol: Protocol, frame_id: int, length: int) -> None:
+    message = can.Message(arbitration_id=frame_id, data=bytes(length), is_extended_id=False)
+    expected = protocol.message(frame_id).length
+    with pytest.raises(FrameError) as info:
+        protocol.decode(message)
+    assert str(info.value) == (
+        f"{protocol.message(frame_id).name} (0x{frame_id:03X}): {length} data bytes, "
+        f"the DBC says {expected}"
+    )
+
+
+def derived_frame_bits(dlc: int) -> int:
+    """Classic CAN data frame, 11-bit id, worst-case stuffing, counted field by field."""
+    sof, identifier, rtr, ide, r0, dlc_field = 1, 11, 1, 1, 1, 4
+    data = 8 * dlc
+    crc, crc_delimiter, ack, ack_delimiter, eof, intermission = 15, 1, 1, 1, 7, 3
+    stuffed = sof + identifier + rtr + ide + r0 + dlc_field + data + crc  # 34 + 8 dlc
+    frame = stuffed + crc_delimiter + ack + ack_delimiter + eof  # 44 + 8 dlc
+    # worst case: a stuff bit after the first 5 equal bits, then one per 4 (the stuff bit
+    # itself starts the next run of 5)
+    stuff_bits = (stuffed - 1) // 4
+    return frame + intermission + stuff_bits
+
+
+def test_frame_bits_textbook_values() -> None:
+    assert derived_frame_bits(8) == 135
+    assert derived_frame_bits(1) == 65
+    assert frame_bits(8) == 135
+    assert frame_bits(1) == 65
+    assert frame_bits(0) == 55
+    assert [frame_bits(n) for n in range(9)] == [derived_frame_bits(n) for n in range(9)]
+
+
+def test_bus_load(protocol: Protocol) -> None:
+    assert bus_load({0x181: 1000.0}, 1_000_000, protocol) == 0.135
+    # 4-byte command: 47 + 32 + 65 // 4 = 95 bits; loads add
+    assert bus_load({0x201: 1000.0}, 1_000_000, protocol) == pytest.approx(0.095, rel=1e-15)
+    both = bus_load({0x181: 1000.0, 0x201: 1000.0}, 500_000, protocol)
+    assert both == pytest.approx(2 * (0.135 + 0.095), rel=1e-15)
+    assert bus_load({}, 1_000_000, protocol) == 0.0
+
+
+def test_candump_log_written_by_python_can_decodes_with_cantools(
+    protocol: Protocol, tmp_path: Path
+) -> None:
+    frame = DriveStatus(2, 0.05, 1000.0, -2000.0, fault=3, counter=17)
+    message = protocol.encode(frame, timestamp=1.25)
+    path = tmp_path / "drive.log"
+    writer = can.CanutilsLogWriter(path, channel="vcan0")
+    writer.on_message_received(message)
+    writer.stop()
+    text = path.read_text()
+    assert text.startswith("(1.250000) vcan0 182#")
+
+    parsed = list(cantools.logreader.Parser(io.StringIO(text)))
+    assert len(parsed) == 1
+    assert parsed[0].frame_id == 0x182
+    assert bytes(parsed[0].data) == bytes(message.data)
+    database = cantools.database.load_file(str(DBC_PATH))
+    assert isinstance(database, Database)
+    decoded = database.decode_message(parsed[0].frame_id, parsed[0].data)
+    assert isinstance(decoded, dict)
+    assert decoded["piston_position"] == pytest.approx(0.05, abs=1e-6)
+    assert decoded["p_a"] == 1000
+    assert decoded["p_b"] == -2000
+    assert (decoded["fault"], decoded["counter"]) == (3, 17)
+    piston = decoded["piston_position"]
+    assert isinstance(piston, float)
+    assert protocol.decode(message) == DriveStatus(2, piston, 1000.0, -2000.0, 3, 17)
+
+
+def test_marker_frame_whose_id_disagrees_with_its_can_id_is_rejected() -> None:
+    protocol = Protocol()
+    message = protocol.encode(CameraMarker(5, 0.1, 0.2, 1, 0.006))
+    forged = can.Message(arbitration_id=0x283, data=message.data, is_extended_id=False)
+    with pytest.raises(FrameError, match=r"CameraMarker3 \(0x283\): marker_id 5 does not match"):
+        protocol.decode(forged)
