@@ -7,6 +7,7 @@ Specs: `virtual[:CHANNEL]` (one process), `loopback[:[HOST:]PORT]` (the inter-pr
 
 from __future__ import annotations
 
+import errno
 import logging
 from dataclasses import dataclass
 
@@ -74,6 +75,18 @@ def open_bus(spec: BusSpec) -> can.BusABC:
             )
         if spec.kind == "socketcan":
             return can.Bus(interface="socketcan", channel=spec.channel)
-    except (OSError, can.CanError, TimeoutError) as exc:
+    except OSError as exc:
+        if spec.kind == "socketcan" and exc.errno == errno.EAFNOSUPPORT:
+            raise BusOpenError(
+                f"cannot open CAN bus {spec}: this kernel has no SocketCAN (AF_CAN); "
+                "use the loopback bus (--bus loopback)"
+            ) from exc
+        if spec.kind == "socketcan" and exc.errno in (errno.ENODEV, errno.ENXIO):
+            raise BusOpenError(
+                f"cannot open CAN bus {spec}: no interface {spec.channel!r}; create one with "
+                f"'ip link add dev {spec.channel} type vcan && ip link set up {spec.channel}'"
+            ) from exc
+        raise BusOpenError(f"cannot open CAN bus {spec}: {exc}") from exc
+    except (can.CanError, TimeoutError) as exc:
         raise BusOpenError(f"cannot open CAN bus {spec}: {exc}") from exc
     raise BusOpenError(f"unknown bus kind {spec.kind!r}")

@@ -11,7 +11,7 @@ Invariant: every frame on the bus decodes to exactly one of the dataclasses belo
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from importlib.resources import files
 from pathlib import Path
 from typing import Any
@@ -152,7 +152,7 @@ class Protocol:
         """The CAN message of `frame`; out-of-range values raise FrameError naming the signal."""
         frame_id = self.frame_id(frame)
         message = self._by_id[frame_id][2]
-        signals = {k: v for k, v in asdict(frame).items() if k != "node"}
+        signals = {k: v for k, v in vars(frame).items() if k != "node"}
         if isinstance(frame, Sync | DriveStatus | DriveCommand | ControllerState | Emcy):
             signals["counter"] = frame.counter % COUNTER_MODULO
         if isinstance(frame, CameraMarker):

@@ -62,6 +62,11 @@ class FmuParticipant:
         self._real_outputs = [n for n in self._outputs if slave.variable_type(n) == "Real"]
         self._real_output_vrs = [slave.value_reference(n) for n in self._real_outputs]
         self._other_outputs = [n for n in self._outputs if slave.variable_type(n) != "Real"]
+        # value reference of each Real input, None for the other types (set by name)
+        self._input_vr = {
+            n: slave.value_reference(n) if slave.variable_type(n) == "Real" else None
+            for n in self._inputs
+        }
         self._last_inputs: dict[str, float] = {}
 
     def input_names(self) -> list[str]:
@@ -71,18 +76,21 @@ class FmuParticipant:
         return list(self._outputs)
 
     def set_inputs(self, values: Mapping[str, float]) -> None:
-        changed = {n: v for n, v in values.items() if self._last_inputs.get(n) != v}
-        real = [
-            (self.slave.value_reference(n), v)
-            for n, v in changed.items()
-            if self.slave.variable_type(n) == "Real"
-        ]
-        if real:
-            self.slave.set_reals([vr for vr, _ in real], [v for _, v in real])
-        for name, value in changed.items():
-            if self.slave.variable_type(name) != "Real":
+        last = self._last_inputs
+        vrs: list[int] = []
+        reals: list[float] = []
+        for name, value in values.items():
+            if last.get(name) == value:
+                continue
+            last[name] = value
+            vr = self._input_vr[name]
+            if vr is None:
                 self.slave.set(name, value)
-        self._last_inputs.update(changed)
+            else:
+                vrs.append(vr)
+                reals.append(value)
+        if vrs:
+            self.slave.set_reals(vrs, reals)
 
     def step(self, time: float, step: float) -> None:
         self.slave.do_step(time, step)

@@ -45,6 +45,7 @@ DEFAULT_TEXT = DEFAULT_SCENARIO.read_text()
 
 
 def edited(tmp_path: Path, *edits: tuple[str, str], name: str = "s.toml") -> Path:
+    """The default scenario with text replacements (old, new), written to tmp_path/name."""
     text = DEFAULT_TEXT
     for old, new in edits:
         assert old in text, old
@@ -256,13 +257,16 @@ def run_plant(
     return plant
 
 
-def shortened(tmp_path: Path, duration: float, *edits: tuple[str, str]) -> Path:
+def shortened(
+    tmp_path: Path, duration: float, *edits: tuple[str, str], name: str = "s.toml"
+) -> Path:
     """The default scenario cut to `duration` (the sine starts at the end), with edits."""
     return edited(
         tmp_path,
         ("duration = 10.0", f"duration = {duration}"),
         ("sine = { start = 7.0", f"sine = {{ start = {duration}"),
         *edits,
+        name=name,
     )
 
 
@@ -399,3 +403,23 @@ def test_hil_run_cli_reports_a_bad_scenario_in_one_line(tmp_path: Path) -> None:
     assert f"{bad}: timing.control_period" in result.stderr
     assert "not an integer multiple of timing.step" in result.stderr
     assert not (tmp_path / "never").exists()
+
+
+def test_bus_load_above_70_percent_is_a_warning(tmp_path: Path) -> None:
+    path = shortened(tmp_path, 0.2, ("bitrate = 1000000", "bitrate = 100000"))
+    result = run_inprocess(load_scenario(path), tmp_path / "run")
+    # 1 segment at 100 Hz: SYNC, status, command, state frames and 2 markers per 10 ms
+    assert result.summary["bus_load"] == pytest.approx(0.67, abs=0.01)
+    assert result.summary["warnings"] == []
+    path = shortened(tmp_path, 0.2, ("bitrate = 1000000", "bitrate = 50000"), name="slow.toml")
+    slow = run_inprocess(load_scenario(path), tmp_path / "slow")
+    assert slow.summary["bus_load"] == pytest.approx(2 * 0.67, abs=0.02)
+    assert slow.summary["warnings"] == ["bus load 134 % exceeds 70 %"]
+    cli = subprocess.run(
+        [sys.executable, "-m", "hil", "bus", "load", str(path)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert "bus load 134.1 % at 50000 bit/s" in cli.stdout
+    assert "warning: above 70 %" in cli.stdout

@@ -65,6 +65,12 @@ def _run(args: argparse.Namespace) -> int:
         f"  bus load {100 * s['bus_load']:.1f} % at {s['bitrate'] // 1000} kbit/s; frames sent "
         f"{f['sent']}, received {f['received']}, missed {f['missed']}"
     )
+    controller = s.get("controller", {})
+    if controller.get("realtime"):
+        print(
+            f"  real time: SYNC lateness max {1e3 * controller['max_lateness']:.2f} ms, "
+            f"mean {1e3 * controller['mean_lateness']:.2f} ms, overruns {controller['overruns']}"
+        )
     for warning in s["warnings"]:
         print(f"  warning: {warning}", file=sys.stderr)
     print(f"  results in {result.out}/ (signals.csv, can.log, *.png, summary.json)")
