@@ -126,3 +126,39 @@ def test_cache_location_follows_environment(
     monkeypatch.delenv("SOFTHIL_CACHE_DIR", raising=False)
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
     assert build_module.cache_root() == tmp_path / "softhil"
+
+
+@pytest.mark.parametrize(
+    ("name", "parameter", "value", "output", "expected"),
+    [
+        ("DriveCylinder", "x_start", 0.01, "x", 0.01),
+        ("FeaSegment", "theta_start", 0.5, "theta", 0.5),
+    ],
+)
+def test_outputs_follow_start_values_in_initialisation_mode(
+    name: str, parameter: str, value: float, output: str, expected: float
+) -> None:
+    """FMI 2.0: initial unknowns can be read in initialisation mode (masters propagate start
+    values through connections before exiting it)."""
+    from fmpy.fmi2 import FMU2Slave
+
+    built = build_fmu(name)
+    description = fmpy.read_model_description(str(built.path))
+    refs = {v.name: v.valueReference for v in description.modelVariables}
+    fmu = FMU2Slave(
+        guid=description.guid,
+        unzipDirectory=str(built.unzipdir),
+        modelIdentifier=name,
+        instanceName="init",
+    )
+    fmu.instantiate()
+    try:
+        fmu.setupExperiment(startTime=0.0)
+        fmu.enterInitializationMode()
+        fmu.setReal([refs[parameter]], [value])
+        assert fmu.getReal([refs[output]])[0] == expected
+        fmu.exitInitializationMode()
+        assert fmu.getReal([refs[output]])[0] == expected
+        fmu.terminate()
+    finally:
+        fmu.freeInstance()

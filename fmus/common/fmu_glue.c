@@ -155,13 +155,14 @@ fmi2Status fmi2EnterInitializationMode(fmi2Component c) {
     if (!phase_allows(inst, "fmi2EnterInitializationMode", 1u << PHASE_INSTANTIATED))
         return fmi2Error;
     inst->phase = PHASE_INIT;
+    inst->init_outputs_stale = 1;
     return fmi2OK;
 }
 
-fmi2Status fmi2ExitInitializationMode(fmi2Component c) {
-    Instance *inst = (Instance *)c;
+/* Checks the parameters against their declared ranges and lets the model compute its initial
+ * state and outputs from the parameters and inputs set so far. */
+static fmi2Status initialize_from_values(Instance *inst) {
     size_t i;
-    if (!phase_allows(inst, "fmi2ExitInitializationMode", 1u << PHASE_INIT)) return fmi2Error;
     for (i = 0; i < N_VARIABLES; i++) {
         const VariableInfo *info = &VARIABLES[i];
         if (info->causality != CAUS_PARAMETER) continue;
@@ -169,16 +170,29 @@ fmi2Status fmi2ExitInitializationMode(fmi2Component c) {
             log_message(inst, fmi2Error, "invalid parameter %s = %g: allowed range is [%g, %g]",
                         info->name, inst->v[i], info->has_min ? info->min : -INFINITY,
                         info->has_max ? info->max : INFINITY);
-            inst->phase = PHASE_ERROR;
             return fmi2Error;
         }
     }
-    if (model_initialize(inst) != fmi2OK) {
+    inst->init_outputs_stale = 0;
+    return model_initialize(inst);
+}
+
+fmi2Status fmi2ExitInitializationMode(fmi2Component c) {
+    Instance *inst = (Instance *)c;
+    if (!phase_allows(inst, "fmi2ExitInitializationMode", 1u << PHASE_INIT)) return fmi2Error;
+    if (initialize_from_values(inst) != fmi2OK) {
         inst->phase = PHASE_ERROR;
         return fmi2Error;
     }
     inst->phase = PHASE_STEP;
     return fmi2OK;
+}
+
+/* In initialisation mode the outputs (the initial unknowns) must follow the values set so far:
+ * a master propagating start values through connections reads them before exiting. */
+static fmi2Status refresh_initial_outputs(Instance *inst) {
+    if (inst->phase != PHASE_INIT || !inst->init_outputs_stale) return fmi2OK;
+    return initialize_from_values(inst);
 }
 
 fmi2Status fmi2Terminate(fmi2Component c) {
@@ -207,6 +221,7 @@ fmi2Status fmi2GetReal(fmi2Component c, const fmi2ValueReference vr[], size_t nv
     Instance *inst = (Instance *)c;
     size_t i;
     if (!phase_allows(inst, "fmi2GetReal", ANY_LIVE | (1u << PHASE_ERROR))) return fmi2Error;
+    if (refresh_initial_outputs(inst) != fmi2OK) return fmi2Error;
     for (i = 0; i < nvr; i++) {
         if (!check_vr(inst, "fmi2GetReal", vr[i], VT_REAL)) return fmi2Error;
         value[i] = inst->v[vr[i]];
@@ -219,6 +234,7 @@ fmi2Status fmi2GetInteger(fmi2Component c, const fmi2ValueReference vr[], size_t
     Instance *inst = (Instance *)c;
     size_t i;
     if (!phase_allows(inst, "fmi2GetInteger", ANY_LIVE | (1u << PHASE_ERROR))) return fmi2Error;
+    if (refresh_initial_outputs(inst) != fmi2OK) return fmi2Error;
     for (i = 0; i < nvr; i++) {
         if (!check_vr(inst, "fmi2GetInteger", vr[i], VT_INTEGER)) return fmi2Error;
         value[i] = (fmi2Integer)inst->v[vr[i]];
@@ -231,6 +247,7 @@ fmi2Status fmi2GetBoolean(fmi2Component c, const fmi2ValueReference vr[], size_t
     Instance *inst = (Instance *)c;
     size_t i;
     if (!phase_allows(inst, "fmi2GetBoolean", ANY_LIVE | (1u << PHASE_ERROR))) return fmi2Error;
+    if (refresh_initial_outputs(inst) != fmi2OK) return fmi2Error;
     for (i = 0; i < nvr; i++) {
         if (!check_vr(inst, "fmi2GetBoolean", vr[i], VT_BOOLEAN)) return fmi2Error;
         value[i] = inst->v[vr[i]] != 0.0 ? fmi2True : fmi2False;
@@ -263,6 +280,7 @@ fmi2Status fmi2SetReal(fmi2Component c, const fmi2ValueReference vr[], size_t nv
         }
         inst->v[vr[i]] = value[i];
     }
+    inst->init_outputs_stale = 1;
     return fmi2OK;
 }
 
@@ -278,6 +296,7 @@ fmi2Status fmi2SetInteger(fmi2Component c, const fmi2ValueReference vr[], size_t
             return fmi2Error;
         inst->v[vr[i]] = (double)value[i];
     }
+    inst->init_outputs_stale = 1;
     return fmi2OK;
 }
 
@@ -293,6 +312,7 @@ fmi2Status fmi2SetBoolean(fmi2Component c, const fmi2ValueReference vr[], size_t
             return fmi2Error;
         inst->v[vr[i]] = value[i] ? 1.0 : 0.0;
     }
+    inst->init_outputs_stale = 1;
     return fmi2OK;
 }
 

@@ -32,7 +32,8 @@ typedef struct Instance {
     int logging_on;
     Phase phase;
     double time;
-    double v[N_VARIABLES]; /* every variable, indexed by value reference */
+    int init_outputs_stale; /* an input or parameter changed in initialisation mode */
+    double v[N_VARIABLES];  /* every variable, indexed by value reference */
     void *state;           /* the model's private state, model_state_size() bytes */
 } Instance;
 
