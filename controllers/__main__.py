@@ -25,7 +25,7 @@ from controllers.protocol import FrameError
 
 EXAMPLES = """examples:
   python -m controllers --config runs/default-1/controller.json --bus loopback:29536
-  hil controller --config controller.json --bus virtual --realtime
+  hil controller --config controller.json --bus loopback:127.0.0.1:29536 --realtime
 """
 
 
@@ -50,7 +50,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     try:
         config = ControllerConfig.from_json(args.config.read_text())
-    except (OSError, ValueError, KeyError, TypeError) as exc:
+    except KeyError as exc:
+        print(f"controller: error: {args.config}: missing key {exc}", file=sys.stderr)
+        return 1
+    except (OSError, ValueError, TypeError) as exc:
         print(f"controller: error: {args.config}: {exc}", file=sys.stderr)
         return 1
     try:
@@ -65,6 +68,9 @@ def run(args: argparse.Namespace) -> int:
     except (ControllerError, FrameError, OSError) as exc:
         print(f"controller: error: {exc}", file=sys.stderr)
         return 1
+    except KeyboardInterrupt:
+        print("controller: interrupted", file=sys.stderr)
+        return 130
     finally:
         bus.shutdown()
     if args.report:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import errno
 import logging
+import socket
 from dataclasses import dataclass
 
 import can
@@ -78,8 +79,8 @@ def open_bus(spec: BusSpec) -> can.BusABC:
     except OSError as exc:
         if spec.kind == "socketcan" and exc.errno == errno.EAFNOSUPPORT:
             raise BusOpenError(
-                f"cannot open CAN bus {spec}: this kernel has no SocketCAN (AF_CAN); "
-                "use the loopback bus (--bus loopback)"
+                f"cannot open CAN bus {spec}: this kernel has no SocketCAN (AF_CAN); leave out "
+                "--bus and hil run serves its own loopback bus"
             ) from exc
         if spec.kind == "socketcan" and exc.errno in (errno.ENODEV, errno.ENXIO):
             raise BusOpenError(
@@ -90,3 +91,20 @@ def open_bus(spec: BusSpec) -> can.BusABC:
     except (can.CanError, TimeoutError) as exc:
         raise BusOpenError(f"cannot open CAN bus {spec}: {exc}") from exc
     raise BusOpenError(f"unknown bus kind {spec.kind!r}")
+
+
+def connection_closed(bus: can.BusABC) -> bool:
+    """True if the TCP connection under a loopback (socketcand) bus was closed by the hub.
+
+    python-can's socketcand client does not notice a closed connection: its recv returns None at
+    once, forever. Callers ask this when a receive came back empty, to stop instead of spinning.
+    """
+    sock = getattr(bus, "_SocketCanDaemonBus__socket", None)  # the client's private socket
+    if not isinstance(sock, socket.socket):
+        return False
+    try:
+        return sock.recv(1, socket.MSG_PEEK | socket.MSG_DONTWAIT) == b""
+    except BlockingIOError:
+        return False
+    except OSError:
+        return True

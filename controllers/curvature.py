@@ -3,11 +3,11 @@ piston position setpoint, with its design from the segment's linearised physics.
 
 Linearised at sealing (both sides at p_atm, mid-stroke, unbent), a segment's curvature answers
 the piston position as a first-order lag: the gas law with compliance gives each side a
-stiffness dp/dV = p_atm / (V_seal + p_atm C_a), the antagonistic pair a torque G_a (p_a - p_b),
+stiffness dp/dV = p_atm / (V_seal,i + p_atm C_a), the antagonistic pair a torque G_a (p_a - p_b),
 and the bending equation (inertia negligible against damping, I/d ~ 6 ms) a pole at
 (k + k_gas) / d. Hence
-    kappa / x_piston = K / (tau s + 1),  K = 2 s_p G_a A / (L (k + 2 s_p G_a^2)),
-    tau = d / (k + 2 s_p G_a^2),  s_p = p_atm / (V_seal + p_atm C_a).
+    kappa / x_piston = K / (tau s + 1),  K = S G_a A / (L (k + S G_a^2)),
+    tau = d / (k + S G_a^2),  S = sum over both sides of p_atm / (V_seal,i + p_atm C_a).
 The PI zero cancels the lag (Ki = Kp / tau) and Kp sets the crossover: Kp = wc tau / K.
 """
 
@@ -30,6 +30,7 @@ class SegmentModel:
     C_a: float = 1e-10
     bore: float = 0.01905
     stroke: float = 0.05
+    x_seal: float = 0.025
     p_atm: float = 101325.0
 
     @property
@@ -37,17 +38,21 @@ class SegmentModel:
         return math.pi * self.bore**2 / 4.0
 
     def pressure_stiffness(self) -> float:
-        """dp/dV of one sealed side at sealing [Pa/m^3]."""
-        v_seal = self.bore_area * self.stroke / 2.0 + self.V_dead + self.V_ch0
-        return self.p_atm / (v_seal + self.p_atm * self.C_a)
+        """Sum over both sides of dp/dV at sealing [Pa/m^3]; side a holds A (stroke - x_seal),
+        side b holds A x_seal."""
+        total = 0.0
+        for swept in (self.stroke - self.x_seal, self.x_seal):
+            v_seal = self.bore_area * swept + self.V_dead + self.V_ch0
+            total += self.p_atm / (v_seal + self.p_atm * self.C_a)
+        return total
 
     def gas_stiffness(self) -> float:
         """Bending stiffness added by the closed gas circuits [N m/rad]."""
-        return 2.0 * self.pressure_stiffness() * self.G_a**2
+        return self.pressure_stiffness() * self.G_a**2
 
     def static_gain(self) -> float:
         """d kappa / d x_piston at equilibrium [(1/m)/m]."""
-        torque_per_metre = 2.0 * self.pressure_stiffness() * self.G_a * self.bore_area
+        torque_per_metre = self.pressure_stiffness() * self.G_a * self.bore_area
         return torque_per_metre / (self.length * (self.k_bend + self.gas_stiffness()))
 
     def time_constant(self) -> float:

@@ -23,6 +23,7 @@ from typing import Any
 import can
 import numpy as np
 
+from controllers.canbus import connection_closed
 from controllers.curvature import CurvaturePI, PiGains
 from controllers.kinematics import curvatures_from_markers
 from controllers.protocol import (
@@ -198,7 +199,13 @@ class ControllerNode:
         self.status: dict[int, DriveStatus] = {}
 
     def _send(self, frame: Sync | DriveCommand | ControllerState, sim_time: float) -> None:
-        self.bus.send(self.protocol.encode(frame, timestamp=sim_time))
+        message = self.protocol.encode(frame, timestamp=sim_time)
+        try:
+            self.bus.send(message)
+        except (OSError, can.CanError) as exc:
+            raise ControllerError(
+                f"sending {type(frame).__name__} at t = {sim_time:.3f} s: the bus is gone ({exc})"
+            ) from exc
         self.report.frames_sent += 1
 
     def run(self) -> ControllerReport:
@@ -237,6 +244,11 @@ class ControllerNode:
                 return
             message = self.bus.recv(timeout=min(remaining, 0.5))
             if message is None:
+                if connection_closed(self.bus):
+                    raise ControllerError(
+                        f"the bus closed while waiting for SYNC {cycle}'s status: the plant "
+                        "and its loopback hub are gone"
+                    )
                 continue
             self.report.frames_received += 1
             try:

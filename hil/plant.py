@@ -24,6 +24,7 @@ import can
 import numpy as np
 
 from controllers import kinematics
+from controllers.canbus import connection_closed
 from controllers.protocol import (
     COUNTER_MODULO,
     EMCY_COMMAND_TIMEOUT,
@@ -45,7 +46,7 @@ from hil.errors import BusError, FmuError, ProtocolError
 from hil.fmu.slave import FmuSlave
 from hil.master import Connection, FmuParticipant, Master, Participant
 from hil.recording import CanLogger, SignalRecorder
-from hil.scenario import Scenario
+from hil.scenario import Scenario, fmu_interface, fmu_path, robot_value
 
 FAULT_OVER_PRESSURE = 16  # plant-side fault bits, above the DriveCylinder's own 1, 2, 4
 FAULT_COMMAND_TIMEOUT = 32
@@ -77,13 +78,22 @@ def build_planar_arm(scenario: Scenario) -> Rig:
     robot = scenario.robot
     fmus: list[FmuParticipant] = []
     connections: dict[str, Connection] = {}
-    x_start = float(robot.cylinder.get("x_start", 0.025))
+    x_start = robot_value(scenario, "cylinder", "x_start")
+    segment_parameters = fmu_interface(scenario.source, "robot.segment_fmu", robot.segment_fmu)
+    # the segment's gas circuit includes the cylinder: same bore and stroke, sealed where the
+    # piston starts
+    geometry = {
+        "bore": robot_value(scenario, "cylinder", "bore"),
+        "stroke": robot_value(scenario, "cylinder", "stroke"),
+        "x_seal": x_start,
+    }
+    geometry = {k: v for k, v in geometry.items() if k in segment_parameters}
     timeout_ticks = round(scenario.safety.command_timeout / scenario.timing.step)
     drives = [
         DriveNode(n, x_start, x_start, scenario.safety.max_pressure, timeout_ticks)
         for n in range(1, robot.segments + 1)
     ]
-    lengths = [float(robot.segment.get("length", 0.06))] * robot.segments
+    lengths = [robot_value(scenario, "segment", "length")] * robot.segments
     camera = CameraNode(scenario, lengths, np.random.default_rng(scenario.seed))
     try:
         for n in range(1, robot.segments + 1):
@@ -94,7 +104,7 @@ def build_planar_arm(scenario: Scenario) -> Rig:
             segment = FmuSlave(
                 _fmu_ref(scenario, robot.segment_fmu),
                 f"segment{n}",
-                {**_shared_geometry(robot.cylinder), **robot.segment},
+                {**geometry, **robot.segment},
             )
             fmus.append(FmuParticipant(segment, robot.segment_decimation))
             for source, target in (
@@ -121,21 +131,7 @@ def build_planar_arm(scenario: Scenario) -> Rig:
 
 
 def _fmu_ref(scenario: Scenario, fmu: str) -> str:
-    if fmu.endswith(".fmu"):
-        from pathlib import Path
-
-        path = Path(fmu)
-        return str(path if path.is_absolute() else Path(scenario.source).parent / path)
-    return fmu
-
-
-def _shared_geometry(cylinder: dict[str, float]) -> dict[str, float]:
-    """The segment's gas circuit includes the cylinder: bore and stroke must agree, and the
-    circuit is sealed where the piston starts."""
-    shared: dict[str, float] = {k: cylinder[k] for k in ("bore", "stroke") if k in cylinder}
-    if "x_start" in cylinder:
-        shared["x_seal"] = cylinder["x_start"]
-    return shared
+    return str(fmu_path(scenario.source, fmu)) if fmu.endswith(".fmu") else fmu
 
 
 class CameraNode:
@@ -335,6 +331,10 @@ class Plant:
             while self.cycle < final:
                 message = self.bus.recv(timeout=0.1)
                 if message is None:
+                    if connection_closed(self.bus):
+                        raise BusError(
+                            f"the loopback hub closed the bus at t = {self.sim_time:.3f} s"
+                        )
                     gone = peer_alive()
                     if gone is not None:
                         raise ProtocolError(
@@ -377,7 +377,8 @@ class Plant:
                     f"(t = {self.sim_time:.3f} s): a SYNC was lost or another master is on the bus"
                 )
             self.cycle += 1
-            self.sim_time = self.cycle * self.scenario.timing.control_period
+            # t = c T from the integer cycle, rounded: files show 3.53, not 3.5300000000000002
+            self.sim_time = round(self.cycle * self.scenario.timing.control_period, 9)
             self.can_log.log(message, self.sim_time, received=True)
             self.stats.sync_received += 1
             self._on_sync(self.cycle)
@@ -398,7 +399,10 @@ class Plant:
             self.stats.unknown_frames += 1
 
     def _send(self, frame: Frame) -> None:
-        message = self.protocol.encode(frame, timestamp=self.sim_time)
+        try:
+            message = self.protocol.encode(frame, timestamp=self.sim_time)
+        except FrameError as exc:
+            raise BusError(f"at t = {self.sim_time:.3f} s: {exc}") from exc
         try:
             self.bus.send(message)
         except (can.CanError, OSError) as exc:

@@ -11,7 +11,9 @@ run, the files written so far stay complete and `summary.json` says why.
 from __future__ import annotations
 
 import json
+import math
 import os
+import re
 import subprocess
 import sys
 import threading
@@ -37,7 +39,7 @@ from hil.bus.loopback import LoopbackHub
 from hil.errors import BusError, HilError
 from hil.plant import Plant, build_planar_arm
 from hil.recording import CanLogger, SignalRecorder
-from hil.scenario import Scenario
+from hil.scenario import Scenario, robot_value
 from hil.summary import summarise
 
 
@@ -59,22 +61,28 @@ class RunResult:
 def controller_config(scenario: Scenario) -> ControllerConfig:
     """What the controller is told: geometry, period, task, gains (designed unless given)."""
     robot = scenario.robot
-    merged = {**robot.cylinder, **robot.segment}
-    model_fields = SegmentModel.__dataclass_fields__
-    model = SegmentModel(**{k: float(v) for k, v in merged.items() if k in model_fields})
+    tables = {"bore": "cylinder", "stroke": "cylinder"}
+    model = SegmentModel(
+        **{
+            name: robot_value(scenario, tables.get(name, "segment"), name)
+            for name in SegmentModel.__dataclass_fields__
+            if name != "x_seal"
+        },
+        x_seal=robot_value(scenario, "cylinder", "x_start"),
+    )
     designed = design_pi(model, scenario.controller.crossover)
     gains = PiGains(
         Kp=scenario.controller.kp if scenario.controller.kp is not None else designed.Kp,
         Ki=scenario.controller.ki if scenario.controller.ki is not None else designed.Ki,
     )
-    stroke = float(robot.cylinder.get("stroke", 0.05))
+    stroke = model.stroke
     task = scenario.task
     return ControllerConfig(
         lengths=(model.length,) * robot.segments,
         base=robot.base,
         control_period=scenario.timing.control_period,
         cycles=scenario.cycles,
-        x_mid=float(robot.cylinder.get("x_start", stroke / 2)),
+        x_mid=model.x_seal,
         x_min=0.0,
         x_max=stroke,
         gains=gains,
@@ -92,14 +100,15 @@ def controller_config(scenario: Scenario) -> ControllerConfig:
 def run_scenario(scenario: Scenario, options: RunOptions) -> RunResult:
     """Run `scenario`; raises HilError after writing what it could if the run fails."""
     out = options.out
-    out.mkdir(parents=True, exist_ok=True)
-    for stale in ("summary.json", "signals.csv", "can.log"):
-        (out / stale).unlink(missing_ok=True)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        for stale in RESULT_FILES:
+            (out / stale).unlink(missing_ok=True)
+    except OSError as exc:
+        raise HilError(f"results folder {out}: {exc.strerror or exc}") from exc
     config = controller_config(scenario)
     (out / "controller.json").write_text(config.to_json() + "\n")
-    (out / "scenario.toml").write_text(
-        Path(scenario.source).read_text() if Path(scenario.source).is_file() else ""
-    )
+    (out / "scenario.toml").write_text(_scenario_text(scenario))
     protocol = Protocol()
     summary: dict[str, Any] = {"scenario": scenario.name, "seed": scenario.seed, "status": "failed"}
     with ExitStack() as stack:
@@ -117,17 +126,12 @@ def run_scenario(scenario: Scenario, options: RunOptions) -> RunResult:
         progress = _progress_bar(scenario, options, stack)
         try:
             stats = plant.run(peer.gone, progress)
-        except HilError as exc:
-            summary["error"] = str(exc)
+            report = peer.finish()
+        except BaseException as exc:
+            summary["error"] = "interrupted" if isinstance(exc, KeyboardInterrupt) else str(exc)
             peer.stop()
             _write_summary(out, summary)
             raise
-        except KeyboardInterrupt:
-            summary["error"] = "interrupted"
-            peer.stop()
-            _write_summary(out, summary)
-            raise
-        report = peer.finish()
     summary = summarise(scenario, out / "signals.csv", stats, can_log, report, protocol)
     summary["bus"] = str(plant_spec)
     summary["controller_process"] = "thread" if options.inprocess else "process"
@@ -138,8 +142,44 @@ def run_scenario(scenario: Scenario, options: RunOptions) -> RunResult:
     return RunResult(out, summary)
 
 
+RESULT_FILES = (
+    "summary.json",
+    "signals.csv",
+    "can.log",
+    "controller.json",
+    "controller.log",
+    "controller.pid",
+    "controller_report.json",
+    "scenario.toml",
+    "curvature.png",
+    "pressures.png",
+    "piston.png",
+)
+
+
+def _scenario_text(scenario: Scenario) -> str:
+    """The scenario file as run: its text, with the seed that was used."""
+    source = Path(scenario.source)
+    text = source.read_text(encoding="utf-8") if source.is_file() else ""
+    text, found = re.subn(r"(?m)^seed\s*=.*$", f"seed = {scenario.seed}", text, count=1)
+    header = f"# scenario {scenario.source}, run with seed {scenario.seed}\n"
+    return header + (text if found else f"seed = {scenario.seed}\n" + text)
+
+
 def _write_summary(out: Path, summary: dict[str, Any]) -> None:
-    (out / "summary.json").write_text(json.dumps(summary, indent=2, sort_keys=True) + "\n")
+    """summary.json: strict JSON, a metric that does not exist (never settled, no step) is null."""
+    text = json.dumps(_finite(summary), indent=2, sort_keys=True, allow_nan=False)
+    (out / "summary.json").write_text(text + "\n")
+
+
+def _finite(value: Any) -> Any:
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_finite(v) for v in value]
+    return value
 
 
 def _open(spec: BusSpec):  # noqa: ANN202 - can.BusABC
@@ -212,11 +252,15 @@ class _Peer:
             except subprocess.TimeoutExpired:
                 self.process.kill()
                 self.process.wait()
+        if self.process is not None and self.log is not None:
+            self.log.with_name("controller.pid").unlink(missing_ok=True)
 
     def finish(self) -> dict[str, Any]:
         """Wait for a controller that has done its last cycle; its report."""
         if self.process is not None:
             code = self.process.wait(timeout=30)
+            if self.log is not None:
+                self.log.with_name("controller.pid").unlink(missing_ok=True)
             if code != 0:
                 raise HilError(f"the controller failed with code {code}{self._last_words()}")
             report_path = self.log.with_name("controller_report.json") if self.log else None
@@ -225,6 +269,8 @@ class _Peer:
             return {}
         if self.thread is not None:
             self.thread.join(timeout=30)
+            if self.thread.is_alive():
+                raise HilError("the controller thread did not finish within 30 s of the last SYNC")
             if self.error is not None:
                 raise HilError(f"the controller failed: {self.error}")
             return asdict(self.report) if self.report is not None else {}

@@ -10,6 +10,7 @@ ships inside the package (`hil/scenarios/default.toml`).
 from __future__ import annotations
 
 import math
+import re
 import tomllib
 import types
 import typing
@@ -24,6 +25,10 @@ from controllers.protocol import MAX_DRIVES
 from hil.errors import HilError, ScenarioError
 
 DEFAULT_SCENARIO = Path(str(files("hil") / "scenarios" / "default.toml"))
+PISTON_RANGE = 0.13107  # DriveStatus.piston_position / DriveCommand.piston_setpoint [m]
+MARKER_RANGE = 0.65534  # CameraMarker.x / y [m]
+EXPOSURE_RANGE = 0.65535  # CameraMarker.exposure_offset [s]
+_NAME = re.compile(r"[A-Za-z0-9_.-]+")
 
 
 @dataclass(frozen=True)
@@ -154,6 +159,8 @@ def load_scenario(path: Path | None = None, *, seed: int | None = None) -> Scena
         raise _fail(str(source), "source", "unknown key (the file's own path is implied)")
     scenario = _build(Scenario, {**data, "source": str(source)}, str(source), "")
     if seed is not None:
+        if seed < 0:
+            raise ScenarioError(f"--seed: must not be negative, got {seed}")
         scenario = replace(scenario, seed=seed)
     _check(scenario)
     return scenario
@@ -231,6 +238,12 @@ def _check(s: Scenario) -> None:
         raise _fail(file, "duration", f"must be positive, got {s.duration}")
     if s.seed < 0:
         raise _fail(file, "seed", f"must not be negative, got {s.seed}")
+    if not _NAME.fullmatch(s.name):
+        raise _fail(
+            file,
+            "name",
+            f"{s.name!r}: use letters, digits, '-', '_' and '.' (it names the results folder)",
+        )
     if t.step <= 0 or t.control_period <= 0:
         raise _fail(file, "timing", "step and control_period must be positive")
     _multiple(file, "timing.control_period", t.control_period, t.step, "timing.step")
@@ -243,6 +256,13 @@ def _check(s: Scenario) -> None:
     _multiple(file, "camera.latency", s.camera.latency, t.step, "timing.step", allow_zero=True)
     if s.camera.noise < 0:
         raise _fail(file, "camera.noise", "must not be negative")
+    if s.camera.latency + s.timing.control_period > EXPOSURE_RANGE:
+        raise _fail(
+            file,
+            "camera.latency",
+            f"must be below {EXPOSURE_RANGE:g} s less one control "
+            "period (the CameraMarker exposure_offset range in the DBC)",
+        )
     r = s.robot
     if r.kind != "planar_arm":
         raise _fail(file, "robot.kind", f"unknown robot {r.kind!r} (known: planar_arm)")
@@ -254,15 +274,40 @@ def _check(s: Scenario) -> None:
             raise _fail(
                 file, f"robot.{name}", f"must divide the control period's {s.control_ticks} ticks"
             )
-    segment_spec = _model_spec(file, "robot.segment_fmu", r.segment_fmu)
-    cylinder_spec = _model_spec(file, "robot.cylinder_fmu", r.cylinder_fmu)
-    for table, spec in (("segment", segment_spec), ("cylinder", cylinder_spec)):
-        if spec is None:
-            continue
-        parameters = {v.name for v in spec.variables if v.causality == "parameter"}
-        for name in getattr(r, table):
-            if name not in parameters:
-                raise _fail(file, f"robot.{table}.{name}", f"{spec.name} has no parameter {name!r}")
+    interfaces = {
+        "segment": fmu_interface(file, "robot.segment_fmu", r.segment_fmu),
+        "cylinder": fmu_interface(file, "robot.cylinder_fmu", r.cylinder_fmu),
+    }
+    for table, interface in interfaces.items():
+        for name, value in getattr(r, table).items():
+            _check_parameter(file, f"robot.{table}.{name}", interface, name, value)
+    for name in ("stroke", "bore", "x_seal"):
+        if name in r.segment:
+            raise _fail(
+                file,
+                f"robot.segment.{name}",
+                "the gas circuit takes the drive "
+                "cylinder's geometry: set stroke, bore or x_start in robot.cylinder",
+            )
+    stroke = robot_value(s, "cylinder", "stroke")
+    if not 0.0 <= robot_value(s, "cylinder", "x_start") <= stroke:
+        raise _fail(file, "robot.cylinder.x_start", f"must lie within the stroke [0, {stroke:g}] m")
+    if stroke > PISTON_RANGE:
+        raise _fail(
+            file,
+            "robot.cylinder.stroke",
+            f"{stroke:g} m is beyond the "
+            f"{PISTON_RANGE:g} m that DriveStatus/DriveCommand can carry",
+        )
+    reach = robot_value(s, "segment", "length") * r.segments
+    if max(abs(r.base[0]), abs(r.base[1])) + reach > MARKER_RANGE:
+        raise _fail(
+            file,
+            "robot",
+            f"the arm can reach {reach:g} m from its base at "
+            f"({r.base[0]:g}, {r.base[1]:g}): beyond the camera's +-{MARKER_RANGE:g} m "
+            "(the CameraMarker range in the DBC)",
+        )
     if s.bus.kind not in BUS_KINDS:
         raise _fail(file, "bus.kind", f"must be one of {', '.join(BUS_KINDS)}")
     if s.bus.bitrate <= 0:
@@ -273,22 +318,45 @@ def _check(s: Scenario) -> None:
         raise _fail(file, "controller.policy", f"must be one of {', '.join(POLICIES)}")
     if s.controller.timeout <= 0 or s.controller.crossover <= 0:
         raise _fail(file, "controller", "timeout and crossover must be positive")
-    if s.safety.max_pressure <= 0 or s.safety.command_timeout <= 0:
-        raise _fail(file, "safety", "max_pressure and command_timeout must be positive")
+    for gain in ("kp", "ki"):
+        value = getattr(s.controller, gain)
+        if value is not None and value < 0:
+            raise _fail(file, f"controller.{gain}", f"must not be negative, got {value}")
+    if s.safety.max_pressure <= 0:
+        raise _fail(file, "safety.max_pressure", "must be positive")
+    if s.safety.command_timeout < 2 * s.timing.control_period:
+        raise _fail(file, "safety.command_timeout", "must be at least two control periods")
     _check_task(s)
-    participants = {"camera"} | {
-        f"{kind}{i}" for i in range(1, r.segments + 1) for kind in ("segment", "cylinder", "drive")
+    # what each participant offers: (outputs, inputs)
+    ports: dict[str, tuple[set[str], set[str]]] = {
+        "camera": (set(), {f"kappa_{i}" for i in range(1, r.segments + 1)})
     }
+    for i in range(1, r.segments + 1):
+        for kind in ("segment", "cylinder"):
+            interface = interfaces[kind]
+            ports[f"{kind}{i}"] = (
+                {n for n, v in interface.items() if v.causality == "output"},
+                {n for n, v in interface.items() if v.causality == "input"},
+            )
+        ports[f"drive{i}"] = ({"x_ref", "enable", "fault"}, {"x", "p_a", "p_b", "servo_fault"})
     for i, c in enumerate(s.connections):
-        for end in ("source", "target"):
+        for end, index, kind in (("source", 0, "output"), ("target", 1, "input")):
             value = getattr(c, end)
+            key = f"connections[{i}].{'from' if end == 'source' else 'to'}"
             owner, _, variable = value.partition(".")
-            if owner not in participants or not variable:
+            if owner not in ports:
                 raise _fail(
                     file,
-                    f"connections[{i}].{'from' if end == 'source' else 'to'}",
-                    f"{value!r} is not participant.variable (participants: "
-                    f"{', '.join(sorted(participants))})",
+                    key,
+                    f"{value!r}: no participant {owner!r} (participants: "
+                    f"{', '.join(sorted(ports))})",
+                )
+            if variable not in ports[owner][index]:
+                raise _fail(
+                    file,
+                    key,
+                    f"{value!r}: {owner} has no {kind} {variable!r} "
+                    f"({kind}s: {', '.join(sorted(ports[owner][index]))})",
                 )
 
 
@@ -301,7 +369,9 @@ def _check_task(s: Scenario) -> None:
         raise _fail(file, "task.steps", "step times must be strictly increasing")
     if not task.scale:
         raise _fail(file, "task.scale", "must not be empty")
-    limit = min(_segment_parameter(s, "theta_max") / _segment_parameter(s, "length"), 32.767)
+    limit = min(
+        robot_value(s, "segment", "theta_max") / robot_value(s, "segment", "length"), 32.767
+    )
     gain = max(abs(x) for x in task.scale)
     for i, (_, kappa) in enumerate(task.steps):
         if abs(kappa) * gain > limit:
@@ -324,15 +394,19 @@ def _check_task(s: Scenario) -> None:
             )
 
 
-def _segment_parameter(s: Scenario, name: str) -> float:
-    """A segment parameter as the scenario sets it, else the model's declared default."""
-    if name in s.robot.segment:
-        return float(s.robot.segment[name])
-    spec = _model_spec(s.source, "robot.segment_fmu", s.robot.segment_fmu)
-    if spec is None:  # an external FMU: the softhil segment's defaults are the best guess
-        spec = _model_spec(s.source, "robot.segment_fmu", "FeaSegment")
-    start = spec.variable(name).start if spec is not None else None
-    return float(start) if start is not None else math.nan
+def robot_value(s: Scenario, table: str, name: str) -> float:
+    """A segment or cylinder parameter as the scenario sets it, else the FMU's declared start
+    (the softhil model's when the scenario names an external FMU without that parameter)."""
+    given = getattr(s.robot, table)
+    if name in given:
+        return float(given[name])
+    fmu = s.robot.segment_fmu if table == "segment" else s.robot.cylinder_fmu
+    key = f"robot.{table}_fmu"
+    for candidate in (fmu, "FeaSegment" if table == "segment" else "DriveCylinder"):
+        variable = fmu_interface(s.source, key, candidate).get(name)
+        if variable is not None and variable.start is not None:
+            return float(variable.start)
+    raise _fail(s.source, f"robot.{table}.{name}", "required and the FMU declares no default")
 
 
 def _multiple(
@@ -352,16 +426,61 @@ def _multiple(
         raise _fail(file, key, f"{what} is not an integer multiple of {unit_key} = {unit:g} s")
 
 
-def _model_spec(file: str, key: str, fmu: str):  # noqa: ANN202 - ModelSpec | None
+@dataclass(frozen=True)
+class Port:
+    causality: str
+    start: float | None
+    min: float | None
+    max: float | None
+
+
+def fmu_interface(file: str, key: str, fmu: str) -> dict[str, Port]:
+    """The variables of a softhil model (from model.toml) or of an external .fmu file."""
     from hil.fmu.build import model_folder
     from hil.fmu.spec import load_spec
 
     if fmu.endswith(".fmu"):
-        path = Path(fmu) if Path(fmu).is_absolute() else Path(file).parent / fmu
+        path = fmu_path(file, fmu)
         if not path.is_file():
             raise _fail(file, key, f"FMU file {str(path)!r} does not exist")
-        return None
+        try:
+            from fmpy import read_model_description
+
+            description = read_model_description(str(path))
+        except Exception as exc:  # fmpy raises zipfile, XML and its own errors
+            raise _fail(file, key, f"{path}: not a readable FMU: {exc}") from None
+        return {
+            v.name: Port(v.causality, _number(v.start), _number(v.min), _number(v.max))
+            for v in description.modelVariables
+        }
     try:
-        return load_spec(model_folder(fmu))
+        spec = load_spec(model_folder(fmu))
     except HilError as exc:
         raise _fail(file, key, str(exc)) from None
+    return {v.name: Port(v.causality, v.start, v.min, v.max) for v in spec.variables}
+
+
+def fmu_path(file: str, fmu: str) -> Path:
+    """An .fmu named in a scenario, relative to the scenario file."""
+    path = Path(fmu)
+    return path if path.is_absolute() else Path(file).parent / path
+
+
+def _number(value: object) -> float | None:
+    try:
+        return None if value is None else float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        return None
+
+
+def _check_parameter(
+    file: str, key: str, interface: dict[str, Port], name: str, value: float
+) -> None:
+    port = interface.get(name)
+    if port is None or port.causality != "parameter":
+        known = ", ".join(n for n, p in interface.items() if p.causality == "parameter")
+        raise _fail(file, key, f"no such parameter (parameters: {known})")
+    if (port.min is not None and value < port.min) or (port.max is not None and value > port.max):
+        lo = "-inf" if port.min is None else f"{port.min:g}"
+        hi = "inf" if port.max is None else f"{port.max:g}"
+        raise _fail(file, key, f"{value:g} is outside the allowed range [{lo}, {hi}]")

@@ -84,6 +84,8 @@ def step_metrics(
         else:
             settling = math.inf
         tail = tw >= end - 0.2 * (end - start)
+        if not np.any(tail):
+            tail[-1] = True
         steady = float(np.mean(np.abs(kw[tail] - level)))
         results.append(
             {
@@ -141,15 +143,23 @@ def summarise(
     warnings = []
     if load > BUS_LOAD_WARNING:
         warnings.append(f"bus load {100 * load:.0f} % exceeds {100 * BUS_LOAD_WARNING:.0f} %")
+    if stats.emcy_sent:
+        warnings.append(
+            f"{stats.emcy_sent} EMCY frame(s): a drive held its piston "
+            "(over-pressure or command timeout), see can.log"
+        )
+    if any(math.isinf(s["settling_time"]) for s in all_steps):
+        warnings.append("a step never settled within its hold (settling_time is null)")
     return {
         "scenario": scenario.name,
         "seed": scenario.seed,
         "status": "completed",
         "duration": scenario.duration,
         "rms_tracking_error": float(np.sqrt(np.mean(errors**2))),
-        "max_overshoot": max((s["overshoot"] for s in all_steps), default=0.0),
-        "settling_time": max((s["settling_time"] for s in all_steps), default=0.0),
-        "steady_state_error": max((s["steady_state_error"] for s in all_steps), default=0.0),
+        # None where the task has no step to measure (a sine-only or very short run)
+        "max_overshoot": max((s["overshoot"] for s in all_steps), default=None),
+        "settling_time": max((s["settling_time"] for s in all_steps), default=None),
+        "steady_state_error": max((s["steady_state_error"] for s in all_steps), default=None),
         "segments": segments,
         "real_time_factor": scenario.duration / stats.wall_time if stats.wall_time > 0 else None,
         "wall_time": stats.wall_time,

@@ -423,3 +423,52 @@ def test_bus_load_above_70_percent_is_a_warning(tmp_path: Path) -> None:
     )
     assert "bus load 134.1 % at 50000 bit/s" in cli.stdout
     assert "warning: above 70 %" in cli.stdout
+
+
+def test_a_run_without_steps_reports_null_metrics_as_strict_json(tmp_path: Path) -> None:
+    path = edited(
+        tmp_path,
+        ("duration = 10.0", "duration = 0.5"),
+        ("steps = [[0.0, 0.0], [0.5, 10.0], [2.5, -10.0], [4.5, 5.0], [6.0, 0.0]]", "steps = []"),
+        ("sine = { start = 7.0", "sine = { start = 0.0"),
+    )
+    result = run_inprocess(load_scenario(path, seed=9), tmp_path / "run")
+
+    def refuse(constant: str) -> None:
+        raise AssertionError(f"summary.json holds {constant}")
+
+    summary = json.loads((result.out / "summary.json").read_text(), parse_constant=refuse)
+    assert summary["max_overshoot"] is None and summary["settling_time"] is None
+    assert summary["rms_tracking_error"] > 0.0
+    # the results folder reproduces the run: its scenario copy carries the seed used
+    copy = (result.out / "scenario.toml").read_text()
+    assert "\nseed = 9\n" in copy and load_scenario(result.out / "scenario.toml").seed == 9
+
+
+def test_a_reused_results_folder_keeps_nothing_stale(tmp_path: Path) -> None:
+    path = shortened(tmp_path, 0.1)
+    out = tmp_path / "run"
+    run_scenario(load_scenario(path), RunOptions(out=out, progress=False))
+    assert (out / "controller.log").is_file() and not (out / "controller.pid").exists()
+    run_inprocess(load_scenario(path), out)
+    assert not (out / "controller.log").exists()
+    assert not (out / "controller_report.json").exists()
+
+
+def test_the_controller_stops_when_the_hub_goes_away() -> None:
+    from dataclasses import replace
+
+    from hil.bus.loopback import LoopbackHub
+
+    config = replace(controller_config(load_scenario()), timeout=30.0, cycles=5)
+    hub = LoopbackHub().start()
+    bus = open_bus(BusSpec("loopback", port=hub.port))
+    try:
+        hub.stop()
+        # the hub's socket closes: the first send may still succeed, the wait must not spin
+        with pytest.raises(
+            ControllerError, match=r"the bus (closed while waiting for SYNC 0|is gone)"
+        ):
+            ControllerNode(config, bus).run()
+    finally:
+        bus.shutdown()

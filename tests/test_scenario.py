@@ -8,12 +8,14 @@ key and the reason.
 from __future__ import annotations
 
 import math
+import shutil
 from dataclasses import replace
 from pathlib import Path
 
 import pytest
 
 from hil.errors import HilError
+from hil.fmu.build import build_fmu
 from hil.scenario import DEFAULT_SCENARIO, Scenario, ScenarioError, load_scenario
 
 MINIMAL = 'name = "t"\nseed = 1\nduration = 1.0\n'
@@ -109,7 +111,7 @@ CASES: dict[str, tuple[str, str, str]] = {
     "unknown FMU parameter": (
         MINIMAL + "[robot.segment]\nbogus = 1.0\n",
         "robot.segment.bogus",
-        "FeaSegment has no parameter 'bogus'",
+        "no such parameter (parameters: length, mass,",
     ),
     "non-numeric FMU parameter": (
         MINIMAL + '[robot.cylinder]\nstroke = "long"\n',
@@ -186,7 +188,7 @@ CASES: dict[str, tuple[str, str, str]] = {
     "connection to a participant that does not exist": (
         MINIMAL + '[[connections]]\nfrom = "segment1.kappa"\nto = "segment2.tau_ext"\n',
         "connections[0].to",
-        "'segment2.tau_ext' is not participant.variable",
+        "'segment2.tau_ext': no participant 'segment2' (participants: camera, cylinder1, drive1,",
     ),
 }
 
@@ -225,9 +227,14 @@ def test_unknown_connection_key_lists_every_allowed_key(tmp_path: Path) -> None:
 
 
 def test_fmu_file_is_found_relative_to_the_scenario(tmp_path: Path) -> None:
-    (tmp_path / "mine.fmu").write_bytes(b"PK")
+    shutil.copy(build_fmu("FeaSegment").path, tmp_path / "mine.fmu")
     scenario = load_scenario(write(tmp_path, MINIMAL + '[robot]\nsegment_fmu = "mine.fmu"\n'))
     assert scenario.robot.segment_fmu == "mine.fmu"
+    (tmp_path / "corrupt.fmu").write_bytes(b"PK")
+    message = error_line(
+        write(tmp_path, MINIMAL + '[robot]\nsegment_fmu = "corrupt.fmu"\n', "c.toml")
+    )
+    assert "robot.segment_fmu: " in message and "corrupt.fmu: not a readable FMU" in message
     message = error_line(
         write(tmp_path, MINIMAL + '[robot]\nsegment_fmu = "other.fmu"\n', "b.toml")
     )
@@ -256,3 +263,62 @@ def test_scenario_is_frozen() -> None:
     assert isinstance(scenario, Scenario)
     with pytest.raises(AttributeError):
         scenario.seed = 2  # type: ignore[misc]
+
+
+@pytest.mark.parametrize(
+    ("text", "key", "reason"),
+    [
+        (
+            "[robot.segment]\nlength = 0.0\n",
+            "robot.segment.length",
+            "0 is outside the allowed range [0.0001, inf]",
+        ),
+        ("[robot.cylinder]\nsubstep = 0.0\n", "robot.cylinder.substep", "is outside the allowed"),
+        (
+            "[robot.cylinder]\nstroke = 0.06\nx_start = 0.07\n",
+            "robot.cylinder.x_start",
+            "must lie within the stroke [0, 0.06] m",
+        ),
+        (
+            "[robot.cylinder]\nstroke = 0.2\nx_start = 0.1\n",
+            "robot.cylinder.stroke",
+            "beyond the 0.13107 m that DriveStatus/DriveCommand can carry",
+        ),
+        (
+            "[robot.segment]\nstroke = 0.06\n",
+            "robot.segment.stroke",
+            "the gas circuit takes the drive cylinder's geometry",
+        ),
+        (
+            "[robot]\nsegments = 6\n[robot.segment]\nlength = 0.12\n",
+            "robot",
+            "beyond the camera's +-0.65534 m",
+        ),
+        ("[camera]\nlatency = 0.7\n", "camera.latency", "must be below 0.65535 s"),
+        (
+            '[[connections]]\nfrom = "segment1.kappa"\nto = "cylinder1.nothing"\n',
+            "connections[0].to",
+            "cylinder1 has no input 'nothing'",
+        ),
+        ("[controller]\nkp = -1.0\n", "controller.kp", "must not be negative"),
+        (
+            "[safety]\ncommand_timeout = 0.01\n",
+            "safety.command_timeout",
+            "at least two control periods",
+        ),
+        ('name = "../outside"\n', "name", "use letters, digits"),
+    ],
+)
+def test_parameters_geometry_and_protocol_ranges_are_checked_before_running(
+    tmp_path: Path, text: str, key: str, reason: str
+) -> None:
+    base = MINIMAL if not text.startswith("name") else MINIMAL.replace('name = "t"\n', "")
+    path = write(tmp_path, base + text)
+    message = error_line(path)
+    assert message.startswith(f"{path}: {key}: "), message
+    assert reason in message
+
+
+def test_negative_seed_override_names_the_option() -> None:
+    with pytest.raises(ScenarioError, match=r"^--seed: must not be negative, got -1$"):
+        load_scenario(seed=-1)

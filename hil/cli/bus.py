@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 
 from hil.bus import loopback
+from hil.errors import HilError
 
 
 def add_parser(commands: argparse._SubParsersAction) -> None:
@@ -28,6 +29,11 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     )
     serve.add_argument("--host", default="127.0.0.1", help="address to bind (loopback only)")
     serve.add_argument("--port", type=int, default=loopback.DEFAULT_PORT, help="TCP port")
+    serve.add_argument(
+        "--allow-remote",
+        action="store_true",
+        help="allow a non-loopback --host (other machines can join the bus)",
+    )
     serve.set_defaults(handler=_serve)
     load = example_parser(
         sub,
@@ -41,7 +47,8 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
 
 
 def _serve(args: argparse.Namespace) -> int:
-    return loopback.main(["--host", args.host, "--port", str(args.port)])
+    extra = ["--allow-remote"] if args.allow_remote else []
+    return loopback.main(["--host", args.host, "--port", str(args.port), *extra])
 
 
 def _load(args: argparse.Namespace) -> int:
@@ -53,6 +60,8 @@ def _load(args: argparse.Namespace) -> int:
     from hil.summary import BUS_LOAD_WARNING, bus_load_of
 
     scenario = load_scenario(Path(args.scenario) if args.scenario else None)
+    if args.bitrate is not None and args.bitrate <= 0:
+        raise HilError(f"--bitrate must be positive, got {args.bitrate}")
     if args.bitrate:
         scenario = replace(scenario, bus=replace(scenario.bus, bitrate=args.bitrate))
     load = bus_load_of(scenario, Protocol())

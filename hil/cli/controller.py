@@ -15,7 +15,8 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
         "controller",
         "run the controller node: SYNC producer and curvature control over CAN",
         "  hil controller --config runs/default-1/controller.json --bus loopback:29536\n"
-        "  hil controller --config controller.json --bus socketcan:vcan0 --realtime\n",
+        "  hil controller --config controller.json --bus socketcan:vcan0 --realtime\n"
+        "  (the plant side: hil run --bus loopback:127.0.0.1:29536 after hil bus serve)\n",
     )
     add_arguments(parser)
     parser.set_defaults(handler=run)

@@ -100,6 +100,8 @@ def _check(args: argparse.Namespace) -> int:
     from fmpy import read_model_description, simulate_fmu
     from fmpy.validation import validate_fmu
 
+    if not args.stop_time > 0:
+        raise HilError(f"--stop-time must be positive, got {args.stop_time}")
     path = Path(args.name)
     if path.suffix == ".fmu":
         if not path.is_file():

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 
@@ -57,8 +58,9 @@ def _run(args: argparse.Namespace) -> int:
     )
     print(
         f"  rms tracking error {s['rms_tracking_error']:.3f} 1/m, max overshoot "
-        f"{100 * s['max_overshoot']:.1f} %, settling {s['settling_time']:.2f} s, "
-        f"steady-state error {s['steady_state_error']:.4f} 1/m"
+        f"{_shown(s['max_overshoot'], 100, '.1f', ' %')}, settling "
+        f"{_shown(s['settling_time'], 1, '.2f', ' s')}, steady-state error "
+        f"{_shown(s['steady_state_error'], 1, '.4f', ' 1/m')}"
     )
     f = s["frames"]
     print(
@@ -75,3 +77,12 @@ def _run(args: argparse.Namespace) -> int:
         print(f"  warning: {warning}", file=sys.stderr)
     print(f"  results in {result.out}/ (signals.csv, can.log, *.png, summary.json)")
     return 0
+
+
+def _shown(value: float | None, scale: float, spec: str, unit: str) -> str:
+    """A metric for the terminal: n/a where the task has none, 'never' where it never settled."""
+    if value is None:
+        return "n/a"
+    if math.isinf(value):
+        return "never"
+    return f"{scale * value:{spec}}{unit}"

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
+import shutil
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -60,24 +61,34 @@ class FmuSlave:
     ) -> None:
         self.instance_name = instance_name
         self.messages: list[str] = []
+        self._extracted: Path | None = None
         unzipdir = self._locate(fmu)
-        self.description = read_model_description(str(unzipdir))
-        if self.description.coSimulation is None:
-            raise FmuError(
-                f"{instance_name}: {self.description.modelName} is not a co-simulation FMU"
-            )
+        try:
+            self.description = read_model_description(str(unzipdir))
+        except Exception as exc:  # fmpy raises XML and its own validation errors
+            self._remove_extracted()
+            raise FmuError(f"{instance_name}: {fmu}: not a readable FMU: {exc}") from exc
         self.model_name = self.description.modelName
         self._variables = {v.name: v for v in self.description.modelVariables}
-        self._fmu = FMU2Slave(
-            guid=self.description.guid,
-            unzipDirectory=str(unzipdir),
-            modelIdentifier=self.description.coSimulation.modelIdentifier,
-            instanceName=instance_name,
-        )
-        self._callbacks = self._make_callbacks()
         self.time = start_time
         self._alive = False
-        self._call("fmi2Instantiate", self._fmu.instantiate, callbacks=self._callbacks)
+        try:
+            if self.description.coSimulation is None:
+                raise FmuError(f"{instance_name}: {self.model_name} is not a co-simulation FMU")
+            try:
+                self._fmu = FMU2Slave(
+                    guid=self.description.guid,
+                    unzipDirectory=str(unzipdir),
+                    modelIdentifier=self.description.coSimulation.modelIdentifier,
+                    instanceName=instance_name,
+                )
+            except Exception as exc:  # a missing or foreign binary
+                raise FmuError(f"{instance_name}: cannot load {self.model_name}: {exc}") from exc
+            self._callbacks = self._make_callbacks()
+            self._call("fmi2Instantiate", self._fmu.instantiate, callbacks=self._callbacks)
+        except BaseException:
+            self._remove_extracted()
+            raise
         self._alive = True
         try:
             self._initialise(parameters or {}, start_time)
@@ -98,16 +109,24 @@ class FmuSlave:
             self.set(name, value)
         self._call("fmi2ExitInitializationMode", self._fmu.exitInitializationMode)
 
-    @staticmethod
-    def _locate(fmu: str | Path | BuiltFmu) -> Path:
+    def _locate(self, fmu: str | Path | BuiltFmu) -> Path:
         if isinstance(fmu, BuiltFmu):
             return fmu.unzipdir
         path = Path(fmu)
         if path.suffix == ".fmu":
             if not path.is_file():
                 raise FmuError(f"{path}: no such FMU file")
-            return Path(extract(str(path)))
+            try:
+                self._extracted = Path(extract(str(path)))
+            except Exception as exc:  # zipfile and OS errors from a corrupt file
+                raise FmuError(f"{path}: not a readable FMU: {exc}") from exc
+            return self._extracted
         return build_fmu(str(fmu)).unzipdir
+
+    def _remove_extracted(self) -> None:
+        if self._extracted is not None:
+            shutil.rmtree(self._extracted, ignore_errors=True)
+            self._extracted = None
 
     def _make_callbacks(self) -> fmi2CallbackFunctions:
         def logger(
@@ -201,6 +220,7 @@ class FmuSlave:
         with contextlib.suppress(Exception):  # an instance in error may refuse; free it anyway
             self._fmu.terminate()
         self._fmu.freeInstance()
+        self._remove_extracted()
 
     def __enter__(self) -> FmuSlave:
         return self
