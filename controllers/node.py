@@ -41,7 +41,6 @@ from controllers.protocol import (
 from controllers.trajectories import CurvatureProfile, Sine
 
 POLICIES = ("strict", "hold")
-STATE_KAPPA_LIMIT = 32.767  # range of ControllerState.kappa_est in the DBC [1/m]
 
 
 class ControllerError(RuntimeError):
@@ -182,6 +181,7 @@ class ControllerNode:
         self.bus = bus
         self.clock = clock or LockstepClock()
         self.protocol = protocol or Protocol()
+        self.state_kappa_range = self.protocol.signal_range("ControllerState1", "kappa_est")
         self.report = ControllerReport(realtime=self.clock.realtime)
         self.camera = CameraAssembler(config.segments + 1)
         self.controllers = [
@@ -297,7 +297,8 @@ class ControllerNode:
             setpoint = pi.update(kappa_ref, float(self.kappa_est[i]), piston)
             self._send(DriveCommand(node, setpoint, True, cycle), t)
             # the state frame is for recording: an estimate beyond its range is shown saturated
-            shown = min(max(float(self.kappa_est[i]), -STATE_KAPPA_LIMIT), STATE_KAPPA_LIMIT)
+            lo, hi = self.state_kappa_range
+            shown = min(max(float(self.kappa_est[i]), lo), hi)
             self._send(ControllerState(node, kappa_ref, shown, cycle), t)
 
 

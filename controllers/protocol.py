@@ -138,6 +138,13 @@ class Protocol:
     def message(self, frame_id: int) -> Message:
         return self._by_id[frame_id][2]
 
+    def signal_range(self, message: str, signal: str) -> tuple[float, float]:
+        """(minimum, maximum) of a signal as the DBC declares it, in physical units."""
+        declared = self.database.get_message_by_name(message).get_signal_by_name(signal)
+        if declared.minimum is None or declared.maximum is None:
+            raise FrameError(f"{message}.{signal}: the DBC declares no range")
+        return float(declared.minimum), float(declared.maximum)
+
     def frame_id(self, frame: Frame) -> int:
         prefix, base, selector = _LAYOUT[type(frame)]
         index = 0 if selector is None else int(getattr(frame, selector))

@@ -41,7 +41,6 @@ from controllers.protocol import (
     Protocol,
     Sync,
 )
-from controllers.trajectories import CurvatureProfile
 from hil.errors import BusError, FmuError, ProtocolError
 from hil.fmu.slave import FmuSlave
 from hil.master import Connection, FmuParticipant, Master, Participant
@@ -50,8 +49,6 @@ from hil.scenario import Scenario, fmu_interface, fmu_path, robot_value
 
 FAULT_OVER_PRESSURE = 16  # plant-side fault bits, above the DriveCylinder's own 1, 2, 4
 FAULT_COMMAND_TIMEOUT = 32
-PRESSURE_RANGE = (-327680.0, 327670.0)  # DriveStatus.p_a/p_b in the DBC [Pa]
-POSITION_RANGE = (0.0, 0.13107)  # DriveStatus.piston_position [m]
 HEARTBEAT_PERIOD = 1.0  # [s]
 
 
@@ -89,8 +86,16 @@ def build_planar_arm(scenario: Scenario) -> Rig:
     }
     geometry = {k: v for k, v in geometry.items() if k in segment_parameters}
     timeout_ticks = round(scenario.safety.command_timeout / scenario.timing.step)
+    pressure_range = Protocol().signal_range("EMCY1", "pressure")
     drives = [
-        DriveNode(n, x_start, x_start, scenario.safety.max_pressure, timeout_ticks)
+        DriveNode(
+            n,
+            x_start,
+            x_start,
+            scenario.safety.max_pressure,
+            timeout_ticks,
+            pressure_range=pressure_range,
+        )
         for n in range(1, robot.segments + 1)
     ]
     lengths = [robot_value(scenario, "segment", "length")] * robot.segments
@@ -210,6 +215,7 @@ class DriveNode:
     missed: int = 0
     stale: int = 0
     emcy: list[Emcy] = field(default_factory=list)
+    pressure_range: tuple[float, float] = (-math.inf, math.inf)  # EMCY.pressure in the DBC
 
     def __post_init__(self) -> None:
         self.active_setpoint = self.x_start
@@ -263,7 +269,13 @@ class DriveNode:
         if not self.over_pressure and pressure > self.max_pressure:
             self.over_pressure = True
             self.emcy.append(
-                Emcy(self.node, EMCY_OVER_PRESSURE, 1, _clamp(pressure, *PRESSURE_RANGE), counter)
+                Emcy(
+                    self.node,
+                    EMCY_OVER_PRESSURE,
+                    1,
+                    _clamp(pressure, *self.pressure_range),
+                    counter,
+                )
             )
         elif self.over_pressure and pressure < 0.9 * self.max_pressure:
             self.over_pressure = False
@@ -312,9 +324,10 @@ class Plant:
         self.drives = rig.drives
         self.camera = rig.camera
         t = scenario.task
-        self.profile = CurvatureProfile(
-            steps=t.steps, sine=None if t.sine is None else _sine(t.sine), scale=t.scale
-        )
+        self.profile = t.profile()
+        # a sensor value beyond what its frame can carry is sent saturated, as an ADC would
+        self.position_range = self.protocol.signal_range("DriveStatus1", "piston_position")
+        self.pressure_range = self.protocol.signal_range("DriveStatus1", "p_a")
         self.sim_time = 0.0
         self.cycle = -1
         self.heartbeat_every = max(1, round(HEARTBEAT_PERIOD / scenario.timing.control_period))
@@ -436,9 +449,9 @@ class Plant:
             self._send(
                 DriveStatus(
                     drive.node,
-                    _clamp(seen["x"], *POSITION_RANGE),
-                    _clamp(seen["p_a"], *PRESSURE_RANGE),
-                    _clamp(seen["p_b"], *PRESSURE_RANGE),
+                    _clamp(seen["x"], *self.position_range),
+                    _clamp(seen["p_a"], *self.pressure_range),
+                    _clamp(seen["p_b"], *self.pressure_range),
                     int(master.values[f"{drive.name}.fault"]),
                     cycle,
                 )
@@ -466,9 +479,3 @@ class Plant:
 
 def _clamp(value: float, lo: float, hi: float) -> float:
     return lo if value < lo else hi if value > hi else (value if math.isfinite(value) else 0.0)
-
-
-def _sine(spec):  # noqa: ANN001, ANN202 - SineSpec -> Sine
-    from controllers.trajectories import Sine
-
-    return Sine(spec.start, spec.amplitude, spec.frequency, spec.offset)

@@ -34,7 +34,6 @@ from controllers.node import (
     RealtimeClock,
 )
 from controllers.protocol import Protocol
-from controllers.trajectories import CurvatureProfile, Sine
 from hil.bus.loopback import LoopbackHub
 from hil.errors import BusError, HilError
 from hil.plant import Plant, build_planar_arm
@@ -87,11 +86,7 @@ def controller_config(scenario: Scenario) -> ControllerConfig:
         x_max=stroke,
         gains=gains,
         feedforward=1.0 / model.static_gain() if scenario.controller.feedforward else 0.0,
-        profile=CurvatureProfile(
-            steps=task.steps,
-            sine=None if task.sine is None else Sine(**asdict(task.sine)),
-            scale=task.scale,
-        ),
+        profile=task.profile(),
         policy=scenario.controller.policy,
         timeout=scenario.controller.timeout,
     )

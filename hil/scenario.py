@@ -21,13 +21,11 @@ from typing import Any
 
 from controllers.canbus import KINDS as BUS_KINDS
 from controllers.node import POLICIES
-from controllers.protocol import MAX_DRIVES
+from controllers.protocol import MAX_DRIVES, Protocol
+from controllers.trajectories import CurvatureProfile, Sine
 from hil.errors import HilError, ScenarioError
 
 DEFAULT_SCENARIO = Path(str(files("hil") / "scenarios" / "default.toml"))
-PISTON_RANGE = 0.13107  # DriveStatus.piston_position / DriveCommand.piston_setpoint [m]
-MARKER_RANGE = 0.65534  # CameraMarker.x / y [m]
-EXPOSURE_RANGE = 0.65535  # CameraMarker.exposure_offset [s]
 _NAME = re.compile(r"[A-Za-z0-9_.-]+")
 
 
@@ -104,6 +102,17 @@ class TaskSpec:
     steps: tuple[tuple[float, float], ...] = ()
     sine: SineSpec | None = None
     scale: tuple[float, ...] = (1.0,)
+
+    def profile(self) -> CurvatureProfile:
+        """The reference profile that the controller tracks and the plant scores against."""
+        sine = self.sine
+        return CurvatureProfile(
+            steps=self.steps,
+            sine=None
+            if sine is None
+            else Sine(sine.start, sine.amplitude, sine.frequency, sine.offset),
+            scale=self.scale,
+        )
 
 
 @dataclass(frozen=True)
@@ -234,6 +243,10 @@ def _check(s: Scenario) -> None:
     """Semantic checks: rates, ranges, FMUs, parameters, connections, task."""
     file = s.source
     t = s.timing
+    protocol = Protocol()  # the DBC bounds what the bus can carry
+    piston_range = protocol.signal_range("DriveCommand1", "piston_setpoint")[1]
+    marker_range = protocol.signal_range("CameraMarker0", "x")[1]
+    exposure_range = protocol.signal_range("CameraMarker0", "exposure_offset")[1]
     if s.duration <= 0:
         raise _fail(file, "duration", f"must be positive, got {s.duration}")
     if s.seed < 0:
@@ -256,11 +269,11 @@ def _check(s: Scenario) -> None:
     _multiple(file, "camera.latency", s.camera.latency, t.step, "timing.step", allow_zero=True)
     if s.camera.noise < 0:
         raise _fail(file, "camera.noise", "must not be negative")
-    if s.camera.latency + s.timing.control_period > EXPOSURE_RANGE:
+    if s.camera.latency + s.timing.control_period > exposure_range:
         raise _fail(
             file,
             "camera.latency",
-            f"must be below {EXPOSURE_RANGE:g} s less one control "
+            f"must be below {exposure_range:g} s less one control "
             "period (the CameraMarker exposure_offset range in the DBC)",
         )
     r = s.robot
@@ -292,20 +305,20 @@ def _check(s: Scenario) -> None:
     stroke = robot_value(s, "cylinder", "stroke")
     if not 0.0 <= robot_value(s, "cylinder", "x_start") <= stroke:
         raise _fail(file, "robot.cylinder.x_start", f"must lie within the stroke [0, {stroke:g}] m")
-    if stroke > PISTON_RANGE:
+    if stroke > piston_range:
         raise _fail(
             file,
             "robot.cylinder.stroke",
             f"{stroke:g} m is beyond the "
-            f"{PISTON_RANGE:g} m that DriveStatus/DriveCommand can carry",
+            f"{piston_range:g} m that DriveStatus/DriveCommand can carry",
         )
     reach = robot_value(s, "segment", "length") * r.segments
-    if max(abs(r.base[0]), abs(r.base[1])) + reach > MARKER_RANGE:
+    if max(abs(r.base[0]), abs(r.base[1])) + reach > marker_range:
         raise _fail(
             file,
             "robot",
             f"the arm can reach {reach:g} m from its base at "
-            f"({r.base[0]:g}, {r.base[1]:g}): beyond the camera's +-{MARKER_RANGE:g} m "
+            f"({r.base[0]:g}, {r.base[1]:g}): beyond the camera's +-{marker_range:g} m "
             "(the CameraMarker range in the DBC)",
         )
     if s.bus.kind not in BUS_KINDS:
@@ -370,7 +383,8 @@ def _check_task(s: Scenario) -> None:
     if not task.scale:
         raise _fail(file, "task.scale", "must not be empty")
     limit = min(
-        robot_value(s, "segment", "theta_max") / robot_value(s, "segment", "length"), 32.767
+        robot_value(s, "segment", "theta_max") / robot_value(s, "segment", "length"),
+        Protocol().signal_range("ControllerState1", "kappa_ref")[1],
     )
     gain = max(abs(x) for x in task.scale)
     for i, (_, kappa) in enumerate(task.steps):

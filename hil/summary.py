@@ -114,16 +114,8 @@ def summarise(
     errors = np.concatenate(
         [signals[f"kappa_ref_{i}"] - signals[f"kappa_{i}"] for i in range(1, n + 1)]
     )
-    from controllers.trajectories import CurvatureProfile, Sine
-
     task = scenario.task
-    profile = CurvatureProfile(
-        task.steps,
-        None
-        if task.sine is None
-        else Sine(task.sine.start, task.sine.amplitude, task.sine.frequency, task.sine.offset),
-        task.scale,
-    )
+    profile = task.profile()
     segments: list[dict[str, Any]] = []
     all_steps: list[dict[str, float]] = []
     for i in range(1, n + 1):
