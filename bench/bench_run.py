@@ -22,7 +22,7 @@ from pathlib import Path
 
 from hil.fmu.slave import FmuSlave
 from hil.master import Master
-from hil.plant import build_planar_arm
+from hil.robots import build_rig
 from hil.run import RunOptions, run_scenario
 from hil.scenario import Scenario, load_scenario
 
@@ -51,7 +51,7 @@ def baseline(scenario: Scenario) -> float:
 
 
 def master_only(scenario: Scenario) -> float:
-    rig = build_planar_arm(scenario)
+    rig = build_rig(scenario)
     master = Master(rig.participants, rig.connections, scenario.timing.step)
     start = time.perf_counter()
     master.advance_to(round(scenario.duration / scenario.timing.step))

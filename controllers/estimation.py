@@ -19,7 +19,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -106,12 +106,14 @@ class Estimator(Protocol):
 
 
 class Controller(Protocol):
-    """Commands from references and estimates: returns per drive node the piston setpoint [m]."""
+    """Commands from the task and the estimate: the frames to send this cycle (actuator commands
+    acting from the next SYNC, and the controller-state frames that report reference and
+    estimate for recording and replay)."""
 
     def compute(
         self,
+        cycle: int,
         t: float,
-        references: np.ndarray,
         estimate: Estimate,
         drives: Mapping[int, DriveReading],
-    ) -> dict[int, float]: ...
+    ) -> list[Any]: ...

@@ -2,20 +2,24 @@
 
 It is the SYNC producer (as a CANopen master on a rig). Cycle c:
   1. wait for the period (real-time clock) or not at all (lockstep), send SYNC(c);
-  2. collect the camera marker frames and every drive's status frame echoing c (the plant sends
-     camera frames first, so the last status frame closes the cycle on an ordered bus);
-  3. estimate each segment's curvature from the newest complete camera frame (chord-angle PCC
-     inverse), run the curvature PI, send the drive commands and the controller-state frames;
-then SYNC(c+1). Commands computed from the status of c act from SYNC(c+1): one control period
-of computation delay, as on a rig. Missing or stale frames follow the policy: `strict` stops with
-an error naming the frame, `hold` keeps the last value and counts the miss.
+  2. collect what cycle c must bring, known from the frames themselves and the devices'
+     announced rates, never from the order in which they arrive (on a real bus the lower ids win
+     arbitration): every drive's status frame echoing c, and every camera frame whose exposure
+     plus latency falls at or before this SYNC (partial camera frames are kept until complete);
+  3. hand the cycle's drive readings and completed camera frames to the robot's `Estimator`,
+     the estimate to the robot's `Controller`, and send the frames it returns;
+then SYNC(c+1). Commands computed from the status of c act from SYNC(c+1): one control period of
+computation delay, as on a rig. Missing or stale frames follow the policy: `strict` stops with an
+error naming the frame, `hold` keeps the last value and counts the miss.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
-import math
 import time
+import typing
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -24,13 +28,18 @@ import can
 import numpy as np
 
 from controllers.canbus import connection_closed
-from controllers.curvature import CurvaturePI, PiGains
-from controllers.kinematics import curvatures_from_markers
+from controllers.curvature import PiGains
+from controllers.estimation import (
+    BendModel,
+    CameraNoise,
+    Controller,
+    DriveReading,
+    Estimator,
+    MarkerFrame,
+)
 from controllers.protocol import (
     COUNTER_MODULO,
     CameraMarker,
-    ControllerState,
-    DriveCommand,
     DriveStatus,
     Emcy,
     FrameError,
@@ -41,6 +50,7 @@ from controllers.protocol import (
 from controllers.trajectories import CurvatureProfile, Sine
 
 POLICIES = ("strict", "hold")
+ESTIMATORS = ("raw", "kf", "ukf")
 
 
 class ControllerError(RuntimeError):
@@ -48,21 +58,44 @@ class ControllerError(RuntimeError):
 
 
 @dataclass(frozen=True)
-class ControllerConfig:
-    """Everything the controller knows about the rig and its task (written by `hil run`)."""
+class CameraTiming:
+    """When camera frames become available, in macro-step ticks: frame j is exposed at tick
+    j * period_ticks and available latency_ticks later; SYNC c is at tick c * control_ticks."""
 
+    period_ticks: int
+    latency_ticks: int
+    control_ticks: int
+    markers: int
+
+    def frames_due(self, cycle: int) -> int:
+        """How many frames (0, 1, ... j) are available by SYNC `cycle`."""
+        tick = cycle * self.control_ticks - self.latency_ticks
+        return 0 if tick < 0 else tick // self.period_ticks + 1
+
+
+@dataclass(frozen=True)
+class ControllerConfig:
+    """Everything the planar arm's controller knows about the rig and its task (written by
+    `hil run` as controller.json); per-segment values are tuples, segment 1 first."""
+
+    robot: str
     lengths: tuple[float, ...]
     base: tuple[float, float, float]
     control_period: float
     cycles: int
-    x_mid: float
-    x_min: float
-    x_max: float
-    gains: PiGains
+    x_mid: tuple[float, ...]
+    x_min: tuple[float, ...]
+    x_max: tuple[float, ...]
+    gains: tuple[PiGains, ...]
     profile: CurvatureProfile
-    feedforward: float = 0.0  # piston offset per unit curvature reference [m per 1/m]
+    bends: tuple[BendModel, ...]
+    camera: CameraNoise
+    camera_timing: CameraTiming
+    feedforward: tuple[float, ...] = ()  # piston offset per unit curvature reference [m per 1/m]
     policy: str = "strict"
     timeout: float = 10.0  # wall-clock wait for a cycle's frames [s]
+    estimator: str = "raw"
+    latency_compensation: bool = True
 
     @property
     def segments(self) -> int:
@@ -73,18 +106,84 @@ class ControllerConfig:
 
     @classmethod
     def from_json(cls, text: str) -> ControllerConfig:
-        data: dict[str, Any] = json.loads(text)
-        profile = data["profile"]
-        sine = profile.get("sine")
-        data["profile"] = CurvatureProfile(
-            steps=tuple((float(t), float(k)) for t, k in profile["steps"]),
-            sine=Sine(**sine) if sine else None,
-            scale=tuple(profile["scale"]),
+        """Read a config; wrong or missing keys raise ValueError naming the key."""
+        data = json.loads(text)
+        if not isinstance(data, dict):
+            raise ValueError("must be a JSON object")
+        config = _from_data(cls, data, "")
+        if config.policy not in POLICIES:
+            raise ValueError(f"policy: {config.policy!r} is not one of {', '.join(POLICIES)}")
+        if config.estimator not in ESTIMATORS:
+            raise ValueError(
+                f"estimator: {config.estimator!r} is not one of {', '.join(ESTIMATORS)}"
+            )
+        n = config.segments
+        for name in ("x_mid", "x_min", "x_max", "gains", "bends", "feedforward"):
+            if len(getattr(config, name)) != n:
+                raise ValueError(f"{name}: {len(getattr(config, name))} values for {n} segments")
+        if config.control_period <= 0 or config.cycles < 0 or config.timeout <= 0:
+            raise ValueError("control_period and timeout must be positive, cycles not negative")
+        return config
+
+
+def _from_data(cls: Any, data: Any, key: str) -> Any:
+    """A dataclass from JSON data, checking every key and type (ValueError naming the key)."""
+    hints = typing.get_type_hints(cls)
+    if not isinstance(data, dict):
+        raise ValueError(f"{key or 'config'}: must be an object")
+    known = {f.name: f for f in dataclasses.fields(cls)}
+    unknown = set(data) - set(known)
+    if unknown:
+        raise ValueError(f"{key + '.' if key else ''}{sorted(unknown)[0]}: unknown key")
+    values = {}
+    for name, f in known.items():
+        sub = f"{key}.{name}" if key else name
+        if name not in data:
+            if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
+                raise ValueError(f"{sub}: missing key")
+            continue
+        values[name] = _value(hints[name], data[name], sub)
+    return cls(**values)
+
+
+def _value(hint: Any, raw: Any, key: str) -> Any:
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin in (typing.Union, __import__("types").UnionType):
+        if raw is None and type(None) in args:
+            return None
+        return _value(next(a for a in args if a is not type(None)), raw, key)
+    if hint is bool:
+        if not isinstance(raw, bool):
+            raise ValueError(f"{key}: must be true or false, got {raw!r}")
+        return raw
+    if hint is int:
+        if isinstance(raw, bool) or not isinstance(raw, int):
+            raise ValueError(f"{key}: must be an integer, got {raw!r}")
+        return raw
+    if hint is float:
+        if isinstance(raw, bool) or not isinstance(raw, int | float):
+            raise ValueError(f"{key}: must be a number, got {raw!r}")
+        return float(raw)
+    if hint is str:
+        if not isinstance(raw, str):
+            raise ValueError(f"{key}: must be a string, got {raw!r}")
+        return raw
+    if origin is tuple:
+        if not isinstance(raw, list):
+            raise ValueError(f"{key}: must be a list, got {raw!r}")
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_value(args[0], v, f"{key}[{i}]") for i, v in enumerate(raw))
+        if len(raw) != len(args):
+            raise ValueError(f"{key}: must have {len(args)} elements")
+        return tuple(
+            _value(a, v, f"{key}[{i}]") for i, (a, v) in enumerate(zip(args, raw, strict=True))
         )
-        data["gains"] = PiGains(**data["gains"])
-        data["lengths"] = tuple(data["lengths"])
-        data["base"] = tuple(data["base"])
-        return cls(**data)
+    if dataclasses.is_dataclass(hint):
+        return _from_data(hint, raw, key)
+    raise ValueError(f"{key}: unsupported type {hint}")  # pragma: no cover - schema bug
+
+
+_ = Sine  # the profile's sine is read through _from_data
 
 
 @dataclass
@@ -116,53 +215,57 @@ class LockstepClock:
 
 
 class RealtimeClock:
-    """SYNC(c) at wall-clock t0 + c T; returns the lateness of each SYNC [s]."""
+    """SYNC(c) at wall-clock t0 + c T; returns the lateness of each SYNC [s]. `sleep` and
+    `monotonic` are injectable so the pacing can be tested without waiting."""
 
     realtime = True
 
-    def __init__(self, period: float) -> None:
+    def __init__(
+        self,
+        period: float,
+        sleep: Callable[[float], None] = time.sleep,
+        monotonic: Callable[[], float] = time.monotonic,
+    ) -> None:
         self.period = period
         self.start: float | None = None
+        self._sleep = sleep
+        self._monotonic = monotonic
 
     def wait_for(self, cycle: int) -> float:
-        now = time.monotonic()
+        now = self._monotonic()
         if self.start is None:
             self.start = now
         deadline = self.start + cycle * self.period
         if deadline > now:
-            time.sleep(deadline - now)
-            now = time.monotonic()
+            self._sleep(deadline - now)
+            now = self._monotonic()
         return max(0.0, now - deadline)
 
 
 class CameraAssembler:
-    """Groups marker frames by camera frame index and keeps the newest complete frame."""
+    """Groups marker frames by camera frame index (modulo 256) until a frame is complete."""
 
     def __init__(self, markers: int) -> None:
         self.markers = markers
         self._pending: dict[int, dict[int, CameraMarker]] = {}
-        self.latest: np.ndarray | None = None
-        self.latest_exposure: float = -math.inf
 
-    def add(self, marker: CameraMarker, sync_time: float) -> bool:
-        """Add one marker; True when it completed a frame newer than the latest."""
-        frame = self._pending.setdefault(marker.frame_index, {})
-        frame[marker.marker_id] = marker
-        if len(frame) < self.markers:
-            return False
-        del self._pending[marker.frame_index]
-        exposure = sync_time - marker.exposure_offset
-        if exposure <= self.latest_exposure:
-            return False
-        self.latest = np.array([[frame[m].x, frame[m].y] for m in range(self.markers)])
-        self.latest_exposure = exposure
-        return True
+    def add(self, marker: CameraMarker) -> None:
+        if 0 <= marker.marker_id < self.markers:
+            self._pending.setdefault(marker.frame_index, {})[marker.marker_id] = marker
 
-    def drop_incomplete(self) -> int:
-        """Forget partial frames (a marker was lost); returns how many were dropped."""
-        dropped = len(self._pending)
-        self._pending.clear()
-        return dropped
+    def complete(self, index: int) -> bool:
+        return len(self._pending.get(index % COUNTER_MODULO, {})) == self.markers
+
+    def take(self, index: int, sync_time: float) -> MarkerFrame:
+        """The frame `index` (complete) as a MarkerFrame stamped with its exposure time."""
+        frame = self._pending.pop(index % COUNTER_MODULO)
+        offset = frame[0].exposure_offset
+        points = np.array([[frame[m].x, frame[m].y] for m in range(self.markers)])
+        return MarkerFrame(exposure_time=sync_time - offset, points=points)
+
+    def drop(self, index: int) -> bool:
+        """Forget a frame that will not complete; True if part of it had arrived."""
+        return self._pending.pop(index % COUNTER_MODULO, None) is not None
 
 
 class ControllerNode:
@@ -174,31 +277,25 @@ class ControllerNode:
         bus: can.BusABC,
         clock: LockstepClock | RealtimeClock | None = None,
         protocol: Protocol | None = None,
+        estimator: Estimator | None = None,
+        controller: Controller | None = None,
     ) -> None:
         if config.policy not in POLICIES:
             raise ControllerError(f"policy {config.policy!r}: must be one of {POLICIES}")
+        from controllers.planar_arm import make_controller, make_estimator
+
         self.config = config
         self.bus = bus
         self.clock = clock or LockstepClock()
         self.protocol = protocol or Protocol()
-        self.state_kappa_range = self.protocol.signal_range("ControllerState1", "kappa_est")
         self.report = ControllerReport(realtime=self.clock.realtime)
-        self.camera = CameraAssembler(config.segments + 1)
-        self.controllers = [
-            CurvaturePI(
-                config.gains,
-                config.control_period,
-                config.x_mid,
-                config.x_min,
-                config.x_max,
-                config.feedforward,
-            )
-            for _ in range(config.segments)
-        ]
-        self.kappa_est = np.zeros(config.segments)
+        self.camera = CameraAssembler(config.camera_timing.markers)
+        self.estimator = estimator or make_estimator(config)
+        self.controller = controller or make_controller(config, self.protocol)
         self.status: dict[int, DriveStatus] = {}
+        self._frames_taken = 0  # camera frames 0 .. _frames_taken - 1 are done with
 
-    def _send(self, frame: Sync | DriveCommand | ControllerState, sim_time: float) -> None:
+    def _send(self, frame: Any, sim_time: float) -> None:
         message = self.protocol.encode(frame, timestamp=sim_time)
         try:
             self.bus.send(message)
@@ -216,32 +313,51 @@ class ControllerNode:
             lateness.append(self.clock.wait_for(cycle))
             t = cycle * T
             self._send(Sync(cycle), t)
-            self._collect(cycle, t)
+            frames = self._collect(cycle, t)
             self.report.cycles = cycle
             if cycle == self.config.cycles:
                 break  # the final SYNC lets the plant reach the end time; nothing acts after it
-            self._control(cycle, t)
+            readings = {
+                node: DriveReading(s.piston_position, s.p_a, s.p_b, s.fault)
+                for node, s in self.status.items()
+            }
+            estimate = self.estimator.update(t, readings, frames)
+            for frame in self.controller.compute(cycle, t, estimate, readings):
+                self._send(frame, t)
         if lateness:
             self.report.max_lateness = max(lateness)
             self.report.mean_lateness = float(np.mean(lateness))
             self.report.overruns = sum(1 for late in lateness if late > T)
         return self.report
 
-    def _collect(self, cycle: int, t: float) -> None:
-        needed = set(range(1, self.config.segments + 1))
-        deadline = time.monotonic() + self.config.timeout
+    def _collect(self, cycle: int, t: float) -> list[MarkerFrame]:
+        """Receive until the cycle holds every status frame echoing it and every camera frame
+        due by this SYNC; returns the camera frames completed, oldest first."""
+        config = self.config
+        needed = set(range(1, config.segments + 1))
+        due = config.camera_timing.frames_due(cycle)
+        deadline = time.monotonic() + config.timeout
         counter = cycle % COUNTER_MODULO
-        while needed:
+
+        def camera_complete() -> bool:
+            return all(self.camera.complete(j) for j in range(self._frames_taken, due))
+
+        while needed or not camera_complete():
             remaining = deadline - time.monotonic()
             if remaining <= 0.0:
-                missing = ", ".join(f"DriveStatus{n}" for n in sorted(needed))
-                if self.config.policy == "strict":
+                missing = [f"DriveStatus{n}" for n in sorted(needed)]
+                missing += [
+                    f"camera frame {j}"
+                    for j in range(self._frames_taken, due)
+                    if not self.camera.complete(j)
+                ]
+                if config.policy == "strict":
                     raise ControllerError(
-                        f"no {missing} for SYNC {cycle} (t = {t:.3f} s) within "
-                        f"{self.config.timeout:g} s: is the plant running?"
+                        f"no {', '.join(missing)} for SYNC {cycle} (t = {t:.3f} s) within "
+                        f"{config.timeout:g} s: is the plant running?"
                     )
                 self.report.status_missed += len(needed)
-                return
+                break
             message = self.bus.recv(timeout=min(remaining, 0.5))
             if message is None:
                 if connection_closed(self.bus):
@@ -254,13 +370,13 @@ class ControllerNode:
             try:
                 frame = self.protocol.decode(message)
             except FrameError as exc:
-                if self.config.policy == "strict":
+                if config.policy == "strict":
                     raise ControllerError(f"at SYNC {cycle}: {exc}") from exc
                 self.report.unknown_frames += 1
                 continue
             if isinstance(frame, DriveStatus):
                 if frame.counter != counter or frame.node not in needed:
-                    if self.config.policy == "strict":
+                    if config.policy == "strict":
                         raise ControllerError(
                             f"stale DriveStatus{frame.node} (counter {frame.counter}) while "
                             f"waiting for SYNC {cycle} (counter {counter})"
@@ -270,36 +386,27 @@ class ControllerNode:
                 self.status[frame.node] = frame
                 needed.discard(frame.node)
             elif isinstance(frame, CameraMarker):
-                if self.camera.add(frame, t):
-                    self.report.camera_frames += 1
+                self.camera.add(frame)
             elif isinstance(frame, Emcy):
                 self.report.emcy.append({"cycle": cycle, **asdict(frame)})
             elif isinstance(frame, Heartbeat):
                 continue
-            elif self.config.policy == "strict":
+            elif config.policy == "strict":
                 raise ControllerError(
                     f"unexpected {type(frame).__name__} at SYNC {cycle}: is another controller "
                     "on the bus?"
                 )
-        self.report.camera_frames_incomplete += self.camera.drop_incomplete()
-
-    def _control(self, cycle: int, t: float) -> None:
-        config = self.config
-        if self.camera.latest is not None:
-            self.kappa_est = curvatures_from_markers(
-                self.camera.latest, config.lengths, config.base[2]
-            )
-        for i, pi in enumerate(self.controllers):
-            node = i + 1
-            kappa_ref = config.profile.for_segment(i, t)
-            status = self.status.get(node)
-            piston = status.piston_position if status is not None else None
-            setpoint = pi.update(kappa_ref, float(self.kappa_est[i]), piston)
-            self._send(DriveCommand(node, setpoint, True, cycle), t)
-            # the state frame is for recording: an estimate beyond its range is shown saturated
-            lo, hi = self.state_kappa_range
-            shown = min(max(float(self.kappa_est[i]), lo), hi)
-            self._send(ControllerState(node, kappa_ref, shown, cycle), t)
+            else:
+                self.report.unknown_frames += 1
+        frames = []
+        for j in range(self._frames_taken, due):
+            if self.camera.complete(j):
+                frames.append(self.camera.take(j, t))
+                self.report.camera_frames += 1
+            elif self.camera.drop(j):
+                self.report.camera_frames_incomplete += 1
+        self._frames_taken = max(self._frames_taken, due)
+        return frames
 
 
 def write_report(report: ControllerReport, path: Path) -> None:

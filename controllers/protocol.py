@@ -1,20 +1,31 @@
-"""The softhil CAN protocol: the DBC file `softhil.dbc`, typed frames, encode/decode, bus load.
+"""The softhil CAN protocol: one generic codec driven by the DBC file `softhil.dbc`.
 
-The DBC file is the protocol (ids, scaling, units, ranges); this module only names its frames.
-It lives on the controller side because both programs speak it and `controllers` never imports
-`hil`. Ids follow CANopen ranges: SYNC 0x080, EMCY 0x080+n, status 0x180+n, command 0x200+n,
-camera markers 0x280+m, controller state 0x380+n, heartbeat 0x700+n (drives n = 1..8).
-Invariant: every frame on the bus decodes to exactly one of the dataclasses below, or
-`decode` raises `FrameError` naming the CAN id.
+The DBC is the protocol: ids, layouts, scaling, units, physical ranges, value tables, comments
+and cycle times (`GenMsgCycleTime`). This module adds no frame knowledge of its own. A DBC
+message named `<Kind><index>` (`DriveStatus3`, `CameraMarker0`) or `<Kind>` (`SYNC`) is a frame
+of kind `Kind`; a frame type is a frozen dataclass registered for its kind with `@frame_type`,
+whose fields are the message's signals plus, for indexed kinds, the index field (`node`,
+`marker_id`). Kinds with no registered type decode to `GenericFrame`. Adding a frame type is a DBC
+addition plus, where typed access is wanted, one decorated dataclass next to the code that uses it.
+
+Ids follow CANopen ranges: SYNC 0x080, EMCY 0x080+n, status 0x180+n (valves 0x190+n, canister
+0x1A0), command 0x200+n (valves 0x210+n), camera frame 0x27F, markers 0x280+m (3-D 0x290+m),
+controller state 0x380+n, heartbeat 0x700+n.
+
+Invariant: every frame on the bus decodes to exactly one frame object, or `decode` raises
+`FrameError` naming the CAN id; `encode(decode(m)) == m` for every valid message.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+import re
+import typing
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field, fields
 from importlib.resources import files
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import can
 import cantools
@@ -22,21 +33,15 @@ from cantools.database.can import Database, Message
 
 DBC_PATH = Path(str(files("controllers") / "softhil.dbc"))
 
-SYNC_ID = 0x080
-EMCY_BASE = 0x080
-STATUS_BASE = 0x180
-COMMAND_BASE = 0x200
-MARKER_BASE = 0x280
-STATE_BASE = 0x380
-HEARTBEAT_BASE = 0x700
-MAX_DRIVES = 8
-MAX_MARKERS = 16
 COUNTER_MODULO = 256
+WRAPPING_SIGNALS = ("counter", "frame_index")  # sequence numbers: encoded modulo their range
 
 EMCY_OVER_PRESSURE = 0xFF01
 EMCY_COMMAND_TIMEOUT = 0xFF02
 EMCY_FMU_FAULT = 0xFF03
 NMT_OPERATIONAL = 5
+
+_NAME = re.compile(r"^(?P<kind>.*?)(?P<index>\d*)$")
 
 
 class FrameError(ValueError):
@@ -44,10 +49,57 @@ class FrameError(ValueError):
 
 
 @dataclass(frozen=True)
+class FrameType:
+    """How a dataclass maps onto DBC messages of one kind."""
+
+    kind: str
+    cls: type
+    index_field: str | None
+    converters: dict[str, Callable[[Any], Any]]
+
+
+_REGISTRY: dict[str, FrameType] = {}
+
+
+def frame_type(kind: str, index: str | None = None) -> Callable[[type], type]:
+    """Register a frozen dataclass as the typed frame of DBC kind `kind` (its messages are
+    `kind` or `kind<N>`); `index` names the field that holds N."""
+
+    def register(cls: type) -> type:
+        hints = typing.get_type_hints(cls)
+        converters: dict[str, Callable[[Any], Any]] = {}
+        for f in fields(cls):
+            hint = hints[f.name]
+            converters[f.name] = (
+                (lambda v: bool(int(v)))
+                if hint is bool
+                else (lambda v: int(v))
+                if hint is int
+                else float
+            )
+        _REGISTRY[kind] = FrameType(kind, cls, index, converters)
+        cls.kind = kind  # type: ignore[attr-defined]
+        return cls
+
+    return register
+
+
+@dataclass(frozen=True)
+class GenericFrame:
+    """A frame of a kind with no registered type: its DBC kind, index and signals."""
+
+    kind: str
+    index: int | None
+    signals: Mapping[str, float] = field(default_factory=dict)
+
+
+@frame_type("SYNC")
+@dataclass(frozen=True)
 class Sync:
     counter: int
 
 
+@frame_type("DriveStatus", index="node")
 @dataclass(frozen=True)
 class DriveStatus:
     node: int
@@ -58,6 +110,7 @@ class DriveStatus:
     counter: int
 
 
+@frame_type("DriveCommand", index="node")
 @dataclass(frozen=True)
 class DriveCommand:
     node: int
@@ -66,6 +119,7 @@ class DriveCommand:
     counter: int
 
 
+@frame_type("ControllerState", index="node")
 @dataclass(frozen=True)
 class ControllerState:
     node: int
@@ -74,6 +128,7 @@ class ControllerState:
     counter: int
 
 
+@frame_type("EMCY", index="node")
 @dataclass(frozen=True)
 class Emcy:
     node: int
@@ -83,12 +138,14 @@ class Emcy:
     counter: int
 
 
+@frame_type("Heartbeat", index="node")
 @dataclass(frozen=True)
 class Heartbeat:
     node: int
     nmt_state: int
 
 
+@frame_type("CameraMarker", index="marker_id")
 @dataclass(frozen=True)
 class CameraMarker:
     marker_id: int
@@ -98,83 +155,171 @@ class CameraMarker:
     exposure_offset: float  # SYNC time - exposure time [s]
 
 
-Frame = Sync | DriveStatus | DriveCommand | ControllerState | Emcy | Heartbeat | CameraMarker
+@frame_type("CameraMarker3D", index="marker_id")
+@dataclass(frozen=True)
+class CameraMarker3D:
+    marker_id: int
+    frame_index: int
+    x: float  # [m]
+    y: float  # [m]
+    z: float  # [m]
 
-# frame class -> (DBC name prefix, id base, name of the field that selects the node/marker)
-_LAYOUT: dict[type, tuple[str, int, str | None]] = {
-    Sync: ("SYNC", SYNC_ID, None),
-    DriveStatus: ("DriveStatus", STATUS_BASE, "node"),
-    DriveCommand: ("DriveCommand", COMMAND_BASE, "node"),
-    ControllerState: ("ControllerState", STATE_BASE, "node"),
-    Emcy: ("EMCY", EMCY_BASE, "node"),
-    Heartbeat: ("Heartbeat", HEARTBEAT_BASE, "node"),
-    CameraMarker: ("CameraMarker", MARKER_BASE, "marker_id"),
-}
+
+@frame_type("CameraFrame")
+@dataclass(frozen=True)
+class CameraFrame:
+    frame_index: int
+    exposure_offset: float  # SYNC time - exposure time [s]
+    marker_mask: int  # bit m: marker m was seen
+    markers: int
+
+
+Frame = Any  # any registered frame dataclass or GenericFrame
+
+
+def frame_key(frame: Frame) -> tuple[str, int | None]:
+    """(DBC kind, index) of a frame object: ("DriveStatus", 3), ("SYNC", None)."""
+    if isinstance(frame, GenericFrame):
+        return frame.kind, frame.index
+    ftype = _REGISTRY[type(frame).kind]
+    return ftype.kind, None if ftype.index_field is None else int(getattr(frame, ftype.index_field))
+
+
+def frame_signals(frame: Frame) -> dict[str, Any]:
+    """The signal values of a frame object, by DBC signal name."""
+    if isinstance(frame, GenericFrame):
+        return dict(frame.signals)
+    ftype = _REGISTRY[type(frame).kind]
+    return {f.name: getattr(frame, f.name) for f in fields(frame) if f.name != ftype.index_field}
 
 
 def frame_name(frame_id: int) -> str:
     return f"0x{frame_id:03X}"
 
 
+@dataclass(frozen=True)
+class _Entry:
+    kind: str
+    index: int | None
+    message: Message
+    type: FrameType | None
+
+
 class Protocol:
     """Encoder/decoder of softhil frames over the DBC database (strict range checks)."""
 
+    _cache: ClassVar[dict[Path, Database]] = {}
+
     def __init__(self, dbc_path: Path = DBC_PATH) -> None:
-        database = cantools.database.load_file(str(dbc_path), strict=True)
+        try:
+            database = Protocol._cache.get(dbc_path) or cantools.database.load_file(
+                str(dbc_path), strict=True
+            )
+        except (OSError, cantools.database.UnsupportedDatabaseFormatError, ValueError) as exc:
+            raise FrameError(f"{dbc_path}: not a readable DBC: {_first_line(exc)}") from None
         if not isinstance(database, Database):
             raise FrameError(f"{dbc_path}: not a CAN database")
+        Protocol._cache[dbc_path] = database
         self.database = database
-        self._by_id: dict[int, tuple[type, int | None, Message]] = {}
-        for cls, (prefix, base, selector) in _LAYOUT.items():
-            if selector is None:
-                self._by_id[base] = (cls, None, self.database.get_message_by_name(prefix))
-                continue
-            count = MAX_MARKERS if cls is CameraMarker else MAX_DRIVES
-            first = 0 if cls is CameraMarker else 1
-            for index in range(first, first + count):
-                message = self.database.get_message_by_name(f"{prefix}{index}")
-                self._by_id[base + index] = (cls, index, message)
+        self.path = dbc_path
+        self._by_id: dict[int, _Entry] = {}
+        self._by_name: dict[str, _Entry] = {}
+        for message in database.messages:
+            match = _NAME.match(message.name)
+            assert match is not None  # the pattern matches every string
+            kind, digits = match["kind"], match["index"]
+            ftype = _REGISTRY.get(kind)
+            index = int(digits) if digits else None
+            entry = _Entry(kind, index, message, ftype)
+            if ftype is not None:
+                _check_layout(entry)
+            self._by_id[message.frame_id] = entry
+            self._by_name[message.name] = entry
+
+    # ------------------------------------------------------------------ the DBC as data
 
     def message(self, frame_id: int) -> Message:
-        return self._by_id[frame_id][2]
+        return self._by_id[frame_id].message
+
+    def message_by_name(self, name: str) -> Message:
+        try:
+            return self._by_name[name].message
+        except KeyError:
+            raise FrameError(f"no message {name!r} in {self.path.name}") from None
+
+    def has_message(self, name: str) -> bool:
+        return name in self._by_name
 
     def signal_range(self, message: str, signal: str) -> tuple[float, float]:
         """(minimum, maximum) of a signal as the DBC declares it, in physical units."""
-        declared = self.database.get_message_by_name(message).get_signal_by_name(signal)
+        declared = self.message_by_name(message).get_signal_by_name(signal)
         if declared.minimum is None or declared.maximum is None:
             raise FrameError(f"{message}.{signal}: the DBC declares no range")
         return float(declared.minimum), float(declared.maximum)
 
+    def cycle_time(self, name: str) -> float | None:
+        """The message's `GenMsgCycleTime` [s], None for event-driven messages."""
+        cycle = self.message_by_name(name).cycle_time
+        return cycle / 1000.0 if cycle else None
+
+    def count(self, kind: str) -> int:
+        """How many indexed messages of `kind` the DBC declares (drives, markers, valves)."""
+        return sum(1 for e in self._by_id.values() if e.kind == kind and e.index is not None)
+
     def frame_id(self, frame: Frame) -> int:
-        prefix, base, selector = _LAYOUT[type(frame)]
-        index = 0 if selector is None else int(getattr(frame, selector))
-        frame_id = base + index
-        if frame_id not in self._by_id or (
-            selector is not None and self._by_id[frame_id][1] != index
-        ):
-            raise FrameError(f"{prefix}{index}: no such frame in the DBC (index out of range)")
-        return frame_id
+        return self._entry_of(frame).message.frame_id
+
+    def name_of(self, frame: Frame) -> str:
+        return self._entry_of(frame).message.name
+
+    def _entry_of(self, frame: Frame) -> _Entry:
+        if isinstance(frame, GenericFrame):
+            kind, index = frame.kind, frame.index
+        else:
+            ftype = _REGISTRY.get(getattr(type(frame), "kind", ""))
+            if ftype is None or not isinstance(frame, ftype.cls):
+                raise FrameError(f"{type(frame).__name__} is not a registered frame type")
+            kind = ftype.kind
+            index = None if ftype.index_field is None else int(getattr(frame, ftype.index_field))
+        name = kind if index is None else f"{kind}{index}"
+        entry = self._by_name.get(name)
+        if entry is None:
+            raise FrameError(f"{name}: no such frame in the DBC (index out of range)")
+        return entry
+
+    # ------------------------------------------------------------------ encode / decode
 
     def encode(self, frame: Frame, timestamp: float = 0.0) -> can.Message:
         """The CAN message of `frame`; out-of-range values raise FrameError naming the signal."""
-        frame_id = self.frame_id(frame)
-        message = self._by_id[frame_id][2]
-        signals = {k: v for k, v in vars(frame).items() if k != "node"}
-        if isinstance(frame, Sync | DriveStatus | DriveCommand | ControllerState | Emcy):
-            signals["counter"] = frame.counter % COUNTER_MODULO
-        if isinstance(frame, CameraMarker):
-            signals["frame_index"] = frame.frame_index % COUNTER_MODULO
-        if isinstance(frame, DriveCommand):
-            signals["enable"] = int(frame.enable)
-        for name, value in signals.items():
+        entry = self._entry_of(frame)
+        message = entry.message
+        if isinstance(frame, GenericFrame):
+            given: dict[str, Any] = dict(frame.signals)
+        else:
+            given = {f.name: getattr(frame, f.name) for f in fields(frame)}
+        signals: dict[str, Any] = {}
+        for signal in message.signals:
+            if signal.name not in given:
+                raise FrameError(
+                    f"{message.name} ({frame_name(message.frame_id)}): "
+                    f"no value for signal {signal.name}"
+                )
+            value = given[signal.name]
+            if isinstance(value, bool):
+                value = int(value)
+            if signal.name in WRAPPING_SIGNALS and isinstance(value, int):
+                value %= int(signal.maximum or COUNTER_MODULO - 1) + 1
             if isinstance(value, float) and not math.isfinite(value):
-                raise FrameError(f"{message.name} ({frame_name(frame_id)}): {name} is {value}")
+                raise FrameError(
+                    f"{message.name} ({frame_name(message.frame_id)}): {signal.name} is {value}"
+                )
+            signals[signal.name] = value
         try:
             data = message.encode(signals, strict=True)
         except (cantools.database.EncodeError, ValueError, KeyError) as exc:
-            raise FrameError(f"{message.name} ({frame_name(frame_id)}): {exc}") from exc
+            raise FrameError(f"{message.name} ({frame_name(message.frame_id)}): {exc}") from exc
         return can.Message(
-            arbitration_id=frame_id, data=data, is_extended_id=False, timestamp=timestamp
+            arbitration_id=message.frame_id, data=data, is_extended_id=False, timestamp=timestamp
         )
 
     def decode(self, msg: can.Message) -> Frame:
@@ -184,42 +329,46 @@ class Protocol:
         entry = self._by_id.get(msg.arbitration_id)
         if entry is None:
             raise FrameError(f"unknown CAN id {frame_name(msg.arbitration_id)}")
-        cls, index, message = entry
+        message = entry.message
         if len(msg.data) != message.length:
             raise FrameError(
                 f"{message.name} ({frame_name(msg.arbitration_id)}): {len(msg.data)} data bytes, "
                 f"the DBC says {message.length}"
             )
-        values = message.decode(bytes(msg.data), decode_choices=False, scaling=True)
-        fields: dict[str, Any] = dict(values)  # type: ignore[arg-type]
-        if cls is CameraMarker:
-            if int(fields["marker_id"]) != index:
+        values: dict[str, Any] = dict(
+            message.decode(bytes(msg.data), decode_choices=False, scaling=True)  # type: ignore[arg-type]
+        )
+        ftype = entry.type
+        if ftype is None:
+            return GenericFrame(entry.kind, entry.index, values)
+        kwargs = {name: ftype.converters[name](v) for name, v in values.items()}
+        if ftype.index_field is not None:
+            if ftype.index_field in kwargs and kwargs[ftype.index_field] != entry.index:
                 raise FrameError(
-                    f"{message.name} ({frame_name(msg.arbitration_id)}): marker_id "
-                    f"{int(fields['marker_id'])} does not match the CAN id"
+                    f"{message.name} ({frame_name(msg.arbitration_id)}): {ftype.index_field} "
+                    f"{kwargs[ftype.index_field]} does not match the CAN id"
                 )
-            return CameraMarker(
-                marker_id=int(fields["marker_id"]),
-                x=float(fields["x"]),
-                y=float(fields["y"]),
-                frame_index=int(fields["frame_index"]),
-                exposure_offset=float(fields["exposure_offset"]),
-            )
-        if cls is Sync:
-            return Sync(counter=int(fields["counter"]))
-        if cls is DriveCommand:
-            return DriveCommand(
-                node=int(index or 0),
-                piston_setpoint=float(fields["piston_setpoint"]),
-                enable=bool(fields["enable"]),
-                counter=int(fields["counter"]),
-            )
-        typed = {k: (int(v) if k in _INTEGER_FIELDS else float(v)) for k, v in fields.items()}
-        frame: Frame = cls(node=index, **typed)
-        return frame
+            kwargs[ftype.index_field] = entry.index
+        return ftype.cls(**kwargs)
 
 
-_INTEGER_FIELDS = {"fault", "counter", "error_code", "error_register", "nmt_state"}
+def _check_layout(entry: _Entry) -> None:
+    """A registered type's fields must be exactly the DBC message's signals (plus the index)."""
+    assert entry.type is not None
+    wanted = {s.name for s in entry.message.signals}
+    if entry.type.index_field is not None:
+        wanted.add(entry.type.index_field)
+    have = {f.name for f in fields(entry.type.cls)}
+    if wanted != have:
+        raise FrameError(
+            f"{entry.message.name}: the DBC's signals {sorted(wanted)} do not match "
+            f"{entry.type.cls.__name__}'s fields {sorted(have)}"
+        )
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip().splitlines()
+    return text[0] if text else type(exc).__name__
 
 
 def frame_bits(dlc: int) -> int:
@@ -228,10 +377,10 @@ def frame_bits(dlc: int) -> int:
     return 47 + 8 * dlc + (34 + 8 * dlc - 1) // 4
 
 
-def bus_load(frames_per_second: dict[int, float], bitrate: float, protocol: Protocol) -> float:
-    """Fraction of the bus's capacity used by frames at the given rates (by CAN id)."""
+def bus_load(frames_per_second: Mapping[str, float], bitrate: float, protocol: Protocol) -> float:
+    """Fraction of the bus's capacity used by frames at the given rates (by DBC message name)."""
     bits = sum(
-        rate * frame_bits(protocol.message(frame_id).length)
-        for frame_id, rate in frames_per_second.items()
+        rate * frame_bits(protocol.message_by_name(name).length)
+        for name, rate in frames_per_second.items()
     )
     return bits / bitrate

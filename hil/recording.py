@@ -1,66 +1,81 @@
-"""Recorders of a run: the signals CSV and the CAN log (candump `.log`), written as the run goes.
+"""Recorders of a run: the signals (CSV with a units sidecar, optionally MF4) and the CAN log.
 
-Both are flushed at every SYNC, so whatever stops a run (a dead controller, an FMU error, Ctrl-C)
-leaves complete, readable files up to the last finished control period. Values are written with
-`repr`, so equal runs give byte-identical files.
+The CAN log is written by python-can's writer for its file suffix (`.log` candump, `.asc`,
+`.blf`, `.trc`, `.csv`, `.mf4`), every frame stamped with the log's start instant plus simulation
+time, so CAN tools see a real date (the default start is fixed, so reruns stay byte-identical).
+The `.log` lines are those of `candump -L -x`: `(seconds.micro) can0 ID#DATA T|R`, T for frames
+the plant sent and R for frames it received.
+
+Signals are one CSV row per SYNC, columns from the robot's signal specs; `signals.units.csv`
+beside it gives every column's unit and meaning (`pandas.read_csv` reads either in one call).
+Both the CSV and a candump log are flushed at every SYNC, so whatever stops a run leaves complete,
+readable files up to the last finished control period. Values are written with `repr`, so equal
+runs give byte-identical files.
 """
 
 from __future__ import annotations
 
 import csv
 import math
+from collections.abc import Sequence
 from pathlib import Path
 from typing import TextIO
 
 import can
 
-PER_SEGMENT = (
-    "kappa_ref",
-    "kappa_est",
-    "kappa",
-    "theta",
-    "p_a",
-    "p_b",
-    "x",
-    "x_ref",
-    "v",
-    "i_motor",
-    "fault",
-)
+from controllers.protocol import frame_bits
+from hil.errors import HilError
+from hil.robots import SignalSpec
 
-
-def signal_columns(segments: int) -> list[str]:
-    return ["time"] + [f"{name}_{i}" for i in range(1, segments + 1) for name in PER_SEGMENT]
+UNITS_SUFFIX = ".units.csv"
 
 
 class SignalRecorder:
-    """One CSV row per control period: reference, controller estimate and the true state."""
+    """One CSV row per control period, in the robot's column order."""
 
-    def __init__(self, path: Path, segments: int) -> None:
+    def __init__(self, path: Path, specs: Sequence[SignalSpec]) -> None:
         self.path = path
-        self.segments = segments
+        self.specs = list(specs)
+        self.columns = ["time"] + [s.column for s in self.specs]
+        self._by_frame = {s.frame: s.column for s in self.specs if s.frame is not None}
+        units = path.with_name(path.stem + UNITS_SUFFIX)
+        with units.open("w", newline="") as f:
+            writer = csv.writer(f, lineterminator="\n")
+            writer.writerow(["signal", "unit", "description"])
+            writer.writerow(["time", "s", "simulation time of the SYNC"])
+            for s in self.specs:
+                writer.writerow([s.column, s.unit, s.description])
         self._file: TextIO = path.open("w", newline="")
         self._writer = csv.writer(self._file, lineterminator="\n")
-        self._writer.writerow(signal_columns(segments))
+        self._writer.writerow(self.columns)
         self._row: dict[str, float] | None = None
         self.rows = 0
+        self.table: list[list[float]] = []  # every row, for the MF4 copy and the summary
 
     def begin_row(self, time: float, values: dict[str, float]) -> None:
-        """Start the row of a SYNC; values are keyed `name_i` (see PER_SEGMENT)."""
+        """Start the row of a SYNC with the plant's values (by column)."""
         self.end_row()
         self._row = {"time": time, **values}
 
-    def controller_state(self, node: int, kappa_ref: float, kappa_est: float) -> None:
-        """The controller's estimate for the open row (its reference is the plant's own)."""
-        if self._row is not None:
-            self._row[f"kappa_est_{node}"] = kappa_est
+    def record_frame(self, kind: str, index: int | None, values: dict[str, float]) -> bool:
+        """Values a frame reported (the controller's state), for the open row; True if any of
+        the frame's signals is recorded."""
+        recorded = False
+        for name, value in values.items():
+            column = self._by_frame.get((kind, index, name))
+            if column is not None:
+                recorded = True
+                if self._row is not None:
+                    self._row[column] = value
+        return recorded
 
     def end_row(self) -> None:
         if self._row is None:
             return
-        columns = signal_columns(self.segments)
-        self._writer.writerow([_format(self._row.get(c, math.nan)) for c in columns])
+        values = [self._row.get(c, math.nan) for c in self.columns]
+        self._writer.writerow([_format(v) for v in values])
         self._file.flush()
+        self.table.append(values)
         self._row = None
         self.rows += 1
 
@@ -69,28 +84,52 @@ class SignalRecorder:
             self.end_row()
             self._file.close()
 
+    def write_mf4(self, path: Path) -> None:
+        """The signals as an MF4 file (asammdf), with units and comments."""
+        try:
+            import numpy as np
+            from asammdf import MDF, Signal
+        except ImportError:
+            raise HilError("writing MF4 needs asammdf: pip install 'softhil[mf4]'") from None
+        data = np.array(self.table, dtype=float).reshape(-1, len(self.columns))
+        t = data[:, 0]
+        mdf = MDF(version="4.10")
+        mdf.append(
+            [
+                Signal(data[:, i + 1], t, name=s.column, unit=s.unit, comment=s.description)
+                for i, s in enumerate(self.specs)
+            ],
+            comment="softhil signals",
+        )
+        mdf.save(str(path), overwrite=True)
+
 
 def _format(value: float) -> str:
     return "" if isinstance(value, float) and math.isnan(value) else repr(value)
 
 
 class CanLogger:
-    """The CAN log as the plant sees the bus, stamped with simulation time (candump -L format,
-    written by python-can): T for frames the plant sent, R for frames it received."""
+    """The CAN log as the plant sees the bus: T for frames the plant sent, R for frames it
+    received, stamped `start + simulation time`; the writer is python-can's for the suffix."""
 
-    def __init__(self, path: Path, channel: str = "can0") -> None:
+    def __init__(self, path: Path, start: float = 0.0, channel: str = "can0") -> None:
         self.path = path
+        self.start = start
         self.channel = channel
-        self._writer = can.CanutilsLogWriter(str(path), channel=channel)
+        try:
+            self._writer = can.Logger(str(path))  # type: ignore[abstract]
+        except ImportError as exc:
+            raise HilError(f"{path.name}: this log format needs an extra package ({exc})") from None
+        except ValueError as exc:
+            raise HilError(f"{path.name}: {exc}") from None
+        self._flushable = path.suffix == ".log"
         self.sent = 0
         self.received = 0
         self.bits = 0
 
     def log(self, message: can.Message, time: float, received: bool) -> None:
-        from controllers.protocol import frame_bits
-
         stamped = can.Message(
-            timestamp=time,
+            timestamp=self.start + time,
             arbitration_id=message.arbitration_id,
             is_extended_id=message.is_extended_id,
             data=bytes(message.data),
@@ -105,7 +144,10 @@ class CanLogger:
             self.sent += 1
 
     def flush(self) -> None:
-        self._writer.file.flush()
+        """Whole records on disk at every SYNC for the line formats; binary formats (BLF, MF4)
+        are complete when closed."""
+        if self._flushable:
+            self._writer.file.flush()  # type: ignore[attr-defined]
 
     def close(self) -> None:
         self._writer.stop()

@@ -25,7 +25,6 @@ from pathlib import Path
 from typing import Any
 
 from controllers.canbus import BusOpenError, BusSpec, open_bus
-from controllers.curvature import PiGains, SegmentModel, design_pi
 from controllers.node import (
     ControllerConfig,
     ControllerError,
@@ -35,11 +34,13 @@ from controllers.node import (
 )
 from controllers.protocol import Protocol
 from hil.bus.loopback import LoopbackHub
+from hil.devices import HEARTBEAT_PERIOD
 from hil.errors import BusError, HilError
-from hil.plant import Plant, build_planar_arm
+from hil.plant import Plant
 from hil.recording import CanLogger, SignalRecorder
-from hil.scenario import Scenario, robot_value
-from hil.summary import summarise
+from hil.robots import robot_kind
+from hil.scenario import Scenario, log_start
+from hil.summary import read_signals, summarise
 
 
 @dataclass(frozen=True)
@@ -49,6 +50,9 @@ class RunOptions:
     inprocess: bool = False
     realtime: bool = False
     progress: bool = True
+    can_log: str | None = None  # file name overriding [recording] can_log (suffix: format)
+    start: str | None = None  # overriding [recording] start: ISO 8601 or "now"
+    mf4: bool | None = None  # overriding [recording] mf4
 
 
 @dataclass(frozen=True)
@@ -58,38 +62,8 @@ class RunResult:
 
 
 def controller_config(scenario: Scenario) -> ControllerConfig:
-    """What the controller is told: geometry, period, task, gains (designed unless given)."""
-    robot = scenario.robot
-    tables = {"bore": "cylinder", "stroke": "cylinder"}
-    model = SegmentModel(
-        **{
-            name: robot_value(scenario, tables.get(name, "segment"), name)
-            for name in SegmentModel.__dataclass_fields__
-            if name != "x_seal"
-        },
-        x_seal=robot_value(scenario, "cylinder", "x_start"),
-    )
-    designed = design_pi(model, scenario.controller.crossover)
-    gains = PiGains(
-        Kp=scenario.controller.kp if scenario.controller.kp is not None else designed.Kp,
-        Ki=scenario.controller.ki if scenario.controller.ki is not None else designed.Ki,
-    )
-    stroke = model.stroke
-    task = scenario.task
-    return ControllerConfig(
-        lengths=(model.length,) * robot.segments,
-        base=robot.base,
-        control_period=scenario.timing.control_period,
-        cycles=scenario.cycles,
-        x_mid=model.x_seal,
-        x_min=0.0,
-        x_max=stroke,
-        gains=gains,
-        feedforward=1.0 / model.static_gain() if scenario.controller.feedforward else 0.0,
-        profile=task.profile(),
-        policy=scenario.controller.policy,
-        timeout=scenario.controller.timeout,
-    )
+    """What the controller is told, as the scenario's robot kind says."""
+    return robot_kind(scenario.robot.kind).controller_config(scenario)  # type: ignore[no-any-return]
 
 
 def run_scenario(scenario: Scenario, options: RunOptions) -> RunResult:
@@ -101,22 +75,36 @@ def run_scenario(scenario: Scenario, options: RunOptions) -> RunResult:
             (out / stale).unlink(missing_ok=True)
     except OSError as exc:
         raise HilError(f"results folder {out}: {exc.strerror or exc}") from exc
-    config = controller_config(scenario)
+    recording = scenario.recording
+    recording = replace(
+        recording,
+        can_log=options.can_log or recording.can_log,
+        start=options.start or recording.start,
+        mf4=recording.mf4 if options.mf4 is None else options.mf4,
+    )
+    scenario = replace(scenario, recording=recording)
+    try:
+        start = log_start(scenario)
+    except ValueError as exc:
+        raise HilError(f"--start: {exc}") from None
+    robot = robot_kind(scenario.robot.kind)
+    config = robot.controller_config(scenario)
     (out / "controller.json").write_text(config.to_json() + "\n")
     (out / "scenario.toml").write_text(_scenario_text(scenario))
     protocol = Protocol()
     summary: dict[str, Any] = {"scenario": scenario.name, "seed": scenario.seed, "status": "failed"}
     with ExitStack() as stack:
-        rig = build_planar_arm(scenario)
+        rig = robot.build(scenario)
         stack.callback(rig.close)
         plant_spec, controller_spec = _bus_specs(scenario, options, stack)
         plant_bus = _open(plant_spec)
         stack.callback(plant_bus.shutdown)
-        signals = SignalRecorder(out / "signals.csv", scenario.robot.segments)
+        signals = SignalRecorder(out / "signals.csv", rig.signals)
         stack.callback(signals.close)
-        can_log = CanLogger(out / "can.log")
+        can_log = CanLogger(out / recording.can_log, start=start)
         stack.callback(can_log.close)
-        plant = Plant(scenario, plant_bus, rig, signals, can_log, protocol)
+        heartbeat_every = max(1, round(HEARTBEAT_PERIOD / scenario.timing.control_period))
+        plant = Plant(scenario, plant_bus, rig, signals, can_log, protocol, heartbeat_every)
         peer = _start_controller(config, controller_spec, options, out, stack)
         progress = _progress_bar(scenario, options, stack)
         try:
@@ -127,20 +115,31 @@ def run_scenario(scenario: Scenario, options: RunOptions) -> RunResult:
             peer.stop()
             _write_summary(out, summary)
             raise
+        if recording.mf4:
+            signals.close()
+            signals.write_mf4(out / "signals.mf4")
     summary = summarise(scenario, out / "signals.csv", stats, can_log, report, protocol)
     summary["bus"] = str(plant_spec)
     summary["controller_process"] = "thread" if options.inprocess else "process"
+    summary["parameters"] = {name: dict(values) for name, values in rig.parameters.items()}
     _write_summary(out, summary)
     from hil.plots import plot_run
 
-    plot_run(out / "signals.csv", scenario.robot.segments, out)
+    plot_run(read_signals(out / "signals.csv"), rig.plots, out)
     return RunResult(out, summary)
 
 
 RESULT_FILES = (
     "summary.json",
     "signals.csv",
+    "signals.units.csv",
+    "signals.mf4",
     "can.log",
+    "can.asc",
+    "can.blf",
+    "can.trc",
+    "can.csv",
+    "can.mf4",
     "controller.json",
     "controller.log",
     "controller.pid",

@@ -14,18 +14,19 @@ import re
 import tomllib
 import types
 import typing
-from dataclasses import MISSING, dataclass, field, fields, replace
+from dataclasses import MISSING, dataclass, fields, replace
 from importlib.resources import files
 from pathlib import Path
 from typing import Any
 
 from controllers.canbus import KINDS as BUS_KINDS
 from controllers.node import POLICIES
-from controllers.protocol import MAX_DRIVES, Protocol
+from controllers.protocol import Protocol
 from controllers.trajectories import CurvatureProfile, Sine
 from hil.errors import HilError, ScenarioError
 
 DEFAULT_SCENARIO = Path(str(files("hil") / "scenarios" / "default.toml"))
+DEFAULT_LOG_START = "2015-06-01T00:00:00Z"  # the thesis's year; see RecordingSpec
 _NAME = re.compile(r"[A-Za-z0-9_.-]+")
 
 
@@ -35,17 +36,20 @@ class TimingSpec:
     control_period: float = 1e-2  # SYNC period T [s], an integer multiple of step
 
 
+class RobotSection:
+    """Marker type of the scenario's [robot] section: its schema is the robot kind's
+    `spec_class`, chosen by its `kind` key (default planar_arm)."""
+
+
 @dataclass(frozen=True)
-class RobotSpec:
-    kind: str = "planar_arm"
-    segments: int = 1
-    base: tuple[float, float, float] = (0.0, 0.0, math.pi / 2)  # x [m], y [m], heading [rad]
-    segment_fmu: str = "FeaSegment"  # model name or path to an .fmu
-    cylinder_fmu: str = "DriveCylinder"
-    segment: dict[str, float] = field(default_factory=dict)  # parameters of every segment
-    cylinder: dict[str, float] = field(default_factory=dict)  # parameters of every cylinder
-    segment_decimation: int = 1
-    cylinder_decimation: int = 1
+class RecordingSpec:
+    """What a run records and how its logs are stamped."""
+
+    # CAN log timestamps are this instant plus simulation time ("now": the wall clock at start);
+    # the default is fixed so that reruns give byte-identical logs
+    start: str = DEFAULT_LOG_START
+    can_log: str = "can.log"  # file name; its suffix picks python-can's writer
+    mf4: bool = False  # also write the signals as MF4 (needs asammdf)
 
 
 @dataclass(frozen=True)
@@ -122,13 +126,14 @@ class Scenario:
     duration: float
     description: str = ""
     timing: TimingSpec = TimingSpec()
-    robot: RobotSpec = RobotSpec()
+    robot: Any = None  # the robot kind's spec (RobotSection in the schema)
     connections: tuple[ConnectionSpec, ...] = ()
     bus: BusConfig = BusConfig()
     camera: CameraSpec = CameraSpec()
     safety: SafetySpec = SafetySpec()
     controller: ControllerSpec = ControllerSpec()
     task: TaskSpec = TaskSpec()
+    recording: RecordingSpec = RecordingSpec()
     source: str = "<built-in>"
 
     @property
@@ -175,6 +180,26 @@ def load_scenario(path: Path | None = None, *, seed: int | None = None) -> Scena
     return scenario
 
 
+def _robot_section(raw: Any, file: str, key: str) -> Any:
+    from hil.robots import robot_kind
+
+    if not isinstance(raw, dict):
+        raise _fail(file, key, f"must be a table, got {type(raw).__name__}")
+    kind = raw.get("kind", "planar_arm")
+    if not isinstance(kind, str):
+        raise _fail(file, f"{key}.kind", f"must be a string, got {kind!r}")
+    try:
+        robot = robot_kind(kind)
+    except HilError as exc:
+        raise _fail(file, f"{key}.kind", str(exc)) from None
+    return _build(robot.spec_class, raw, file, key)
+
+
+def fail(file: str, key: str, reason: str) -> ScenarioError:
+    """The one-line error of a scenario: file, key, reason."""
+    return _fail(file, key, reason)
+
+
 def _fail(file: str, key: str, reason: str) -> ScenarioError:
     return ScenarioError(f"{file}: {key or '(top level)'}: {reason}")
 
@@ -183,6 +208,8 @@ def _build(cls: type, data: Any, file: str, key: str) -> Any:
     if not isinstance(data, dict):
         raise _fail(file, key, f"must be a table, got {type(data).__name__}")
     hints = typing.get_type_hints(cls)
+    if cls is Scenario:
+        hints["robot"] = RobotSection
     known = {f.name: f for f in fields(cls)}
     values: dict[str, Any] = {}
     for raw_name, raw in data.items():
@@ -193,6 +220,8 @@ def _build(cls: type, data: Any, file: str, key: str) -> Any:
             allowed = ", ".join(shown)
             raise _fail(file, sub, f"unknown key (allowed: {allowed})")
         values[name] = _convert(hints[name], raw, file, sub)
+    if cls is Scenario and "robot" not in values:
+        values["robot"] = _robot_section({}, file, "robot")
     for f in fields(cls):
         if f.name not in values and f.default is MISSING and f.default_factory is MISSING:
             raise _fail(file, f"{key}.{f.name}" if key else f.name, "missing required key")
@@ -205,6 +234,10 @@ def _convert(hint: Any, raw: Any, file: str, key: str) -> Any:
     if origin in (typing.Union, types.UnionType):
         inner = [a for a in args if a is not type(None)]
         return _convert(inner[0], raw, file, key)
+    if hint is RobotSection:
+        return _robot_section(raw, file, key)
+    if hint is Any:
+        return raw
     if hint is float:
         if isinstance(raw, bool) or not isinstance(raw, int | float):
             raise _fail(file, key, f"must be a number, got {raw!r}")
@@ -240,11 +273,12 @@ def _convert(hint: Any, raw: Any, file: str, key: str) -> Any:
 
 
 def _check(s: Scenario) -> None:
-    """Semantic checks: rates, ranges, FMUs, parameters, connections, task."""
+    """Semantic checks: rates, ranges, the robot (its own checks), connections, recording."""
+    from hil.robots import robot_kind
+
     file = s.source
     t = s.timing
     protocol = Protocol()  # the DBC bounds what the bus can carry
-    piston_range = protocol.signal_range("DriveCommand1", "piston_setpoint")[1]
     marker_range = protocol.signal_range("CameraMarker0", "x")[1]
     exposure_range = protocol.signal_range("CameraMarker0", "exposure_offset")[1]
     if s.duration <= 0:
@@ -276,51 +310,6 @@ def _check(s: Scenario) -> None:
             f"must be below {exposure_range:g} s less one control "
             "period (the CameraMarker exposure_offset range in the DBC)",
         )
-    r = s.robot
-    if r.kind != "planar_arm":
-        raise _fail(file, "robot.kind", f"unknown robot {r.kind!r} (known: planar_arm)")
-    if not 1 <= r.segments <= MAX_DRIVES:
-        raise _fail(file, "robot.segments", f"must be 1..{MAX_DRIVES}, got {r.segments}")
-    for name in ("segment_decimation", "cylinder_decimation"):
-        d = getattr(r, name)
-        if d < 1 or s.control_ticks % d:
-            raise _fail(
-                file, f"robot.{name}", f"must divide the control period's {s.control_ticks} ticks"
-            )
-    interfaces = {
-        "segment": fmu_interface(file, "robot.segment_fmu", r.segment_fmu),
-        "cylinder": fmu_interface(file, "robot.cylinder_fmu", r.cylinder_fmu),
-    }
-    for table, interface in interfaces.items():
-        for name, value in getattr(r, table).items():
-            _check_parameter(file, f"robot.{table}.{name}", interface, name, value)
-    for name in ("stroke", "bore", "x_seal"):
-        if name in r.segment:
-            raise _fail(
-                file,
-                f"robot.segment.{name}",
-                "the gas circuit takes the drive "
-                "cylinder's geometry: set stroke, bore or x_start in robot.cylinder",
-            )
-    stroke = robot_value(s, "cylinder", "stroke")
-    if not 0.0 <= robot_value(s, "cylinder", "x_start") <= stroke:
-        raise _fail(file, "robot.cylinder.x_start", f"must lie within the stroke [0, {stroke:g}] m")
-    if stroke > piston_range:
-        raise _fail(
-            file,
-            "robot.cylinder.stroke",
-            f"{stroke:g} m is beyond the "
-            f"{piston_range:g} m that DriveStatus/DriveCommand can carry",
-        )
-    reach = robot_value(s, "segment", "length") * r.segments
-    if max(abs(r.base[0]), abs(r.base[1])) + reach > marker_range:
-        raise _fail(
-            file,
-            "robot",
-            f"the arm can reach {reach:g} m from its base at "
-            f"({r.base[0]:g}, {r.base[1]:g}): beyond the camera's +-{marker_range:g} m "
-            "(the CameraMarker range in the DBC)",
-        )
     if s.bus.kind not in BUS_KINDS:
         raise _fail(file, "bus.kind", f"must be one of {', '.join(BUS_KINDS)}")
     if s.bus.bitrate <= 0:
@@ -339,19 +328,37 @@ def _check(s: Scenario) -> None:
         raise _fail(file, "safety.max_pressure", "must be positive")
     if s.safety.command_timeout < 2 * s.timing.control_period:
         raise _fail(file, "safety.command_timeout", "must be at least two control periods")
-    _check_task(s)
-    # what each participant offers: (outputs, inputs)
-    ports: dict[str, tuple[set[str], set[str]]] = {
-        "camera": (set(), {f"kappa_{i}" for i in range(1, r.segments + 1)})
-    }
-    for i in range(1, r.segments + 1):
-        for kind in ("segment", "cylinder"):
-            interface = interfaces[kind]
-            ports[f"{kind}{i}"] = (
-                {n for n, v in interface.items() if v.causality == "output"},
-                {n for n, v in interface.items() if v.causality == "input"},
-            )
-        ports[f"drive{i}"] = ({"x_ref", "enable", "fault"}, {"x", "p_a", "p_b", "servo_fault"})
+    times = [time for time, _ in s.task.steps]
+    if any(b <= a for a, b in zip(times, times[1:], strict=False)):
+        raise _fail(file, "task.steps", "step times must be strictly increasing")
+    if not s.task.scale:
+        raise _fail(file, "task.scale", "must not be empty")
+    if s.task.sine is not None and s.task.sine.frequency <= 0:
+        raise _fail(file, "task.sine.frequency", "must be positive")
+    try:
+        log_start(s)
+    except ValueError as exc:
+        raise _fail(file, "recording.start", str(exc)) from None
+    can_log = s.recording.can_log
+    if not _NAME.fullmatch(can_log) or Path(can_log).suffix not in LOG_SUFFIXES:
+        raise _fail(
+            file,
+            "recording.can_log",
+            f"{can_log!r}: a file name ending in one of {', '.join(LOG_SUFFIXES)}",
+        )
+    robot = robot_kind(s.robot.kind)
+    robot.check(s)
+    reach = robot.reach(s)
+    base = getattr(s.robot, "base", (0.0, 0.0))
+    if max(abs(base[0]), abs(base[1])) + reach > marker_range:
+        raise _fail(
+            file,
+            "robot",
+            f"the arm can reach {reach:g} m from its base at "
+            f"({base[0]:g}, {base[1]:g}): beyond the camera's +-{marker_range:g} m "
+            "(the CameraMarker range in the DBC)",
+        )
+    ports = robot.ports(s)
     for i, c in enumerate(s.connections):
         for end, index, kind in (("source", 0, "output"), ("target", 1, "input")):
             value = getattr(c, end)
@@ -373,54 +380,26 @@ def _check(s: Scenario) -> None:
                 )
 
 
-def _check_task(s: Scenario) -> None:
-    file, task = s.source, s.task
-    if task.kind != "curvature_profile":
-        raise _fail(file, "task.kind", f"unknown task {task.kind!r} (known: curvature_profile)")
-    times = [t for t, _ in task.steps]
-    if any(b <= a for a, b in zip(times, times[1:], strict=False)):
-        raise _fail(file, "task.steps", "step times must be strictly increasing")
-    if not task.scale:
-        raise _fail(file, "task.scale", "must not be empty")
-    limit = min(
-        robot_value(s, "segment", "theta_max") / robot_value(s, "segment", "length"),
-        Protocol().signal_range("ControllerState1", "kappa_ref")[1],
-    )
-    gain = max(abs(x) for x in task.scale)
-    for i, (_, kappa) in enumerate(task.steps):
-        if abs(kappa) * gain > limit:
-            raise _fail(
-                file,
-                f"task.steps[{i}]",
-                f"curvature {abs(kappa) * gain:g} 1/m is "
-                f"beyond the reachable {limit:.3g} 1/m (theta_max / length)",
-            )
-    if task.sine is not None:
-        if task.sine.frequency <= 0:
-            raise _fail(file, "task.sine.frequency", "must be positive")
-        peak = (abs(task.sine.offset) + abs(task.sine.amplitude)) * gain
-        if peak > limit:
-            raise _fail(
-                file,
-                "task.sine",
-                f"curvature {peak:g} 1/m is beyond the reachable "
-                f"{limit:.3g} 1/m (theta_max / length)",
-            )
+LOG_SUFFIXES = (".log", ".asc", ".blf", ".trc", ".csv", ".mf4")
 
 
-def robot_value(s: Scenario, table: str, name: str) -> float:
-    """A segment or cylinder parameter as the scenario sets it, else the FMU's declared start
-    (the softhil model's when the scenario names an external FMU without that parameter)."""
-    given = getattr(s.robot, table)
-    if name in given:
-        return float(given[name])
-    fmu = s.robot.segment_fmu if table == "segment" else s.robot.cylinder_fmu
-    key = f"robot.{table}_fmu"
-    for candidate in (fmu, "FeaSegment" if table == "segment" else "DriveCylinder"):
-        variable = fmu_interface(s.source, key, candidate).get(name)
-        if variable is not None and variable.start is not None:
-            return float(variable.start)
-    raise _fail(s.source, f"robot.{table}.{name}", "required and the FMU declares no default")
+def log_start(s: Scenario) -> float:
+    """The CAN log's start instant [s since the epoch, UTC]; ValueError if unreadable."""
+    import datetime as dt
+    import time as wall
+
+    text = s.recording.start
+    if text == "now":
+        return round(wall.time(), 6)
+    try:
+        instant = dt.datetime.fromisoformat(text.replace("Z", "+00:00"))
+    except ValueError:
+        raise ValueError(
+            f"{text!r} is not an ISO 8601 instant (e.g. 2015-06-01T00:00:00Z) or 'now'"
+        ) from None
+    if instant.tzinfo is None:
+        instant = instant.replace(tzinfo=dt.UTC)
+    return instant.timestamp()
 
 
 def _multiple(
@@ -487,7 +466,7 @@ def _number(value: object) -> float | None:
         return None
 
 
-def _check_parameter(
+def check_parameter(
     file: str, key: str, interface: dict[str, Port], name: str, value: float
 ) -> None:
     port = interface.get(name)

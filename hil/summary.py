@@ -10,24 +10,17 @@ from __future__ import annotations
 
 import csv
 import math
+from collections.abc import Mapping
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from controllers.protocol import (
-    COMMAND_BASE,
-    HEARTBEAT_BASE,
-    MARKER_BASE,
-    STATE_BASE,
-    STATUS_BASE,
-    SYNC_ID,
-    Protocol,
-    bus_load,
-)
-from hil.plant import HEARTBEAT_PERIOD, PlantStats
+from controllers.protocol import Protocol, bus_load
+from hil.plant import PlantStats
 from hil.recording import CanLogger
+from hil.robots import robot_kind
 from hil.scenario import Scenario
 
 SETTLING_BAND = 0.05
@@ -46,17 +39,9 @@ def read_signals(path: Path) -> dict[str, np.ndarray]:
 
 
 def bus_load_of(scenario: Scenario, protocol: Protocol) -> float:
-    """Bus load implied by the scenario's rates and the DBC's frame lengths, at its bitrate."""
-    n = scenario.robot.segments
-    per_period = 1.0 / scenario.timing.control_period
-    rates: dict[int, float] = {SYNC_ID: per_period}
-    for node in range(1, n + 1):
-        rates[STATUS_BASE + node] = per_period
-        rates[COMMAND_BASE + node] = per_period
-        rates[STATE_BASE + node] = per_period
-        rates[HEARTBEAT_BASE + node] = 1.0 / HEARTBEAT_PERIOD
-    for marker in range(n + 1):
-        rates[MARKER_BASE + marker] = scenario.camera.rate
+    """Bus load implied by the robot's frames at the scenario's rates, from the DBC's frame
+    lengths, at its bitrate."""
+    rates = robot_kind(scenario.robot.kind).frame_rates(scenario, protocol)
     return bus_load(rates, scenario.bus.bitrate, protocol)
 
 
@@ -100,20 +85,15 @@ def step_metrics(
     return results
 
 
-def summarise(
-    scenario: Scenario,
-    signals_path: Path,
-    stats: PlantStats,
-    can_log: CanLogger,
-    controller_report: dict[str, Any],
-    protocol: Protocol,
-) -> dict[str, Any]:
-    signals = read_signals(signals_path)
+def curvature_metrics(scenario: Scenario, signals: Mapping[str, np.ndarray]) -> dict[str, Any]:
+    """The curvature-profile task's metrics: RMS tracking error against the reference the
+    controller reported, and per segment the step metrics of every hold and the sine's RMS."""
     t = signals["time"]
     n = scenario.robot.segments
     errors = np.concatenate(
         [signals[f"kappa_ref_{i}"] - signals[f"kappa_{i}"] for i in range(1, n + 1)]
     )
+    errors = errors[np.isfinite(errors)]
     task = scenario.task
     profile = task.profile()
     segments: list[dict[str, Any]] = []
@@ -125,11 +105,33 @@ def summarise(
         sine = None
         if task.sine is not None:
             in_sine = t >= task.sine.start + 1.0 / task.sine.frequency  # after one period
-            if np.any(in_sine):
-                e = signals[f"kappa_ref_{i}"][in_sine] - signals[f"kappa_{i}"][in_sine]
+            e = signals[f"kappa_ref_{i}"][in_sine] - signals[f"kappa_{i}"][in_sine]
+            e = e[np.isfinite(e)]
+            if e.size:
                 sine = float(np.sqrt(np.mean(e**2)))
         segments.append({"segment": i, "steps": steps, "sine_rms_error": sine})
         all_steps += steps
+    return {
+        "rms_tracking_error": float(np.sqrt(np.mean(errors**2))) if errors.size else None,
+        # None where the task has no step to measure (a sine-only or very short run)
+        "max_overshoot": max((s["overshoot"] for s in all_steps), default=None),
+        "settling_time": max((s["settling_time"] for s in all_steps), default=None),
+        "steady_state_error": max((s["steady_state_error"] for s in all_steps), default=None),
+        "segments": segments,
+    }
+
+
+def summarise(
+    scenario: Scenario,
+    signals_path: Path,
+    stats: PlantStats,
+    can_log: CanLogger,
+    controller_report: dict[str, Any],
+    protocol: Protocol,
+) -> dict[str, Any]:
+    signals = read_signals(signals_path)
+    t = signals["time"]
+    metrics = robot_kind(scenario.robot.kind).task_metrics(scenario, signals)
     duration = float(t[-1] - t[0]) if t.size > 1 else 0.0
     load = bus_load_of(scenario, protocol)
     warnings = []
@@ -138,26 +140,23 @@ def summarise(
     if stats.emcy_sent:
         warnings.append(
             f"{stats.emcy_sent} EMCY frame(s): a drive held its piston "
-            "(over-pressure or command timeout), see can.log"
+            "(over-pressure or command timeout), see the CAN log"
         )
-    if any(math.isinf(s["settling_time"]) for s in all_steps):
+    if metrics.get("settling_time") is not None and math.isinf(metrics["settling_time"]):
         warnings.append("a step never settled within its hold (settling_time is null)")
     return {
         "scenario": scenario.name,
         "seed": scenario.seed,
         "status": "completed",
         "duration": scenario.duration,
-        "rms_tracking_error": float(np.sqrt(np.mean(errors**2))),
-        # None where the task has no step to measure (a sine-only or very short run)
-        "max_overshoot": max((s["overshoot"] for s in all_steps), default=None),
-        "settling_time": max((s["settling_time"] for s in all_steps), default=None),
-        "steady_state_error": max((s["steady_state_error"] for s in all_steps), default=None),
-        "segments": segments,
+        **metrics,
         "real_time_factor": scenario.duration / stats.wall_time if stats.wall_time > 0 else None,
         "wall_time": stats.wall_time,
         "bus_load": load,
         "bus_load_measured": can_log.bits / scenario.bus.bitrate / duration if duration else None,
         "bitrate": scenario.bus.bitrate,
+        "log_start": can_log.start,
+        "can_log": can_log.path.name,
         "frames": {
             "sent": can_log.sent,
             "received": can_log.received,

@@ -35,8 +35,9 @@ from controllers.protocol import (
     Sync,
 )
 from hil.errors import BusError
-from hil.plant import Plant, build_planar_arm
-from hil.recording import CanLogger, SignalRecorder, signal_columns
+from hil.plant import Plant
+from hil.recording import CanLogger, SignalRecorder
+from hil.robots import build_rig
 from hil.run import RunOptions, controller_config, run_scenario
 from hil.scenario import DEFAULT_SCENARIO, Scenario, load_scenario
 from hil.summary import read_signals
@@ -124,7 +125,11 @@ def test_default_run_writes_every_result(default_run) -> None:
     assert summary["bus_load_measured"] == pytest.approx(summary["bus_load"], rel=0.05)
     with (out / "signals.csv").open() as f:
         rows = list(csv.reader(f))
-    assert rows[0] == signal_columns(1)
+    assert rows[0] == ["time"] + [
+        f"{name}_1"
+        for name in ("kappa_ref", "kappa_est", "kappa", "theta", "p_a", "p_b", "x", "x_ref", "v",
+                     "i_motor", "fault")
+    ]
     assert len(rows) == 1 + 1001
 
 
@@ -143,10 +148,13 @@ def test_can_log_decodes_with_cantools_and_python_can(default_run) -> None:
         "ControllerState1",
         "Heartbeat1",
     } <= names
-    # timestamps are simulation time: the last SYNC is at the scenario's duration
+    # timestamps are the documented start instant plus simulation time: the last SYNC is at
+    # the scenario's duration
+    start = 1433116800.0  # 2015-06-01T00:00:00Z
+    assert json.loads((default_run.out / "summary.json").read_text())["log_start"] == start
     syncs = [m for m in messages if m.arbitration_id == 0x080]
-    assert [m.timestamp for m in syncs[:3]] == [0.0, 0.01, 0.02]
-    assert syncs[-1].timestamp == pytest.approx(10.0)
+    assert [m.timestamp - start for m in syncs[:3]] == pytest.approx([0.0, 0.01, 0.02], abs=1e-6)
+    assert syncs[-1].timestamp - start == pytest.approx(10.0)
     # and cantools' own command-line decoder reads the file
     result = subprocess.run(
         [sys.executable, "-m", "cantools", "decode", "--single-line", str(DBC_PATH)],
@@ -241,8 +249,8 @@ class ScriptedController:
 def run_plant(
     tmp_path: Path, scenario: Scenario, controller: ScriptedController, plant_bus: can.BusABC
 ) -> Plant:
-    rig = build_planar_arm(scenario)
-    signals = SignalRecorder(tmp_path / "signals.csv", 1)
+    rig = build_rig(scenario)
+    signals = SignalRecorder(tmp_path / "signals.csv", rig.signals)
     log = CanLogger(tmp_path / "can.log")
     plant = Plant(scenario, plant_bus, rig, signals, log)
     thread = threading.Thread(target=controller.run, daemon=True)
@@ -305,8 +313,8 @@ def test_unknown_can_id_on_the_plant_bus_is_a_clear_error(tmp_path: Path) -> Non
         controller_bus, 3, lambda c: 0.025, extra=lambda c: stray if c == 2 else None
     )
     threading.Thread(target=lambda: _swallow(controller.run), daemon=True).start()
-    rig = build_planar_arm(scenario)
-    signals = SignalRecorder(tmp_path / "signals.csv", 1)
+    rig = build_rig(scenario)
+    signals = SignalRecorder(tmp_path / "signals.csv", rig.signals)
     log = CanLogger(tmp_path / "can.log")
     plant = Plant(scenario, plant_bus, rig, signals, log)
     try:

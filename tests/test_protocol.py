@@ -151,9 +151,9 @@ def test_heartbeat_round_trip(protocol: Protocol, node: int) -> None:
 @pytest.mark.parametrize("marker", MARKERS)
 def test_camera_marker_round_trip(protocol: Protocol, marker: int) -> None:
     rng = np.random.default_rng(400 + marker)
-    cases = [(-MARKER_REACH, MARKER_REACH, 0.0), (MARKER_REACH, -MARKER_REACH, 0.6)]
+    cases = [(-MARKER_REACH, MARKER_REACH, 0.0), (MARKER_REACH, -MARKER_REACH, 0.5)]
     cases += [
-        (*rng.uniform(-MARKER_REACH, MARKER_REACH, 2), rng.uniform(0.0, 0.6)) for _ in range(20)
+        (*rng.uniform(-MARKER_REACH, MARKER_REACH, 2), rng.uniform(0.0, 0.5)) for _ in range(20)
     ]
     for i, (x, y, exposure) in enumerate(cases):
         frame = CameraMarker(marker, float(x), float(y), frame_index=i, exposure_offset=exposure)
@@ -192,24 +192,31 @@ def test_ids_follow_canopen_ranges(protocol: Protocol) -> None:
 
 
 def test_dbc_names_and_ids_agree(protocol: Protocol) -> None:
+    """Every message's id is its kind's CANopen-range base plus its index."""
     bases = {
         "DriveStatus": 0x180,
         "DriveCommand": 0x200,
         "CameraMarker": 0x280,
+        "CameraMarker3D": 0x290,
         "ControllerState": 0x380,
         "EMCY": 0x080,
         "Heartbeat": 0x700,
+        "ValveCommand": 0x210,
+        "ValveStatus": 0x190,
     }
+    singles = {"SYNC": 0x080, "CameraFrame": 0x27F, "CanisterStatus": 0x1A0}
     database = protocol.database
-    assert len(database.messages) == 57
-    assert database.get_message_by_name("SYNC").frame_id == 0x080
+    assert len(database.messages) == 5 * 8 + 2 * 16 + 2 * 4 + len(singles)
+    ids = [m.frame_id for m in database.messages]
+    assert len(ids) == len(set(ids))
     for message in database.messages:
-        if message.name == "SYNC":
+        assert not message.is_extended_frame
+        if message.name in singles:
+            assert message.frame_id == singles[message.name]
             continue
         prefix = message.name.rstrip("0123456789")
         index = int(message.name[len(prefix) :])
         assert message.frame_id == bases[prefix] + index, message.name
-        assert not message.is_extended_frame
 
 
 @pytest.mark.parametrize(
@@ -333,7 +340,7 @@ def test_node_or_marker_out_of_range(protocol: Protocol, frame: Frame, message: 
 
 @pytest.mark.parametrize(
     ("frame_id", "text"),
-    [(0x123, "0x123"), (0x180, "0x180"), (0x290, "0x290"), (0x709, "0x709"), (0x7FF, "0x7FF")],
+    [(0x123, "0x123"), (0x180, "0x180"), (0x2A0, "0x2A0"), (0x709, "0x709"), (0x7FF, "0x7FF")],
 )
 def test_decoding_an_unknown_id(protocol: Protocol, frame_id: int, text: str) -> None:
     message = can.Message(arbitration_id=frame_id, data=bytes(8), is_extended_id=False)
@@ -391,10 +398,12 @@ def test_frame_bits_textbook_values() -> None:
 
 
 def test_bus_load(protocol: Protocol) -> None:
-    assert bus_load({0x181: 1000.0}, 1_000_000, protocol) == 0.135
+    assert bus_load({"DriveStatus1": 1000.0}, 1_000_000, protocol) == 0.135
     # 4-byte command: 47 + 32 + 65 // 4 = 95 bits; loads add
-    assert bus_load({0x201: 1000.0}, 1_000_000, protocol) == pytest.approx(0.095, rel=1e-15)
-    both = bus_load({0x181: 1000.0, 0x201: 1000.0}, 500_000, protocol)
+    assert bus_load({"DriveCommand1": 1000.0}, 1_000_000, protocol) == pytest.approx(
+        0.095, rel=1e-15
+    )
+    both = bus_load({"DriveStatus1": 1000.0, "DriveCommand1": 1000.0}, 500_000, protocol)
     assert both == pytest.approx(2 * (0.135 + 0.095), rel=1e-15)
     assert bus_load({}, 1_000_000, protocol) == 0.0
 

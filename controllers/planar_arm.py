@@ -1,0 +1,89 @@
+"""The planar arm's controller side: its estimator and its curvature controllers.
+
+`make_estimator` returns the estimator the configuration names; `CurvatureControl` runs one
+curvature PI per segment (PHYSICS.md section 4) and answers each cycle with a DriveCommand and a
+ControllerState frame per segment (the reference it tracks and the estimate it used).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from controllers.curvature import CurvaturePI
+from controllers.estimation import DriveReading, Estimate, MarkerFrame
+from controllers.kinematics import curvatures_from_markers
+from controllers.protocol import ControllerState, DriveCommand, Protocol
+
+if TYPE_CHECKING:
+    from controllers.node import ControllerConfig
+
+
+class NewestFrame:
+    """The `raw` estimator: the chord-angle inversion of the newest complete camera frame; the
+    last value is held while no frame arrives (no rate, no covariance)."""
+
+    name = "raw"
+
+    def __init__(self, lengths: Sequence[float], base_heading: float) -> None:
+        self.lengths = tuple(lengths)
+        self.base_heading = base_heading
+        self.kappa = np.zeros(len(self.lengths))
+
+    def update(
+        self, t: float, drives: Mapping[int, DriveReading], frames: Sequence[MarkerFrame]
+    ) -> Estimate:
+        complete = [f for f in frames if f.seen.all()]
+        if complete:
+            self.kappa = curvatures_from_markers(
+                complete[-1].points, self.lengths, self.base_heading
+            )
+        nan = np.full(len(self.lengths), np.nan)
+        return Estimate(self.kappa.copy(), nan, nan.copy(), measured=len(complete))
+
+
+def make_estimator(config: ControllerConfig) -> Any:
+    """The estimator named by the configuration."""
+    return NewestFrame(config.lengths, config.base[2])
+
+
+class CurvatureControl:
+    """One curvature PI per segment; references from the task's profile."""
+
+    def __init__(self, config: ControllerConfig, protocol: Protocol) -> None:
+        self.config = config
+        self.pis = [
+            CurvaturePI(
+                config.gains[i],
+                config.control_period,
+                config.x_mid[i],
+                config.x_min[i],
+                config.x_max[i],
+                config.feedforward[i] if config.feedforward else 0.0,
+            )
+            for i in range(config.segments)
+        ]
+        # the state frame is for recording: an estimate beyond its range is shown saturated
+        self.shown_range = protocol.signal_range("ControllerState1", "kappa_est")
+
+    def compute(
+        self, cycle: int, t: float, estimate: Estimate, drives: Mapping[int, DriveReading]
+    ) -> list[Any]:
+        frames: list[Any] = []
+        lo, hi = self.shown_range
+        for i, pi in enumerate(self.pis):
+            node = i + 1
+            kappa_ref = self.config.profile.for_segment(i, t)
+            reading = drives.get(node)
+            piston = reading.piston_position if reading is not None else None
+            kappa_est = float(estimate.kappa[i])
+            setpoint = pi.update(kappa_ref, kappa_est, piston)
+            frames.append(DriveCommand(node, setpoint, True, cycle))
+            frames.append(ControllerState(node, kappa_ref, min(max(kappa_est, lo), hi), cycle))
+        return frames
+
+
+def make_controller(config: ControllerConfig, protocol: Protocol) -> CurvatureControl:
+    return CurvatureControl(config, protocol)

@@ -1,0 +1,289 @@
+"""Device nodes: everything on the bus that is not the controller (ARCHITECTURE.md, "Robots").
+
+A device node is a master participant (its outputs drive FMU inputs through connections, its
+inputs are FMU outputs) and a bus node. Between SYNCs it only holds its outputs (or, like the
+camera, steps at its own rate); its bus life is one small contract:
+  - `accepts(frame)` / `receive(frame)`: frames addressed to it, buffered until the next SYNC;
+  - `act(sync, inputs)`: at SYNC, from its inputs at that instant, latch what it received, guard
+    its own safety, and return the frames it sends, each with its send phase.
+The plant sends every node's frames in phase order (emergencies, heartbeats, measurements,
+status), nodes in their rig order within a phase. Invariant: a node's outputs change only in
+`act` (the plant then publishes them to the master), so the physics between two SYNCs sees
+constant commands, as synchronous RPDOs on a CANopen rig.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+
+from controllers.protocol import (
+    COUNTER_MODULO,
+    EMCY_COMMAND_TIMEOUT,
+    EMCY_OVER_PRESSURE,
+    NMT_OPERATIONAL,
+    CameraMarker,
+    DriveCommand,
+    DriveStatus,
+    Emcy,
+    Frame,
+    Heartbeat,
+)
+
+# send phases: the documented order of a SYNC's answer
+EMERGENCY, HEARTBEAT, MEASUREMENT, STATUS = 0, 1, 2, 3
+
+HEARTBEAT_PERIOD = 1.0  # [s] between heartbeats of every node
+
+FAULT_OVER_PRESSURE = 16  # plant-side fault bits, above the DriveCylinder's own 1, 2, 4
+FAULT_COMMAND_TIMEOUT = 32
+
+
+@dataclass(frozen=True)
+class SyncContext:
+    """One SYNC as the devices see it: cycle c, its wire counter, its tick and time."""
+
+    cycle: int
+    tick: int
+    time: float
+    heartbeat: bool = False  # this SYNC is one at which nodes send their heartbeat
+
+    @property
+    def counter(self) -> int:
+        return self.cycle % COUNTER_MODULO
+
+
+class DeviceNode(Protocol):
+    """A bus node of the rig that is also a master participant."""
+
+    name: str
+    decimation: int
+
+    def input_names(self) -> list[str]: ...
+    def output_names(self) -> list[str]: ...
+    def set_inputs(self, values: Mapping[str, float]) -> None: ...
+    def step(self, time: float, step: float) -> None: ...
+    def get_outputs(self) -> dict[str, float]: ...
+    def accepts(self, frame: Frame) -> bool: ...
+    def receive(self, frame: Frame) -> None: ...
+    def act(self, sync: SyncContext, inputs: Mapping[str, float]) -> list[tuple[int, Frame]]: ...
+
+
+def clamp(value: float, lo: float, hi: float) -> float:
+    """Saturate as a sensor's ADC would; a non-finite value reads as 0."""
+    return lo if value < lo else hi if value > hi else (value if math.isfinite(value) else 0.0)
+
+
+@dataclass
+class DriveNode:
+    """Drive n's firmware: at SYNC it latches the last period's command (synchronous RPDO),
+    guards its own safety from its inputs (piston position, chamber pressures, the servo's fault
+    bits) and answers with its status (and EMCY, heartbeat). Between SYNCs it holds its outputs,
+    the servo's setpoint and enable.
+
+    Safety: a command missing for more than `timeout_ticks` holds the piston where it is (EMCY
+    0xFF02); a gauge pressure beyond `max_pressure` on either side holds it too (EMCY 0xFF01),
+    allowing only moves back towards the sealing position `x_seal`, until both sides fall below
+    90 % of the limit."""
+
+    node: int
+    x_start: float
+    x_seal: float
+    max_pressure: float
+    timeout_ticks: int
+    position_range: tuple[float, float] = (-math.inf, math.inf)  # DriveStatus, from the DBC
+    pressure_range: tuple[float, float] = (-math.inf, math.inf)
+    active_setpoint: float = 0.0
+    active_enable: bool = True
+    pending: DriveCommand | None = None
+    last_command_tick: int = 0
+    timed_out: bool = False
+    over_pressure: bool = False
+    hold_position: float = 0.0
+    missed: int = 0
+    stale: int = 0
+    emcy_sent: int = 0
+    servo_fault: int = 0
+    setpoint: float = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.active_setpoint = self.x_start
+        self.setpoint = self.x_start
+        self.name = f"drive{self.node}"
+        self.decimation = 1
+
+    # participant: outputs held between SYNCs, inputs read at SYNC only
+    def input_names(self) -> list[str]:
+        return ["x", "p_a", "p_b", "servo_fault"]
+
+    def output_names(self) -> list[str]:
+        return ["x_ref", "enable", "fault"]
+
+    def set_inputs(self, values: Mapping[str, float]) -> None:
+        """Inputs are read at SYNC through `act`; between SYNCs the firmware only holds."""
+
+    def step(self, time: float, step: float) -> None:
+        """Nothing happens between SYNCs: the outputs hold."""
+
+    def get_outputs(self) -> dict[str, float]:
+        return {
+            "x_ref": self.setpoint,
+            "enable": 1.0 if self.active_enable else 0.0,
+            "fault": float(self.fault),
+        }
+
+    @property
+    def fault(self) -> int:
+        return (self.servo_fault | self.fault_bits) & 0xFF
+
+    @property
+    def fault_bits(self) -> int:
+        return (FAULT_OVER_PRESSURE if self.over_pressure else 0) | (
+            FAULT_COMMAND_TIMEOUT if self.timed_out else 0
+        )
+
+    # bus node
+    def accepts(self, frame: Frame) -> bool:
+        return isinstance(frame, DriveCommand) and frame.node == self.node
+
+    def receive(self, frame: Frame) -> None:
+        self.pending = frame
+
+    def act(self, sync: SyncContext, inputs: Mapping[str, float]) -> list[tuple[int, Frame]]:
+        """Apply the commands of the last period at this SYNC, from the inputs at this SYNC."""
+        x, p_a, p_b = inputs["x"], inputs["p_a"], inputs["p_b"]
+        self.servo_fault = int(inputs["servo_fault"])
+        sent: list[tuple[int, Frame]] = []
+        expected = (sync.cycle - 1) % COUNTER_MODULO
+        if self.pending is not None and self.pending.counter == expected:
+            self.active_setpoint = self.pending.piston_setpoint
+            self.active_enable = self.pending.enable
+            self.last_command_tick = sync.tick
+            self.timed_out = False
+        elif self.pending is not None:
+            self.stale += 1
+        elif sync.tick > 0:
+            self.missed += 1
+        self.pending = None
+        if not self.timed_out and sync.tick - self.last_command_tick > self.timeout_ticks:
+            self.timed_out = True
+            self.hold_position = x
+            sent.append(
+                (
+                    EMERGENCY,
+                    Emcy(self.node, EMCY_COMMAND_TIMEOUT, 1, self._pressure(p_a, p_b), sync.cycle),
+                )
+            )
+        pressure = max(abs(p_a), abs(p_b))
+        if not self.over_pressure and pressure > self.max_pressure:
+            self.over_pressure = True
+            sent.append(
+                (
+                    EMERGENCY,
+                    Emcy(self.node, EMCY_OVER_PRESSURE, 1, self._pressure(p_a, p_b), sync.cycle),
+                )
+            )
+        elif self.over_pressure and pressure < 0.9 * self.max_pressure:
+            self.over_pressure = False
+        setpoint = self.hold_position if self.timed_out else self.active_setpoint
+        if self.over_pressure and (setpoint - x) * (self.x_seal - x) <= 0.0:
+            setpoint = x  # hold: only moves back towards the sealing position relieve pressure
+        self.setpoint = setpoint
+        self.emcy_sent += len(sent)
+        if sync.heartbeat:
+            sent.append((HEARTBEAT, Heartbeat(self.node, NMT_OPERATIONAL)))
+        sent.append(
+            (
+                STATUS,
+                DriveStatus(
+                    self.node,
+                    clamp(x, *self.position_range),
+                    clamp(p_a, *self.pressure_range),
+                    clamp(p_b, *self.pressure_range),
+                    self.fault,
+                    sync.cycle,
+                ),
+            )
+        )
+        return sent
+
+    def _pressure(self, p_a: float, p_b: float) -> float:
+        """The larger gauge pressure, for an EMCY (sent saturated to the DBC's range)."""
+        return clamp(max(p_a, p_b), *self.pressure_range)
+
+
+MarkerModel = Callable[[Sequence[float]], np.ndarray]
+
+
+class CameraNode:
+    """The camera: it exposes at its rate (its decimation), sees the true shape (the robot's
+    marker model applied to its inputs at the exposure tick) and delivers each frame `latency`
+    later, with optional Gaussian marker noise, as one marker frame per marker."""
+
+    name = "camera"
+
+    def __init__(
+        self,
+        inputs: Sequence[str],
+        marker_model: MarkerModel,
+        period_ticks: int,
+        latency_ticks: int,
+        macro_step: float,
+        noise: float,
+        rng: np.random.Generator,
+    ) -> None:
+        self._inputs = list(inputs)
+        self.marker_model = marker_model
+        self.period_ticks = period_ticks
+        self.latency_ticks = latency_ticks
+        self.macro_step = macro_step
+        self.noise = noise
+        self.rng = rng
+        self.decimation = period_ticks
+        self.frame_index = 0
+        self.queue: deque[tuple[int, int, int, np.ndarray]] = deque()
+        self.values = [0.0] * len(self._inputs)
+        self._position = {name: i for i, name in enumerate(self._inputs)}
+
+    def input_names(self) -> list[str]:
+        return list(self._inputs)
+
+    def output_names(self) -> list[str]:
+        return []
+
+    def set_inputs(self, values: Mapping[str, float]) -> None:
+        for name, value in values.items():
+            self.values[self._position[name]] = value
+
+    def get_outputs(self) -> dict[str, float]:
+        return {}
+
+    def step(self, time: float, step: float) -> None:
+        """An exposure at `time` of the shape on the inputs (set from the state at `time`)."""
+        tick = round(time / self.macro_step)
+        points = self.marker_model(self.values)
+        if self.noise > 0.0:
+            points = points + self.rng.normal(0.0, self.noise, points.shape)
+        self.queue.append((tick + self.latency_ticks, tick, self.frame_index, points))
+        self.frame_index += 1
+
+    def accepts(self, frame: Frame) -> bool:
+        return False
+
+    def receive(self, frame: Frame) -> None:  # pragma: no cover - accepts nothing
+        raise AssertionError("the camera receives no frames")
+
+    def act(self, sync: SyncContext, inputs: Mapping[str, float]) -> list[tuple[int, Frame]]:
+        """Marker frames of every exposure available by this SYNC, oldest first."""
+        frames: list[tuple[int, Frame]] = []
+        while self.queue and self.queue[0][0] <= sync.tick:
+            _, exposure, index, points = self.queue.popleft()
+            offset = (sync.tick - exposure) * self.macro_step
+            for m, (x, y) in enumerate(points):
+                frames.append((MEASUREMENT, CameraMarker(m, float(x), float(y), index, offset)))
+        return frames

@@ -1,0 +1,118 @@
+"""Robot kinds as plug-ins, chosen by the scenario's `[robot] kind` the way python-can chooses an
+interface by name (ARCHITECTURE.md, "Robots").
+
+A robot kind owns, for the plant side: the schema and checks of its `[robot]` section (per
+actuator parameters), its FMUs and device nodes and their connections (`build` -> `Rig`), the
+markers the camera sees, the signals it records and plots, the frames it puts on the bus (for
+the bus load) and its task metrics; and it names its controller side (`controller_config`).
+The plant loop, the master, the bus and the recorders know no robot.
+
+Kinds are found in `KINDS` (built in) and in the `softhil.robots` entry-point group, so another
+package can add one without editing softhil.
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from importlib.metadata import entry_points
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Protocol
+
+from hil.devices import DeviceNode
+from hil.errors import HilError
+from hil.master import Connection, FmuParticipant, Participant
+
+if TYPE_CHECKING:
+    from controllers.protocol import Protocol as CanProtocol
+    from hil.scenario import Scenario
+
+KINDS = {"planar_arm": "hil.robots.planar_arm:ROBOT"}
+
+
+@dataclass(frozen=True)
+class SignalSpec:
+    """One recorded column: where its value comes from at each SYNC, its unit, what it is.
+
+    `source` is a master value ("segment1.kappa"); `frame` instead names a signal of a frame the
+    controller sends, (DBC kind, index, signal), recorded as the controller reported it."""
+
+    column: str
+    unit: str
+    description: str
+    source: str | None = None
+    frame: tuple[str, int, str] | None = None
+
+
+@dataclass(frozen=True)
+class PlotSpec:
+    """One PNG: a panel per group of columns (one per actuator), each line a column."""
+
+    name: str
+    ylabel: str
+    panels: tuple[str, ...]  # panel titles
+    lines: tuple[
+        tuple[str, str, float, dict[str, Any]], ...
+    ]  # (column template, label, scale, style)
+
+
+@dataclass
+class Rig:
+    """Everything the master steps and everything on the bus on the plant's side."""
+
+    participants: list[Participant]
+    connections: list[Connection]
+    nodes: list[DeviceNode]  # in the order they act and send within a phase
+    signals: list[SignalSpec]
+    plots: list[PlotSpec] = field(default_factory=list)
+    parameters: dict[str, Mapping[str, float]] = field(default_factory=dict)  # per participant
+
+    def close(self) -> None:
+        for participant in self.participants:
+            if isinstance(participant, FmuParticipant):
+                participant.close()
+
+
+class RobotKind(Protocol):
+    """What a robot kind provides; see the module docstring."""
+
+    name: str
+    spec_class: type  # the dataclass of its [robot] section
+
+    def check(self, scenario: Scenario) -> None: ...
+    def ports(self, scenario: Scenario) -> dict[str, tuple[set[str], set[str]]]: ...
+    def reach(self, scenario: Scenario) -> float: ...
+    def build(self, scenario: Scenario) -> Rig: ...
+    def controller_config(self, scenario: Scenario) -> Any: ...
+    def frame_rates(self, scenario: Scenario, protocol: CanProtocol) -> dict[str, float]: ...
+    def task_metrics(self, scenario: Scenario, signals: Mapping[str, Any]) -> dict[str, Any]: ...
+
+
+def robot_kind(name: str) -> RobotKind:
+    """The robot kind registered under `name`; HilError naming the known kinds otherwise."""
+    target = KINDS.get(name)
+    if target is None:
+        for ep in entry_points(group="softhil.robots"):
+            if ep.name == name:
+                return ep.load()  # type: ignore[no-any-return]
+        raise HilError(f"unknown robot kind {name!r} (known: {', '.join(known_kinds())})")
+    module, _, attribute = target.partition(":")
+    return getattr(importlib.import_module(module), attribute)  # type: ignore[no-any-return]
+
+
+def known_kinds() -> list[str]:
+    return sorted({*KINDS, *(ep.name for ep in entry_points(group="softhil.robots"))})
+
+
+def fmu_ref(source: str, fmu: str) -> str:
+    """An FMU named in a scenario: a softhil model name, or an .fmu path relative to the file."""
+    if not fmu.endswith(".fmu"):
+        return fmu
+    path = Path(fmu)
+    return str(path if path.is_absolute() else Path(source).parent / path)
+
+
+def build_rig(scenario: Scenario) -> Rig:
+    """The rig of the scenario's robot kind."""
+    return robot_kind(scenario.robot.kind).build(scenario)

@@ -1,0 +1,497 @@
+"""The planar arm (PHYSICS.md sections 1-3, 6): per segment a DriveCylinder FMU, a FeaSegment FMU
+and a drive-firmware node; one camera seeing a marker at the base and at every segment end.
+
+Per-actuator parameters: in `[robot.segment]` and `[robot.cylinder]` a scalar sets every
+actuator, a list sets one value per actuator, and a table named by the 1-based actuator index
+(`[robot.segment.3]`) overrides that one actuator. Each segment's gas circuit takes its own
+cylinder's bore and stroke and is sealed where that piston starts.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from controllers import kinematics
+from controllers.curvature import PiGains, SegmentModel, design_pi
+from controllers.estimation import BendModel, CameraNoise
+from controllers.node import CameraTiming, ControllerConfig
+from controllers.protocol import Protocol
+from hil.devices import HEARTBEAT_PERIOD, CameraNode, DriveNode
+from hil.master import Connection, FmuParticipant, Participant
+from hil.robots import PlotSpec, Rig, SignalSpec, fmu_ref
+
+if TYPE_CHECKING:
+    from hil.scenario import Scenario
+
+SEGMENT_GEOMETRY = (
+    "bore",
+    "stroke",
+    "x_seal",
+)  # the segment's circuit takes them from its cylinder
+
+
+@dataclass(frozen=True)
+class PlanarArmSpec:
+    """The `[robot]` section of a planar arm."""
+
+    kind: str = "planar_arm"
+    segments: int = 1
+    base: tuple[float, float, float] = (0.0, 0.0, math.pi / 2)  # x [m], y [m], heading [rad]
+    segment_fmu: str = "FeaSegment"  # model name or path to an .fmu
+    cylinder_fmu: str = "DriveCylinder"
+    segment: dict[str, Any] = field(default_factory=dict)  # per-actuator parameters
+    cylinder: dict[str, Any] = field(default_factory=dict)
+    segment_decimation: int = 1
+    cylinder_decimation: int = 1
+
+
+PER_SEGMENT: tuple[tuple[str, str, str], ...] = (
+    ("kappa_ref", "1/m", "curvature reference, as the controller reported it"),
+    ("kappa_est", "1/m", "controller's curvature estimate, as it reported it"),
+    ("kappa", "1/m", "true curvature"),
+    ("theta", "rad", "true bend angle"),
+    ("p_a", "Pa", "gauge pressure of side a"),
+    ("p_b", "Pa", "gauge pressure of side b"),
+    ("x", "m", "piston position"),
+    ("x_ref", "m", "piston setpoint the drive firmware applies"),
+    ("v", "m/s", "piston velocity"),
+    ("i_motor", "A", "drive motor current"),
+    ("fault", "", "drive fault bits (DriveStatus.fault)"),
+)
+_SOURCES = {
+    "kappa": "segment{n}.kappa",
+    "theta": "segment{n}.theta",
+    "p_a": "segment{n}.p_a",
+    "p_b": "segment{n}.p_b",
+    "x": "cylinder{n}.x",
+    "x_ref": "drive{n}.x_ref",
+    "v": "cylinder{n}.v",
+    "i_motor": "cylinder{n}.i_motor",
+    "fault": "drive{n}.fault",
+}
+
+
+class PlanarArm:
+    name = "planar_arm"
+    spec_class = PlanarArmSpec
+
+    # ------------------------------------------------------------------ parameters
+
+    def given(self, scenario: Scenario, table: str) -> list[dict[str, float]]:
+        """The parameters the scenario sets for each actuator of `table` ("segment" or
+        "cylinder"), resolved from scalars, lists and per-index tables."""
+        from hil.scenario import fail
+
+        spec: PlanarArmSpec = scenario.robot
+        n = spec.segments
+        raw: dict[str, Any] = getattr(spec, table)
+        per: list[dict[str, float]] = [{} for _ in range(n)]
+        overrides: list[tuple[int, str, dict[str, Any]]] = []
+        for name, value in raw.items():
+            key = f"robot.{table}.{name}"
+            if name.isdigit():
+                index = int(name)
+                if not 1 <= index <= n:
+                    raise fail(scenario.source, key, f"no {table} {index} (the arm has {n})")
+                if not isinstance(value, dict):
+                    raise fail(scenario.source, key, "must be a table of parameters")
+                overrides.append((index, key, value))
+            elif isinstance(value, list):
+                if len(value) != n:
+                    raise fail(
+                        scenario.source,
+                        key,
+                        f"has {len(value)} values for {n} {table}s (give one per {table})",
+                    )
+                for i, item in enumerate(value):
+                    per[i][name] = _number(scenario.source, f"{key}[{i}]", item)
+            else:
+                number = _number(scenario.source, key, value)
+                for p in per:
+                    p[name] = number
+        for index, key, table_values in overrides:
+            for name, value in table_values.items():
+                per[index - 1][name] = _number(scenario.source, f"{key}.{name}", value)
+        return per
+
+    def parameters(self, scenario: Scenario, table: str) -> list[dict[str, float]]:
+        """Every parameter of each actuator: what the scenario sets, else the FMU's default."""
+        from hil.scenario import fmu_interface
+
+        spec: PlanarArmSpec = scenario.robot
+        fmu = spec.segment_fmu if table == "segment" else spec.cylinder_fmu
+        defaults: dict[str, float] = {}
+        for candidate in ("FeaSegment" if table == "segment" else "DriveCylinder", fmu):
+            for name, port in fmu_interface(
+                scenario.source, f"robot.{table}_fmu", candidate
+            ).items():
+                if port.causality == "parameter" and port.start is not None:
+                    defaults[name] = port.start
+        return [{**defaults, **given} for given in self.given(scenario, table)]
+
+    # ------------------------------------------------------------------ checks
+
+    def check(self, scenario: Scenario) -> None:
+        from hil.scenario import check_parameter, fail, fmu_interface
+
+        s, file = scenario, scenario.source
+        r: PlanarArmSpec = s.robot
+        protocol = Protocol()
+        drives = protocol.count("DriveStatus")
+        if not 1 <= r.segments <= drives:
+            raise fail(file, "robot.segments", f"must be 1..{drives}, got {r.segments}")
+        if s.camera and r.segments + 1 > protocol.count("CameraMarker"):
+            raise fail(file, "robot.segments", "more markers than the DBC's CameraMarker frames")
+        for name in ("segment_decimation", "cylinder_decimation"):
+            d = getattr(r, name)
+            if d < 1 or s.control_ticks % d:
+                raise fail(
+                    file,
+                    f"robot.{name}",
+                    f"must divide the control period's {s.control_ticks} ticks",
+                )
+        interfaces = {
+            "segment": fmu_interface(file, "robot.segment_fmu", r.segment_fmu),
+            "cylinder": fmu_interface(file, "robot.cylinder_fmu", r.cylinder_fmu),
+        }
+        for table, interface in interfaces.items():
+            for i, given in enumerate(self.given(s, table)):
+                for name, value in given.items():
+                    if table == "segment" and name in SEGMENT_GEOMETRY:
+                        raise fail(
+                            file,
+                            f"robot.segment.{name}",
+                            "the gas circuit takes the drive cylinder's geometry: set stroke, "
+                            "bore or x_start in robot.cylinder",
+                        )
+                    check_parameter(file, _key(table, name, r.segments, i), interface, name, value)
+        piston_max = protocol.signal_range("DriveCommand1", "piston_setpoint")[1]
+        for i, cylinder in enumerate(self.parameters(s, "cylinder")):
+            stroke = cylinder["stroke"]
+            if not 0.0 <= cylinder["x_start"] <= stroke:
+                raise fail(
+                    file,
+                    _key("cylinder", "x_start", r.segments, i),
+                    f"must lie within the stroke [0, {stroke:g}] m",
+                )
+            if stroke > piston_max:
+                raise fail(
+                    file,
+                    _key("cylinder", "stroke", r.segments, i),
+                    f"{stroke:g} m is beyond the {piston_max:g} m that DriveStatus/DriveCommand "
+                    "can carry",
+                )
+        self._check_task(s)
+
+    def _check_task(self, s: Scenario) -> None:
+        from hil.scenario import fail
+
+        file, task = s.source, s.task
+        if task.kind != "curvature_profile":
+            raise fail(file, "task.kind", f"unknown task {task.kind!r} (known: curvature_profile)")
+        if len(task.scale) > s.robot.segments:
+            raise fail(
+                file,
+                "task.scale",
+                f"has {len(task.scale)} values for {s.robot.segments} segment(s)",
+            )
+        protocol = Protocol()
+        carried = protocol.signal_range("ControllerState1", "kappa_ref")[1]
+        for i, segment in enumerate(self.parameters(s, "segment")):
+            limit = min(segment["theta_max"] / segment["length"], carried)
+            scale = abs(task.scale[i % len(task.scale)])
+            peaks = [(f"task.steps[{j}]", abs(k)) for j, (_, k) in enumerate(task.steps)]
+            if task.sine is not None:
+                peaks.append(("task.sine", abs(task.sine.offset) + abs(task.sine.amplitude)))
+            for key, peak in peaks:
+                if peak * scale > limit:
+                    raise fail(
+                        file,
+                        key,
+                        f"curvature {peak * scale:g} 1/m for segment {i + 1} is beyond the "
+                        f"reachable {limit:.3g} 1/m (theta_max / length)",
+                    )
+
+    def ports(self, scenario: Scenario) -> dict[str, tuple[set[str], set[str]]]:
+        """What each participant offers: (outputs, inputs), for the scenario's connections."""
+        from hil.scenario import fmu_interface
+
+        r: PlanarArmSpec = scenario.robot
+        interfaces = {
+            "segment": fmu_interface(scenario.source, "robot.segment_fmu", r.segment_fmu),
+            "cylinder": fmu_interface(scenario.source, "robot.cylinder_fmu", r.cylinder_fmu),
+        }
+        ports: dict[str, tuple[set[str], set[str]]] = {
+            "camera": (set(), {f"kappa_{i}" for i in range(1, r.segments + 1)})
+        }
+        for i in range(1, r.segments + 1):
+            for kind, interface in interfaces.items():
+                ports[f"{kind}{i}"] = (
+                    {n for n, v in interface.items() if v.causality == "output"},
+                    {n for n, v in interface.items() if v.causality == "input"},
+                )
+            ports[f"drive{i}"] = ({"x_ref", "enable", "fault"}, {"x", "p_a", "p_b", "servo_fault"})
+        return ports
+
+    def reach(self, scenario: Scenario) -> float:
+        """Farthest a marker can be from the base [m]: the arm's length."""
+        return sum(p["length"] for p in self.parameters(scenario, "segment"))
+
+    # ------------------------------------------------------------------ the rig
+
+    def build(self, scenario: Scenario) -> Rig:
+        """For each n: drive n's firmware sets cylinder n's setpoint and watches its position
+        and segment n's pressures; cylinder n moves segment n's piston and feels its pressures;
+        the camera sees every segment's curvature. Scenario connections replace defaults that
+        drive the same input, and add the others."""
+        from hil.fmu.slave import FmuSlave
+
+        r: PlanarArmSpec = scenario.robot
+        protocol = Protocol()
+        segments_given = self.given(scenario, "segment")
+        cylinders_given = self.given(scenario, "cylinder")
+        segments = self.parameters(scenario, "segment")
+        cylinders = self.parameters(scenario, "cylinder")
+        segment_names = {
+            n for n, p in _interface(scenario, "segment").items() if p.causality == "parameter"
+        }
+        timeout_ticks = round(scenario.safety.command_timeout / scenario.timing.step)
+        drives = [
+            DriveNode(
+                n,
+                cylinders[n - 1]["x_start"],
+                cylinders[n - 1]["x_start"],
+                scenario.safety.max_pressure,
+                timeout_ticks,
+                position_range=protocol.signal_range("DriveStatus1", "piston_position"),
+                pressure_range=protocol.signal_range("DriveStatus1", "p_a"),
+            )
+            for n in range(1, r.segments + 1)
+        ]
+        lengths = [p["length"] for p in segments]
+        base = r.base
+        camera = CameraNode(
+            [f"kappa_{n}" for n in range(1, r.segments + 1)],
+            lambda kappas: kinematics.markers(kappas, lengths, base),
+            scenario.camera_ticks,
+            scenario.latency_ticks,
+            scenario.timing.step,
+            scenario.camera.noise,
+            np.random.default_rng(scenario.seed),
+        )
+        fmus: list[FmuParticipant] = []
+        connections: dict[str, Connection] = {}
+        parameters: dict[str, Mapping[str, float]] = {}
+        try:
+            for n in range(1, r.segments + 1):
+                cylinder_values = dict(cylinders_given[n - 1])
+                cylinder = FmuSlave(
+                    fmu_ref(scenario.source, r.cylinder_fmu), f"cylinder{n}", cylinder_values
+                )
+                fmus.append(FmuParticipant(cylinder, r.cylinder_decimation))
+                # the segment's gas circuit includes the cylinder: same bore and stroke, sealed
+                # where the piston starts
+                geometry = {
+                    "bore": cylinders[n - 1]["bore"],
+                    "stroke": cylinders[n - 1]["stroke"],
+                    "x_seal": cylinders[n - 1]["x_start"],
+                }
+                segment_values = {
+                    **{k: v for k, v in geometry.items() if k in segment_names},
+                    **segments_given[n - 1],
+                }
+                segment = FmuSlave(
+                    fmu_ref(scenario.source, r.segment_fmu), f"segment{n}", segment_values
+                )
+                fmus.append(FmuParticipant(segment, r.segment_decimation))
+                parameters[f"cylinder{n}"] = cylinders[n - 1]
+                parameters[f"segment{n}"] = {**segments[n - 1], **segment_values}
+                for source, target in (
+                    (f"cylinder{n}.x", f"segment{n}.x_piston"),
+                    (f"segment{n}.p_a", f"cylinder{n}.p_a"),
+                    (f"segment{n}.p_b", f"cylinder{n}.p_b"),
+                    (f"drive{n}.x_ref", f"cylinder{n}.x_ref"),
+                    (f"drive{n}.enable", f"cylinder{n}.enable"),
+                    (f"cylinder{n}.x", f"drive{n}.x"),
+                    (f"segment{n}.p_a", f"drive{n}.p_a"),
+                    (f"segment{n}.p_b", f"drive{n}.p_b"),
+                    (f"cylinder{n}.fault", f"drive{n}.servo_fault"),
+                    (f"segment{n}.kappa", f"camera.kappa_{n}"),
+                ):
+                    connections[target] = Connection(source, target)
+        except BaseException:
+            for participant in fmus:
+                participant.close()
+            raise
+        for c in scenario.connections:
+            connections[c.target] = Connection(c.source, c.target, c.gain, c.offset)
+        participants: list[Participant] = [*fmus, *drives, camera]
+        return Rig(
+            participants,
+            list(connections.values()),
+            [*drives, camera],
+            self.signals(scenario),
+            self.plots(scenario),
+            parameters,
+        )
+
+    def signals(self, scenario: Scenario) -> list[SignalSpec]:
+        specs = []
+        for n in range(1, scenario.robot.segments + 1):
+            for name, unit, description in PER_SEGMENT:
+                column = f"{name}_{n}"
+                text = f"segment {n}: {description}"
+                if name in ("kappa_ref", "kappa_est"):
+                    specs.append(SignalSpec(column, unit, text, frame=("ControllerState", n, name)))
+                else:
+                    specs.append(SignalSpec(column, unit, text, source=_SOURCES[name].format(n=n)))
+        return specs
+
+    def plots(self, scenario: Scenario) -> list[PlotSpec]:
+        panels = tuple(f"segment {n}" for n in range(1, scenario.robot.segments + 1))
+        return [
+            PlotSpec(
+                "curvature",
+                "curvature [1/m]",
+                panels,
+                (
+                    ("kappa_ref_{n}", "reference", 1.0, {"color": "black", "linestyle": "--"}),
+                    ("kappa_est_{n}", "estimate (controller)", 1.0, {"color": "tab:orange"}),
+                    ("kappa_{n}", "true", 1.0, {"color": "tab:blue", "alpha": 0.8}),
+                ),
+            ),
+            PlotSpec(
+                "pressures",
+                "gauge pressure [kPa]",
+                panels,
+                (
+                    ("p_a_{n}", "side a", 1e-3, {"color": "tab:red"}),
+                    ("p_b_{n}", "side b", 1e-3, {"color": "tab:green"}),
+                ),
+            ),
+            PlotSpec(
+                "piston",
+                "piston [mm]",
+                panels,
+                (
+                    ("x_ref_{n}", "setpoint", 1e3, {"color": "black", "linestyle": "--"}),
+                    ("x_{n}", "position", 1e3, {"color": "tab:purple"}),
+                ),
+            ),
+        ]
+
+    def frame_rates(self, scenario: Scenario, protocol: Protocol) -> dict[str, float]:
+        per_period = 1.0 / scenario.timing.control_period
+        rates: dict[str, float] = {"SYNC": per_period}
+        for n in range(1, scenario.robot.segments + 1):
+            rates[f"DriveStatus{n}"] = per_period
+            rates[f"DriveCommand{n}"] = per_period
+            rates[f"ControllerState{n}"] = per_period
+            rates[f"Heartbeat{n}"] = 1.0 / HEARTBEAT_PERIOD
+        for m in range(scenario.robot.segments + 1):
+            rates[f"CameraMarker{m}"] = scenario.camera.rate
+        return rates
+
+    # ------------------------------------------------------------------ the controller side
+
+    def segment_models(self, scenario: Scenario) -> list[SegmentModel]:
+        models = []
+        for segment, cylinder in zip(
+            self.parameters(scenario, "segment"), self.parameters(scenario, "cylinder"), strict=True
+        ):
+            values = {**segment, "bore": cylinder["bore"], "stroke": cylinder["stroke"]}
+            models.append(
+                SegmentModel(
+                    **{k: values[k] for k in SegmentModel.__dataclass_fields__ if k != "x_seal"},
+                    x_seal=cylinder["x_start"],
+                )
+            )
+        return models
+
+    def controller_config(self, scenario: Scenario) -> ControllerConfig:
+        """What the controller is told: geometry, period, task, gains (designed unless given)."""
+        c = scenario.controller
+        models = self.segment_models(scenario)
+        segments = self.parameters(scenario, "segment")
+        gains = []
+        for model in models:
+            designed = design_pi(model, c.crossover)
+            gains.append(
+                PiGains(
+                    Kp=c.kp if c.kp is not None else designed.Kp,
+                    Ki=c.ki if c.ki is not None else designed.Ki,
+                )
+            )
+        return ControllerConfig(
+            robot=self.name,
+            lengths=tuple(m.length for m in models),
+            base=scenario.robot.base,
+            control_period=scenario.timing.control_period,
+            cycles=scenario.cycles,
+            x_mid=tuple(m.x_seal for m in models),
+            x_min=tuple(0.0 for _ in models),
+            x_max=tuple(m.stroke for m in models),
+            gains=tuple(gains),
+            feedforward=tuple(1.0 / m.static_gain() if c.feedforward else 0.0 for m in models),
+            profile=scenario.task.profile(),
+            policy=c.policy,
+            timeout=c.timeout,
+            bends=tuple(
+                BendModel(
+                    length=p["length"],
+                    inertia=p["mass"] * p["length"] ** 2 / 20.0,
+                    k_bend=p["k_bend"],
+                    d_bend=p["d_bend"],
+                    G_a=p["G_a"],
+                    theta_max=p["theta_max"],
+                )
+                for p in segments
+            ),
+            camera=CameraNoise(
+                noise=scenario.camera.noise,
+                rate=scenario.camera.rate,
+                latency=scenario.camera.latency,
+            ),
+            camera_timing=CameraTiming(
+                period_ticks=scenario.camera_ticks,
+                latency_ticks=scenario.latency_ticks,
+                control_ticks=scenario.control_ticks,
+                markers=scenario.robot.segments + 1,
+            ),
+        )
+
+    # ------------------------------------------------------------------ scoring
+
+    def task_metrics(self, scenario: Scenario, signals: Mapping[str, Any]) -> dict[str, Any]:
+        from hil.summary import curvature_metrics
+
+        return curvature_metrics(scenario, signals)
+
+
+def _interface(scenario: Scenario, table: str) -> Mapping[str, Any]:
+    from hil.scenario import fmu_interface
+
+    fmu = scenario.robot.segment_fmu if table == "segment" else scenario.robot.cylinder_fmu
+    return fmu_interface(scenario.source, f"robot.{table}_fmu", fmu)
+
+
+def _key(table: str, name: str, count: int, index: int) -> str:
+    return f"robot.{table}.{name}" if count == 1 else f"robot.{table}.{name} (actuator {index + 1})"
+
+
+def _number(file: str, key: str, value: Any) -> float:
+    from hil.scenario import fail
+
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise fail(file, key, f"must be a number, got {value!r}")
+    if not math.isfinite(value):
+        raise fail(file, key, f"must be finite, got {value!r}")
+    return float(value)
+
+
+ROBOT = PlanarArm()
