@@ -1,8 +1,14 @@
 """Opening a CAN bus through python-can from a short spec string, the same way on both sides.
 
-Specs: `virtual[:CHANNEL]` (one process), `loopback[:[HOST:]PORT]` (the inter-process hub that
-`hil` serves on 127.0.0.1, reached with python-can's socketcand client), `socketcan:IFACE`
-(vcan0 or a real adapter, where the kernel has SocketCAN).
+Specs:
+- `loopback[:[HOST:]PORT]`: the inter-process hub that `hil` serves on 127.0.0.1, reached with
+  python-can's `socketcand` client (no kernel CAN support needed). The default.
+- `virtual[:CHANNEL]`: python-can's in-process bus (one process only).
+- `INTERFACE:CHANNEL[,key=value...]`: any python-can interface by name (socketcan:vcan0,
+  pcan:PCAN_USBBUS1, kvaser:0, slcan:/dev/ttyACM0,bitrate=1000000, udp_multicast:224.0.0.1...),
+  passed through to `can.Bus` with the options given.
+- `INTERFACE` alone, or `config`: python-can's own configuration (`can.conf`, the environment
+  variables `CAN_INTERFACE`, `CAN_CHANNEL`, `CAN_BITRATE`) fills in what the spec leaves out.
 """
 
 from __future__ import annotations
@@ -10,13 +16,14 @@ from __future__ import annotations
 import errno
 import logging
 import socket
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import can
 
 DEFAULT_CHANNEL = "softhil"
 DEFAULT_LOOPBACK_PORT = 29536
-KINDS = ("virtual", "loopback", "socketcan")
+OUR_KINDS = ("loopback", "virtual", "config")
+KINDS = (*OUR_KINDS, *sorted(can.interfaces.VALID_INTERFACES - {"virtual"}))
 
 
 class BusOpenError(ConnectionError):
@@ -25,48 +32,77 @@ class BusOpenError(ConnectionError):
 
 @dataclass(frozen=True)
 class BusSpec:
-    kind: str = "virtual"
-    channel: str = DEFAULT_CHANNEL
+    kind: str = "virtual"  # "loopback", "virtual", "config" or a python-can interface name
+    channel: str | None = DEFAULT_CHANNEL
     host: str = "127.0.0.1"
     port: int = DEFAULT_LOOPBACK_PORT
+    options: tuple[tuple[str, str], ...] = field(default=())  # extra can.Bus keyword arguments
 
     @classmethod
     def parse(cls, text: str) -> BusSpec:
-        """Parse `virtual[:CHANNEL]`, `loopback[:[HOST:]PORT]` or `socketcan:IFACE`."""
+        """Parse a spec (see the module docstring); ValueError naming the spec otherwise."""
+        if not text or any(c.isspace() or c in "<>" for c in text):
+            raise ValueError(f"bus spec {text!r}: no spaces or '<>' (e.g. loopback:29536)")
         kind, _, rest = text.partition(":")
         if kind == "virtual":
             return cls("virtual", rest or DEFAULT_CHANNEL)
         if kind == "loopback":
-            host, _, port = rest.rpartition(":")
-            try:
-                return cls(
-                    "loopback",
-                    DEFAULT_CHANNEL,
-                    host or "127.0.0.1",
-                    int(port) if port else DEFAULT_LOOPBACK_PORT,
-                )
-            except ValueError:
-                raise ValueError(f"bus spec {text!r}: port must be an integer") from None
-        if kind == "socketcan":
-            if not rest:
-                raise ValueError(f"bus spec {text!r}: name the interface, e.g. socketcan:vcan0")
-            return cls("socketcan", rest)
-        raise ValueError(f"bus spec {text!r}: kind must be one of {', '.join(KINDS)}")
+            host, _, port_text = rest.rpartition(":")
+            if not port_text:
+                port = DEFAULT_LOOPBACK_PORT
+            else:
+                try:
+                    port = int(port_text)
+                except ValueError:
+                    raise ValueError(f"bus spec {text!r}: port must be an integer") from None
+            if not 1 <= port <= 65535:
+                raise ValueError(f"bus spec {text!r}: port must be 1..65535, got {port}")
+            return cls("loopback", DEFAULT_CHANNEL, host or "127.0.0.1", port)
+        if kind == "config":
+            return cls("config", None)
+        if kind not in can.interfaces.VALID_INTERFACES:
+            raise ValueError(
+                f"bus spec {text!r}: {kind!r} is neither loopback, virtual, config nor a "
+                f"python-can interface ({', '.join(sorted(can.interfaces.VALID_INTERFACES))})"
+            )
+        channel, *pairs = rest.split(",") if rest else [""]
+        options = []
+        for pair in pairs:
+            key, sep, value = pair.partition("=")
+            if not sep or not key:
+                raise ValueError(f"bus spec {text!r}: options are key=value, got {pair!r}")
+            options.append((key, value))
+        return cls(kind, channel or None, options=tuple(options))
 
     def __str__(self) -> str:
         if self.kind == "loopback":
             return f"loopback:{self.host}:{self.port}"
-        return f"{self.kind}:{self.channel}"
+        if self.kind == "config":
+            return "config"
+        extra = "".join(f",{k}={v}" for k, v in self.options)
+        return f"{self.kind}:{self.channel or ''}{extra}"
 
 
-def open_bus(spec: BusSpec) -> can.BusABC:
-    """A python-can bus for the spec; failures raise BusOpenError naming the spec."""
+def _option(value: str) -> object:
+    """A spec option as python-can expects it: int, float, bool or text."""
+    for convert in (int, float):
+        try:
+            return convert(value)
+        except ValueError:
+            pass
+    return {"true": True, "false": False}.get(value.lower(), value)
+
+
+def open_bus(spec: BusSpec, timeout: float = 2.0) -> can.BusABC:
+    """A python-can bus for the spec; failures raise BusOpenError naming the spec with a hint.
+    A loopback hub that does not answer within `timeout` seconds is an error, not a hang."""
     try:
         if spec.kind == "virtual":
             return can.Bus(interface="virtual", channel=spec.channel, receive_own_messages=False)
         if spec.kind == "loopback":
             # the client logs a warning each time a TCP read ends inside a frame: not news
             logging.getLogger("can.interfaces.socketcand.socketcand").setLevel(logging.ERROR)
+            _probe_hub(spec, timeout)
             return can.Bus(
                 interface="socketcand",
                 channel=spec.channel,
@@ -74,37 +110,70 @@ def open_bus(spec: BusSpec) -> can.BusABC:
                 port=spec.port,
                 tcp_tune=True,
             )
-        if spec.kind == "socketcan":
-            return can.Bus(interface="socketcan", channel=spec.channel)
+        kwargs = {k: _option(v) for k, v in spec.options}
+        if spec.kind == "config":
+            return can.Bus(**kwargs)  # interface and channel from can.conf / CAN_INTERFACE
+        if spec.channel is None:
+            return can.Bus(interface=spec.kind, **kwargs)
+        return can.Bus(interface=spec.kind, channel=spec.channel, **kwargs)
     except OSError as exc:
-        if spec.kind == "socketcan" and exc.errno == errno.EAFNOSUPPORT:
+        if exc.errno == errno.EAFNOSUPPORT:
             raise BusOpenError(
                 f"cannot open CAN bus {spec}: this kernel has no SocketCAN (AF_CAN); leave out "
                 "--bus and hil run serves its own loopback bus"
             ) from exc
-        if spec.kind == "socketcan" and exc.errno in (errno.ENODEV, errno.ENXIO):
+        if exc.errno in (errno.ENODEV, errno.ENXIO):
             raise BusOpenError(
                 f"cannot open CAN bus {spec}: no interface {spec.channel!r}; create one with "
-                f"'ip link add dev {spec.channel} type vcan && ip link set up {spec.channel}'"
+                f"'hil bus up {spec.channel}' (or ip link add dev {spec.channel} type vcan)"
             ) from exc
+        raise BusOpenError(f"cannot open CAN bus {spec}: {exc.strerror or exc}") from exc
+    except (can.CanError, TimeoutError, ImportError, ValueError, TypeError) as exc:
         raise BusOpenError(f"cannot open CAN bus {spec}: {exc}") from exc
-    except (can.CanError, TimeoutError) as exc:
-        raise BusOpenError(f"cannot open CAN bus {spec}: {exc}") from exc
-    raise BusOpenError(f"unknown bus kind {spec.kind!r}")
+    except Exception as exc:  # third-party interfaces raise what they like
+        raise BusOpenError(f"cannot open CAN bus {spec}: {type(exc).__name__}: {exc}") from exc
+
+
+def _probe_hub(spec: BusSpec, timeout: float) -> None:
+    """Connect, and read the hub's greeting, within `timeout`: python-can's client would wait
+    forever for a listener that never greets."""
+    try:
+        with socket.create_connection((spec.host, spec.port), timeout=timeout) as sock:
+            sock.settimeout(timeout)
+            greeting = sock.recv(16)
+    except socket.gaierror as exc:
+        raise BusOpenError(f"cannot open CAN bus {spec}: unknown host {spec.host!r}") from exc
+    except ConnectionRefusedError as exc:
+        raise BusOpenError(
+            f"cannot open CAN bus {spec}: nothing listens on {spec.host}:{spec.port}; start a "
+            "hub with 'hil bus serve', or leave out --bus and hil run serves its own"
+        ) from exc
+    except TimeoutError as exc:
+        raise BusOpenError(
+            f"cannot open CAN bus {spec}: {spec.host}:{spec.port} did not greet within "
+            f"{timeout:g} s (not a socketcand hub?)"
+        ) from exc
+    if not greeting.startswith(b"< hi >"):
+        raise BusOpenError(
+            f"cannot open CAN bus {spec}: {spec.host}:{spec.port} is not a socketcand hub "
+            f"(it said {greeting[:16]!r})"
+        )
 
 
 def connection_closed(bus: can.BusABC) -> bool:
-    """True if the TCP connection under a loopback (socketcand) bus was closed by the hub.
+    """True if the loopback hub under a socketcand bus is gone.
 
-    python-can's socketcand client does not notice a closed connection: its recv returns None at
-    once, forever. Callers ask this when a receive came back empty, to stop instead of spinning.
-    """
-    sock = getattr(bus, "_SocketCanDaemonBus__socket", None)  # the client's private socket
-    if not isinstance(sock, socket.socket):
+    python-can's socketcand client does not notice a closed connection (its recv returns None
+    at once, forever); callers ask this when a receive came back empty, to stop instead of
+    spinning. It reads only public state: the hub's address from `channel_info` ("socketcand
+    on CHANNEL@HOST:PORT"), probed by a new connection that the hub either greets or refuses."""
+    info = getattr(bus, "channel_info", "")
+    if not isinstance(info, str) or not info.startswith("socketcand on "):
         return False
+    host, _, port = info.rpartition("@")[2].rpartition(":")
     try:
-        return sock.recv(1, socket.MSG_PEEK | socket.MSG_DONTWAIT) == b""
-    except BlockingIOError:
-        return False
-    except OSError:
+        with socket.create_connection((host, int(port)), timeout=1.0) as sock:
+            sock.settimeout(1.0)
+            return not sock.recv(6).startswith(b"< hi >")
+    except (OSError, ValueError):
         return True

@@ -108,6 +108,22 @@ def _format(value: float) -> str:
     return "" if isinstance(value, float) and math.isnan(value) else repr(value)
 
 
+class _AscWriter(can.ASCWriter):
+    """python-can's ASC writer, its `date` header set to the log's start instead of the wall
+    clock (so that reruns give byte-identical files, and the date is the measurement's)."""
+
+    def __init__(self, path: Path, start: float) -> None:
+        import datetime as dt
+
+        super().__init__(str(path))
+        self.file.seek(0)
+        self.file.truncate()
+        stamp = dt.datetime.fromtimestamp(start, tz=dt.UTC)
+        self.file.write(f"date {self._format_header_datetime(stamp)}\n")
+        self.file.write("base hex  timestamps absolute\n")
+        self.file.write("internal events logged\n")
+
+
 class CanLogger:
     """The CAN log as the plant sees the bus: T for frames the plant sent, R for frames it
     received, stamped `start + simulation time`; the writer is python-can's for the suffix."""
@@ -117,7 +133,10 @@ class CanLogger:
         self.start = start
         self.channel = channel
         try:
-            self._writer = can.Logger(str(path))  # type: ignore[abstract]
+            if path.suffix == ".asc":
+                self._writer: can.io.generic.MessageWriter = _AscWriter(path, start)
+            else:
+                self._writer = can.Logger(str(path))  # type: ignore[abstract]
         except ImportError as exc:
             raise HilError(f"{path.name}: this log format needs an extra package ({exc})") from None
         except ValueError as exc:

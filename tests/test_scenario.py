@@ -178,7 +178,7 @@ CASES: dict[str, tuple[str, str, str]] = {
     "bad bus kind": (
         MINIMAL + '[bus]\nkind = "can0"\n',
         "bus.kind",
-        "must be one of virtual, loopback, socketcan",
+        "must be one of loopback, virtual, config, ",
     ),
     "bad policy": (
         MINIMAL + '[controller]\npolicy = "yolo"\n',

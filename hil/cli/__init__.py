@@ -1,7 +1,9 @@
 """The `hil` command: one module per subcommand, listed explicitly in `SUBCOMMANDS`.
 
 Every error a user can cause reaches the terminal as one line `hil: error: ...` and a non-zero exit
-code; `hil --debug ...` shows the traceback instead.
+code; `hil --debug ...` shows the traceback instead. Exit codes (the controller program uses the
+same): 0 success, 1 an error (the line says which), 2 wrong usage, 130 interrupted (SIGINT), 143
+terminated (SIGTERM).
 """
 
 from __future__ import annotations
@@ -18,13 +20,41 @@ from hil.errors import HilError
 
 SUBCOMMANDS = (run_command, controller_command, bus_command, fmu_command)
 
+EXIT_OK, EXIT_ERROR, EXIT_USAGE, EXIT_INTERRUPTED, EXIT_TERMINATED = 0, 1, 2, 130, 143
+
 EXAMPLES = """examples:
   hil run                         run the default scenario, results in ./runs/<name>-<seed>/
   hil run my.toml --inprocess     controller in this process, virtual bus
   hil bus load                    bus load of the default scenario
   hil fmu build                   build every FMU into the per-user cache
   hil fmu check DriveCylinder     validate an FMU with fmpy and simulate it briefly
+
+exit codes: 0 success, 1 error, 2 wrong usage, 130 interrupted, 143 terminated
 """
+
+
+class HelpFormatter(argparse.RawDescriptionHelpFormatter):
+    """Keeps the examples' layout and shows every option's default (where it has one)."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        default = action.default
+        if (
+            "%(default)" not in text
+            and default not in (None, False, argparse.SUPPRESS)
+            and action.option_strings
+        ):
+            text += " (default: %(default)s)"
+        return text
+
+
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("softhil")
+    except PackageNotFoundError:  # pragma: no cover - running from a source tree
+        return "unknown"
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -32,9 +62,10 @@ def build_parser() -> argparse.ArgumentParser:
         prog="hil",
         description="softhil: hardware-in-the-loop style co-simulation of soft fluidic robots.",
         epilog=EXAMPLES,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+        formatter_class=HelpFormatter,
     )
     parser.add_argument("--debug", action="store_true", help="show tracebacks of errors")
+    parser.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
     commands = parser.add_subparsers(dest="command", metavar="COMMAND")
     for module in SUBCOMMANDS:
         module.add_parser(commands)
@@ -47,17 +78,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     handler: Callable[[argparse.Namespace], int] | None = getattr(args, "handler", None)
     if handler is None:
         parser.print_help()
-        return 2
+        return EXIT_USAGE
     try:
         return handler(args)
     except HilError as error:
         if args.debug:
             raise
         print(f"hil: error: {error}", file=sys.stderr)
-        return 1
+        return EXIT_ERROR
     except KeyboardInterrupt:
         print("hil: interrupted", file=sys.stderr)
-        return 130
+        return EXIT_INTERRUPTED
     except BrokenPipeError:  # `hil fmu list | head`
         sys.stderr.close()
         return 0
@@ -72,5 +103,5 @@ def example_parser(
         help=help_text,
         description=help_text,
         epilog="examples:\n" + examples,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+        formatter_class=HelpFormatter,
     )

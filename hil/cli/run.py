@@ -34,6 +34,22 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("--realtime", action="store_true", help="pace SYNC on the wall clock")
     parser.add_argument("--seed", type=int, help="override the scenario's seed")
+    parser.add_argument(
+        "--can-log",
+        metavar="FILE",
+        help="CAN log file name in the results folder; its suffix picks the format: .log "
+        "(candump), .asc, .blf, .trc, .csv, .mf4 (needs asammdf) (default: [recording] can_log, "
+        "can.log)",
+    )
+    parser.add_argument(
+        "--start",
+        metavar="INSTANT",
+        help="CAN log start: ISO 8601 (2015-06-01T00:00:00Z) or 'now' (default: [recording] "
+        "start, fixed so reruns are byte-identical)",
+    )
+    parser.add_argument(
+        "--mf4", action="store_true", default=None, help="also write signals.mf4 (needs asammdf)"
+    )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.set_defaults(handler=_run)
 
@@ -49,6 +65,9 @@ def _run(args: argparse.Namespace) -> int:
             inprocess=args.inprocess,
             realtime=args.realtime,
             progress=not args.no_progress,
+            can_log=args.can_log,
+            start=args.start,
+            mf4=args.mf4,
         ),
     )
     s = result.summary
@@ -75,7 +94,7 @@ def _run(args: argparse.Namespace) -> int:
         )
     for warning in s["warnings"]:
         print(f"  warning: {warning}", file=sys.stderr)
-    print(f"  results in {result.out}/ (signals.csv, can.log, *.png, summary.json)")
+    print(f"  results in {result.out}/ (signals.csv, {s['can_log']}, *.png, summary.json)")
     return 0
 
 

@@ -85,12 +85,16 @@ class PlanarArm:
     def given(self, scenario: Scenario, table: str) -> list[dict[str, float]]:
         """The parameters the scenario sets for each actuator of `table` ("segment" or
         "cylinder"), resolved from scalars, lists and per-index tables."""
+        return [{k: v for k, (v, _) in p.items()} for p in self._given(scenario, table)]
+
+    def _given(self, scenario: Scenario, table: str) -> list[dict[str, tuple[float, str]]]:
+        """As `given`, each value with the scenario key it came from."""
         from hil.scenario import fail
 
         spec: PlanarArmSpec = scenario.robot
         n = spec.segments
         raw: dict[str, Any] = getattr(spec, table)
-        per: list[dict[str, float]] = [{} for _ in range(n)]
+        per: list[dict[str, tuple[float, str]]] = [{} for _ in range(n)]
         overrides: list[tuple[int, str, dict[str, Any]]] = []
         for name, value in raw.items():
             key = f"robot.{table}.{name}"
@@ -109,14 +113,17 @@ class PlanarArm:
                         f"has {len(value)} values for {n} {table}s (give one per {table})",
                     )
                 for i, item in enumerate(value):
-                    per[i][name] = _number(scenario.source, f"{key}[{i}]", item)
+                    sub = f"{key}[{i}]"
+                    per[i][name] = (_number(scenario.source, sub, item), sub)
             else:
+                per_key = key
                 number = _number(scenario.source, key, value)
                 for p in per:
-                    p[name] = number
+                    p[name] = (number, per_key)
         for index, key, table_values in overrides:
             for name, value in table_values.items():
-                per[index - 1][name] = _number(scenario.source, f"{key}.{name}", value)
+                sub = f"{key}.{name}"
+                per[index - 1][name] = (_number(scenario.source, sub, value), sub)
         return per
 
     def parameters(self, scenario: Scenario, table: str) -> list[dict[str, float]]:
@@ -160,16 +167,16 @@ class PlanarArm:
             "cylinder": fmu_interface(file, "robot.cylinder_fmu", r.cylinder_fmu),
         }
         for table, interface in interfaces.items():
-            for i, given in enumerate(self.given(s, table)):
-                for name, value in given.items():
+            for given in self._given(s, table):
+                for name, (value, key) in given.items():
                     if table == "segment" and name in SEGMENT_GEOMETRY:
                         raise fail(
                             file,
-                            f"robot.segment.{name}",
+                            key,
                             "the gas circuit takes the drive cylinder's geometry: set stroke, "
                             "bore or x_start in robot.cylinder",
                         )
-                    check_parameter(file, _key(table, name, r.segments, i), interface, name, value)
+                    check_parameter(file, key, interface, name, value)
         piston_max = protocol.signal_range("DriveCommand1", "piston_setpoint")[1]
         for i, cylinder in enumerate(self.parameters(s, "cylinder")):
             stroke = cylinder["stroke"]

@@ -1,0 +1,301 @@
+"""The house for several robots: robot kinds by name, per-actuator parameters, logs in every
+format python-can writes, the log start time, bus specs for any python-can interface, CLI
+conventions."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+from pathlib import Path
+
+import can
+import numpy as np
+import pytest
+
+from controllers.canbus import BusOpenError, BusSpec, open_bus
+from controllers.protocol import GenericFrame, Protocol
+from hil.cli import main
+from hil.errors import HilError, ScenarioError
+from hil.robots import build_rig, known_kinds, robot_kind
+from hil.run import RunOptions, run_scenario
+from hil.scenario import DEFAULT_SCENARIO, load_scenario
+
+START = 1433116800.0  # 2015-06-01T00:00:00Z, the documented default log start
+
+SIX = """
+name = "six"
+seed = 3
+duration = 0.5
+[robot]
+kind = "planar_arm"
+segments = 6
+[robot.segment]
+length = [0.06, 0.05, 0.04, 0.06, 0.05, 0.04]
+k_bend = 0.025
+[robot.segment.2]
+k_bend = 0.035
+[robot.segment.3]
+k_bend = 0.045
+[robot.segment.5]
+k_bend = 0.035
+[robot.segment.6]
+k_bend = 0.045
+[task]
+steps = [[0.0, 0.0], [0.1, 5.0]]
+"""
+
+
+def write(tmp_path: Path, text: str, name: str = "s.toml") -> Path:
+    path = tmp_path / name
+    path.write_text(text)
+    return path
+
+
+def short_default(tmp_path: Path, extra: str = "") -> Path:
+    text = DEFAULT_SCENARIO.read_text().replace("duration = 10.0", "duration = 1.0")
+    return write(tmp_path, text + extra)
+
+
+def run(tmp_path: Path, scenario: Path, out: str, **options: object):
+    return run_scenario(
+        load_scenario(scenario),
+        RunOptions(out=tmp_path / out, inprocess=True, progress=False, **options),  # type: ignore[arg-type]
+    )
+
+
+def test_robot_kinds_are_found_by_name() -> None:
+    assert "planar_arm" in known_kinds()
+    assert robot_kind("planar_arm").name == "planar_arm"
+    with pytest.raises(HilError, match="unknown robot kind 'octopus' \\(known: .*planar_arm"):
+        robot_kind("octopus")
+
+
+def test_unknown_robot_kind_in_a_scenario_is_one_line(tmp_path: Path) -> None:
+    path = write(tmp_path, 'name = "x"\nseed = 1\nduration = 1.0\n[robot]\nkind = "octopus"\n')
+    with pytest.raises(ScenarioError, match=r"s\.toml: robot\.kind: unknown robot kind 'octopus'"):
+        load_scenario(path)
+
+
+def test_six_segments_of_three_lengths_and_stiffnesses_each_get_their_own(tmp_path: Path) -> None:
+    scenario = load_scenario(write(tmp_path, SIX))
+    lengths = [0.06, 0.05, 0.04, 0.06, 0.05, 0.04]
+    stiffness = [0.025, 0.035, 0.045, 0.025, 0.035, 0.045]
+    result = run(tmp_path, tmp_path / "s.toml", "six")
+    recorded = result.summary["parameters"]
+    for n in range(1, 7):
+        assert recorded[f"segment{n}"]["length"] == lengths[n - 1]
+        assert recorded[f"segment{n}"]["k_bend"] == stiffness[n - 1]
+    # the FMUs really have them: a segment's steady bend answers its own stiffness, and the
+    # controller was told each segment's own length
+    config = json.loads((tmp_path / "six" / "controller.json").read_text())
+    assert config["lengths"] == lengths
+    assert [b["k_bend"] for b in config["bends"]] == stiffness
+    rig = build_rig(scenario)
+    try:
+        slaves = {p.name: p for p in rig.participants}
+        got = [slaves[f"segment{n}"].slave.get("k_bend") for n in range(1, 7)]  # type: ignore[attr-defined]
+        assert got == stiffness
+    finally:
+        rig.close()
+    # and the camera sees markers at the true lengths: the base-to-tip chord of a straight arm
+    assert result.summary["status"] == "completed"
+
+
+@pytest.mark.parametrize(
+    ("text", "key", "reason"),
+    [
+        ("length = [0.06, 0.05]", "robot.segment.length", "has 2 values for 6 segments"),
+        ("length = [0.06, 0.05, 0.04, 0.06, 0.05, true]", "robot.segment.length[5]", "number"),
+        ("[robot.segment.7]\nk_bend = 0.1", "robot.segment.7", "no segment 7"),
+        ("bogus = 1.0", "robot.segment.bogus", "no such parameter"),
+        ("[robot.segment.2]\nk_bend = -1.0", "robot.segment.2.k_bend", "outside"),
+    ],
+)
+def test_per_actuator_parameters_are_checked(
+    tmp_path: Path, text: str, key: str, reason: str
+) -> None:
+    base = 'name = "x"\nseed = 1\nduration = 1.0\n[robot]\nsegments = 6\n[robot.segment]\n'
+    with pytest.raises(ScenarioError) as error:
+        load_scenario(write(tmp_path, base + text + "\n"))
+    message = str(error.value)
+    assert f": {key}: " in message and reason in message
+    assert "\n" not in message
+
+
+@pytest.mark.parametrize("suffix", [".log", ".asc", ".blf", ".trc", ".csv", ".mf4"])
+def test_can_log_in_every_format_reads_back_frame_for_frame(tmp_path: Path, suffix: str) -> None:
+    if suffix == ".mf4":
+        pytest.importorskip("asammdf", reason="MF4 needs the optional asammdf")
+    scenario = short_default(tmp_path)
+    reference = run(tmp_path, scenario, "ref")
+    candump = list(can.LogReader(str(reference.out / "can.log")))
+    result = run(tmp_path, scenario, "fmt", can_log=f"can{suffix}")
+    path = result.out / f"can{suffix}"
+    reader = (
+        can.ASCReader(str(path), relative_timestamp=False)
+        if suffix == ".asc"
+        else can.LogReader(str(path))
+    )
+    got = list(reader)
+    assert (
+        len(got)
+        == len(candump)
+        == result.summary["frames"]["sent"] + result.summary["frames"]["received"]
+    )
+    resolution = {".trc": 1e-4, ".csv": 1e-6}.get(suffix, 1e-5)
+    for a, b in zip(candump, got, strict=True):
+        assert (a.arbitration_id, bytes(a.data)) == (b.arbitration_id, bytes(b.data))
+        assert b.timestamp == pytest.approx(a.timestamp, abs=resolution)
+        if suffix not in (".csv",):  # python-can's CSV has no direction column
+            assert a.is_rx == b.is_rx
+    # same scenario and seed: the same bytes (the ASC header is dated from the log start)
+    if suffix in (".log", ".asc", ".blf", ".csv"):
+        again = run(tmp_path, scenario, "again", can_log=f"can{suffix}")
+        assert (again.out / f"can{suffix}").read_bytes() == path.read_bytes()
+
+
+def test_log_is_stamped_from_the_documented_start_and_a_chosen_one(tmp_path: Path) -> None:
+    scenario = short_default(tmp_path)
+    first = next(iter(can.LogReader(str(run(tmp_path, scenario, "a").out / "can.log"))))
+    assert first.timestamp == START
+    other = run(tmp_path, scenario, "b", start="2020-01-02T03:04:05Z")
+    assert other.summary["log_start"] == 1577934245.0
+    line = (other.out / "can.log").read_text().splitlines()[0]
+    assert line.startswith("(1577934245.000000) can0 080#00 R")
+    with pytest.raises(HilError, match="--start: 'yesterday' is not an ISO 8601 instant"):
+        run(tmp_path, scenario, "c", start="yesterday")
+
+
+def test_candump_lines_are_what_candump_writes(tmp_path: Path) -> None:
+    log = run(tmp_path, short_default(tmp_path), "a").out / "can.log"
+    import re
+
+    pattern = re.compile(r"^\(\d{10}\.\d{6}\) can0 [0-9A-F]{3}#(?:[0-9A-F]{2}){0,8} [TR]$")
+    lines = log.read_text().splitlines()
+    assert lines and all(pattern.match(line) for line in lines)
+    assert lines[0].endswith(" R") and lines[1].endswith(" T")  # SYNC received, heartbeat sent
+
+
+@pytest.mark.skipif(shutil.which("log2asc") is None, reason="can-utils (Debian) not installed")
+def test_log2asc_writes_one_header(tmp_path: Path) -> None:
+    log = run(tmp_path, short_default(tmp_path), "a").out / "can.log"
+    out = tmp_path / "x.asc"
+    subprocess.run(["log2asc", "-I", str(log), "-O", str(out), "can0"], check=True)
+    text = out.read_text()
+    assert text.count("date ") == 1
+    assert text.startswith("date Mon Jun  1 00:00:00 2015")
+    assert len(list(can.ASCReader(str(out)))) == len(log.read_text().splitlines())
+
+
+def test_signals_carry_units_that_pandas_or_csv_read_in_one_call(tmp_path: Path) -> None:
+    out = run(tmp_path, short_default(tmp_path), "a").out
+    import csv
+
+    units = {
+        row["signal"]: row["unit"] for row in csv.DictReader((out / "signals.units.csv").open())
+    }
+    header = (out / "signals.csv").read_text().splitlines()[0].split(",")
+    assert list(units) == header
+    assert units["time"] == "s" and units["p_a_1"] == "Pa" and units["kappa_1"] == "1/m"
+    assert units["x_1"] == "m" and units["i_motor_1"] == "A"
+
+
+def test_signals_as_mf4(tmp_path: Path) -> None:
+    asammdf = pytest.importorskip("asammdf", reason="MF4 needs the optional asammdf")
+    out = run(tmp_path, short_default(tmp_path), "a", mf4=True).out
+    mdf = asammdf.MDF(str(out / "signals.mf4"))
+    p_a = mdf.get("p_a_1")
+    assert p_a.unit == "Pa"
+    from hil.summary import read_signals
+
+    csv_values = read_signals(out / "signals.csv")
+    assert np.array_equal(p_a.samples, csv_values["p_a_1"])
+
+
+@pytest.mark.parametrize(
+    ("text", "expected"),
+    [
+        ("loopback", BusSpec("loopback", "softhil", "127.0.0.1", 29536)),
+        ("loopback:4000", BusSpec("loopback", "softhil", "127.0.0.1", 4000)),
+        ("virtual:x", BusSpec("virtual", "x")),
+        ("socketcan:vcan0", BusSpec("socketcan", "vcan0")),
+        ("pcan:PCAN_USBBUS1", BusSpec("pcan", "PCAN_USBBUS1")),
+        (
+            "slcan:/dev/ttyACM0,bitrate=500000",
+            BusSpec("slcan", "/dev/ttyACM0", options=(("bitrate", "500000"),)),
+        ),
+        ("kvaser", BusSpec("kvaser", None)),
+        ("config", BusSpec("config", None)),
+    ],
+)
+def test_bus_specs_pass_any_python_can_interface_through(text: str, expected: BusSpec) -> None:
+    assert BusSpec.parse(text) == expected
+
+
+@pytest.mark.parametrize(
+    ("text", "reason"),
+    [
+        ("bogus:1", "neither loopback, virtual, config nor a python-can interface"),
+        ("loopback:0", "port must be 1..65535"),
+        ("loopback:70000", "port must be 1..65535"),
+        ("loopback:x", "port must be an integer"),
+        ("virtual:a b", "no spaces"),
+        ("slcan:x,bitrate", "options are key=value"),
+    ],
+)
+def test_bad_bus_specs_are_one_line(text: str, reason: str) -> None:
+    with pytest.raises(ValueError, match=reason):
+        BusSpec.parse(text)
+
+
+def test_python_can_configuration_is_honoured(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("CAN_INTERFACE", "virtual")
+    monkeypatch.setenv("CAN_CHANNEL", "from-env")
+    bus = open_bus(BusSpec.parse("config"))
+    try:
+        assert bus.channel_info.endswith("from-env") or "from-env" in str(bus.channel_info)
+    finally:
+        bus.shutdown()
+
+
+def test_a_dead_hub_answers_at_once_with_a_hint() -> None:
+    import socket
+
+    with socket.socket() as s:  # a free port nothing listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    with pytest.raises(BusOpenError, match="nothing listens on 127.0.0.1:.*hil bus serve"):
+        open_bus(BusSpec.parse(f"loopback:{port}"))
+
+
+def test_a_listener_that_never_greets_is_a_timeout_not_a_hang() -> None:
+    import socket
+
+    with socket.socket() as server:
+        server.bind(("127.0.0.1", 0))
+        server.listen()
+        port = server.getsockname()[1]
+        with pytest.raises(BusOpenError, match="did not greet within 0.2 s"):
+            open_bus(BusSpec.parse(f"loopback:{port}"), timeout=0.2)
+
+
+def test_new_frame_kinds_need_only_the_dbc() -> None:
+    protocol = Protocol()
+    frame = GenericFrame("ValveCommand", 2, {"open_time": 0.05, "vent": 0, "counter": 3})
+    message = protocol.encode(frame)
+    assert message.arbitration_id == 0x212
+    assert protocol.decode(message) == frame
+    assert protocol.cycle_time("ValveCommand2") == 0.01
+    assert protocol.cycle_time("EMCY1") is None  # event-driven
+
+
+def test_version_and_defaults_in_help(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as done:
+        main(["--version"])
+    assert done.value.code == 0
+    assert capsys.readouterr().out.startswith("hil 0.")
+    with pytest.raises(SystemExit):
+        main(["bus", "serve", "--help"])
+    text = capsys.readouterr().out
+    assert "(default: 29536)" in text and "(default: 127.0.0.1)" in text
