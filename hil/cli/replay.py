@@ -1,0 +1,89 @@
+"""`hil replay`: replay a recorded run's CAN log against a controller and compare its frames."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from hil.errors import HilError
+
+
+def add_parser(commands: argparse._SubParsersAction) -> None:
+    from hil.cli import example_parser
+
+    parser = example_parser(
+        commands,
+        "replay",
+        "replay a recorded CAN log to the controller and compare what it sends, signal by signal",
+        "  hil replay runs/default-1/can.log                 the run's own controller.json\n"
+        "  hil replay runs/default-1/can.blf --process       controller as a separate program\n"
+        "  hil replay runs/default-1/can.log --scenario changed.toml   a changed controller\n"
+        "  hil replay can.log --tolerance 1e-3 --tolerance-for kappa_est=0.01\n",
+    )
+    parser.add_argument("log", type=Path, help="CAN log of a run (any format python-can reads)")
+    parser.add_argument(
+        "--scenario",
+        type=Path,
+        help="scenario whose controller to replay (default: controller.json beside the log)",
+    )
+    parser.add_argument(
+        "--tolerance",
+        type=float,
+        default=0.0,
+        help="allowed absolute difference of every signal, in its unit",
+    )
+    parser.add_argument(
+        "--tolerance-for",
+        action="append",
+        default=[],
+        metavar="SIGNAL=VALUE",
+        help="a signal's own tolerance (SIGNAL or MESSAGE.SIGNAL); repeatable",
+    )
+    parser.add_argument(
+        "--process", action="store_true", help="run the controller as a separate program"
+    )
+    parser.add_argument("--json", type=Path, help="write the comparison's summary as JSON")
+    parser.set_defaults(handler=_replay)
+
+
+def _replay(args: argparse.Namespace) -> int:
+    from hil.replay import replay
+    from hil.robots import robot_kind
+    from hil.scenario import load_scenario
+
+    tolerances: dict[str, float] = {}
+    for item in args.tolerance_for:
+        name, sep, value = item.partition("=")
+        try:
+            tolerances[name] = float(value)
+        except ValueError:
+            raise HilError(f"--tolerance-for {item!r}: expected SIGNAL=NUMBER") from None
+        if not sep or not name or tolerances[name] < 0:
+            raise HilError(f"--tolerance-for {item!r}: expected SIGNAL=NUMBER >= 0")
+    if not args.tolerance >= 0:
+        raise HilError(f"--tolerance must not be negative, got {args.tolerance}")
+    config = None
+    if args.scenario is not None:
+        scenario = load_scenario(args.scenario)
+        config = robot_kind(scenario.robot.kind).controller_config(scenario)
+    result = replay(
+        args.log,
+        config,
+        process=args.process,
+        tolerance=args.tolerance,
+        tolerances=tolerances,
+    )
+    summary = result.summary()
+    if args.json:
+        args.json.write_text(json.dumps(summary, indent=2) + "\n")
+    print(
+        f"{args.log}: {result.cycles} cycles, {result.frames_compared} controller frames "
+        f"compared, {len(result.divergences)} divergence(s)"
+    )
+    if result.ok:
+        return 0
+    print(f"  first divergence: {result.divergences[0]}")
+    for signal, count in sorted(result.by_signal.items()):
+        print(f"  {signal}: {count} cycle(s)")
+    return 1

@@ -1,0 +1,400 @@
+"""CAN-log replay: a recorded run becomes a regression test for a controller.
+
+A softhil CAN log holds both sides of every cycle, seen from the plant: after the SYNC(c) that
+the controller sent (R), the frames the plant answered with (T: status, camera, EMCY,
+heartbeat), then the frames the controller sent in answer to cycle c (R: commands, controller
+state). `replay` plays the plant's side back to a controller node that runs unchanged (in this
+process on a virtual bus, or as the separate `python -m controllers` program over a loopback hub)
+and compares, signal by signal, what the controller sends with what was recorded.
+
+The controller never knows: it sees the same frames, keyed by the SYNC counter it produces, as it
+did in the run. With an unchanged controller the comparison is exact; a changed gain shows as
+the first diverging cycle, message and signal.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+import uuid
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import can
+
+from controllers.canbus import BusSpec, open_bus
+from controllers.node import ControllerConfig, ControllerNode
+from controllers.protocol import COUNTER_MODULO, FrameError, Protocol, Sync
+from hil.errors import HilError
+
+SYNC_ID = 0x080
+
+
+class ReplayError(HilError):
+    """A log that cannot be replayed (no SYNC, counters out of order, ids not in the DBC)."""
+
+
+@dataclass(frozen=True)
+class Cycle:
+    """One recorded cycle: the plant's answer to SYNC(c) and the controller's frames after it."""
+
+    index: int
+    time: float  # simulation time of the SYNC [s] (log timestamp less the log's first SYNC)
+    plant: tuple[can.Message, ...]
+    controller: tuple[can.Message, ...]
+
+
+@dataclass(frozen=True)
+class Divergence:
+    cycle: int
+    time: float
+    message: str
+    signal: str
+    expected: float | None  # None: the frame was not recorded / not sent
+    actual: float | None
+
+    def __str__(self) -> str:
+        def shown(v: float | None) -> str:
+            return "(no frame)" if v is None else f"{v:.9g}"
+
+        return (
+            f"cycle {self.cycle} (t = {self.time:.3f} s): {self.message}.{self.signal} "
+            f"expected {shown(self.expected)}, got {shown(self.actual)}"
+        )
+
+
+@dataclass
+class ReplayResult:
+    cycles: int
+    frames_compared: int
+    divergences: list[Divergence] = field(default_factory=list)
+    by_signal: dict[str, int] = field(default_factory=dict)
+
+    @property
+    def ok(self) -> bool:
+        return not self.divergences
+
+    def summary(self) -> dict[str, Any]:
+        return {
+            "cycles": self.cycles,
+            "frames_compared": self.frames_compared,
+            "divergences": len(self.divergences),
+            "first": str(self.divergences[0]) if self.divergences else None,
+            "by_signal": dict(sorted(self.by_signal.items())),
+        }
+
+
+def read_cycles(messages: Iterable[can.Message], protocol: Protocol, source: str) -> list[Cycle]:
+    """Split a plant-side log into cycles; ReplayError names the file and the problem."""
+    cycles: list[Cycle] = []
+    plant: list[can.Message] = []
+    controller: list[can.Message] = []
+    start: float | None = None
+    counter = -1
+    for number, message in enumerate(messages, start=1):
+        if message.arbitration_id == SYNC_ID and message.is_rx:
+            try:
+                frame = protocol.decode(message)
+            except FrameError as exc:
+                raise ReplayError(f"{source}: frame {number}: {exc}") from None
+            assert isinstance(frame, Sync)
+            expected = (counter + 1) % COUNTER_MODULO
+            if frame.counter != expected:
+                raise ReplayError(
+                    f"{source}: frame {number}: SYNC counter {frame.counter} where {expected} "
+                    "was due (a log of a different run, or frames missing)"
+                )
+            if counter >= 0:
+                cycles[-1] = Cycle(
+                    cycles[-1].index, cycles[-1].time, tuple(plant), tuple(controller)
+                )
+            counter += 1
+            if start is None:
+                start = message.timestamp
+            cycles.append(Cycle(counter, round(message.timestamp - start, 6), (), ()))
+            plant, controller = [], []
+            continue
+        if counter < 0:
+            continue  # before the first SYNC: not part of a cycle
+        try:
+            protocol.decode(message)
+        except FrameError as exc:
+            raise ReplayError(f"{source}: frame {number}: {exc}") from None
+        (controller if message.is_rx else plant).append(message)
+    if not cycles:
+        raise ReplayError(
+            f"{source}: no SYNC frame received by the plant (R 080): nothing to replay"
+        )
+    cycles[-1] = Cycle(cycles[-1].index, cycles[-1].time, tuple(plant), tuple(controller))
+    return cycles
+
+
+def read_log(path: Path) -> list[can.Message]:
+    """The messages of a CAN log in any format python-can reads (by suffix)."""
+    if not path.is_file():
+        raise ReplayError(f"{path}: no such log file")
+    try:
+        if path.suffix == ".asc":
+            return list(can.ASCReader(str(path), relative_timestamp=False))
+        return list(can.LogReader(str(path)))
+    except Exception as exc:  # python-can's readers raise what the format's parser raises
+        raise ReplayError(f"{path}: not a readable CAN log: {exc}") from None
+
+
+def config_beside(log: Path) -> ControllerConfig:
+    """The controller configuration a run recorded beside its log (controller.json)."""
+    path = log.parent / "controller.json"
+    try:
+        return ControllerConfig.from_json(path.read_text())
+    except FileNotFoundError:
+        raise ReplayError(
+            f"{path}: no controller.json beside the log; give --scenario to say which "
+            "controller to replay"
+        ) from None
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise ReplayError(f"{path}: {exc}") from None
+
+
+class _ReplayPlant:
+    """Answers the controller's SYNCs with the recorded plant frames; collects its answers."""
+
+    def __init__(self, cycles: Sequence[Cycle], bus: can.BusABC, timeout: float) -> None:
+        self.cycles = cycles
+        self.bus = bus
+        self.timeout = timeout
+        self.sent: list[list[can.Message]] = [[] for _ in cycles]
+
+    def run(self, alive: Any) -> None:
+        current = -1
+        last_heard = time.monotonic()
+        final = len(self.cycles) - 1
+        while True:
+            message = self.bus.recv(timeout=0.05)
+            if message is None:
+                gone = alive()
+                if gone is not None:
+                    if current >= final:
+                        return
+                    raise ReplayError(f"{gone} at cycle {current}")
+                if time.monotonic() - last_heard > self.timeout:
+                    if current >= final:
+                        return
+                    raise ReplayError(
+                        f"the controller sent nothing for {self.timeout:g} s at cycle {current}"
+                    )
+                continue
+            last_heard = time.monotonic()
+            if message.arbitration_id == SYNC_ID:
+                current += 1
+                if current > final:
+                    raise ReplayError(f"the controller went on past the log's last cycle {final}")
+                for frame in self.cycles[current].plant:
+                    self.bus.send(
+                        can.Message(
+                            arbitration_id=frame.arbitration_id,
+                            data=bytes(frame.data),
+                            is_extended_id=frame.is_extended_id,
+                        )
+                    )
+                continue
+            if current >= 0:
+                self.sent[current].append(message)
+
+
+def compare(
+    cycles: Sequence[Cycle],
+    sent: Sequence[Sequence[can.Message]],
+    protocol: Protocol,
+    tolerance: float = 0.0,
+    tolerances: Mapping[str, float] | None = None,
+) -> ReplayResult:
+    """Signal-by-signal comparison of what the controller sent with what was recorded."""
+    tolerances = tolerances or {}
+    result = ReplayResult(cycles=len(cycles), frames_compared=0)
+
+    def note(d: Divergence) -> None:
+        result.divergences.append(d)
+        key = f"{d.message}.{d.signal}"
+        result.by_signal[key] = result.by_signal.get(key, 0) + 1
+
+    for cycle, actual in zip(cycles, sent, strict=True):
+        expected_frames = _by_name(cycle.controller, protocol)
+        actual_frames = _by_name(actual, protocol)
+        for name in sorted(set(expected_frames) | set(actual_frames), key=_id_order(protocol)):
+            exp, act = expected_frames.get(name), actual_frames.get(name)
+            if exp is None or act is None:
+                note(
+                    Divergence(
+                        cycle.index,
+                        cycle.time,
+                        name,
+                        "(frame)",
+                        None if exp is None else 1.0,
+                        None if act is None else 1.0,
+                    )
+                )
+                continue
+            result.frames_compared += 1
+            for signal, e in exp.items():
+                a = act[signal]
+                limit = tolerances.get(signal, tolerances.get(f"{name}.{signal}", tolerance))
+                if not (abs(a - e) <= limit or (math.isnan(a) and math.isnan(e))):
+                    note(Divergence(cycle.index, cycle.time, name, signal, e, a))
+    return result
+
+
+def _by_name(messages: Iterable[can.Message], protocol: Protocol) -> dict[str, dict[str, float]]:
+    frames = {}
+    for message in messages:
+        definition = protocol.message(message.arbitration_id)
+        frames[definition.name] = dict(
+            definition.decode(bytes(message.data), decode_choices=False)  # type: ignore[arg-type]
+        )
+    return frames
+
+
+def _id_order(protocol: Protocol) -> Any:
+    return lambda name: protocol.message_by_name(name).frame_id
+
+
+def replay(
+    log: Path,
+    config: ControllerConfig | None = None,
+    *,
+    process: bool = False,
+    tolerance: float = 0.0,
+    tolerances: Mapping[str, float] | None = None,
+    timeout: float = 10.0,
+) -> ReplayResult:
+    """Replay `log` (any python-can format) against the controller `config` (default: the
+    run's controller.json beside the log), in this process or as a separate program."""
+    protocol = Protocol()
+    cycles = read_cycles(read_log(log), protocol, str(log))
+    config = config or config_beside(log)
+    if config.cycles != len(cycles) - 1:
+        raise ReplayError(
+            f"{log}: {len(cycles)} SYNC cycles recorded, but the controller runs "
+            f"{config.cycles + 1} (a log from a different scenario?)"
+        )
+    if process:
+        sent = _replay_process(cycles, config, timeout)
+    else:
+        sent = _replay_thread(cycles, config, timeout)
+    return compare(cycles, sent, protocol, tolerance, tolerances)
+
+
+def _replay_thread(
+    cycles: Sequence[Cycle], config: ControllerConfig, timeout: float
+) -> list[list[can.Message]]:
+    channel = f"softhil-replay-{uuid.uuid4().hex[:8]}"
+    plant_bus = open_bus(BusSpec("virtual", channel))
+    controller_bus = open_bus(BusSpec("virtual", channel))
+    errors: list[BaseException] = []
+
+    def work() -> None:
+        try:
+            ControllerNode(config, controller_bus).run()
+        except Exception as exc:  # reported through alive()
+            errors.append(exc)
+
+    thread = threading.Thread(target=work, name="replayed-controller", daemon=True)
+    plant = _ReplayPlant(cycles, plant_bus, timeout)
+    try:
+        thread.start()
+
+        def alive() -> str | None:
+            if thread.is_alive():
+                return None
+            return f"the controller stopped ({errors[0]})" if errors else "the controller stopped"
+
+        plant.run(alive)
+        thread.join(timeout)
+    finally:
+        plant_bus.shutdown()
+        controller_bus.shutdown()
+    if errors:
+        raise ReplayError(f"the replayed controller failed: {errors[0]}")
+    return plant.sent
+
+
+def _replay_process(
+    cycles: Sequence[Cycle], config: ControllerConfig, timeout: float
+) -> list[list[can.Message]]:
+    from hil.bus.loopback import LoopbackHub
+
+    hub = LoopbackHub("127.0.0.1").start()
+    try:
+        spec = BusSpec("loopback", "softhil", "127.0.0.1", hub.port)
+        bus = open_bus(spec)
+        with tempfile.TemporaryDirectory(prefix="softhil-replay-") as folder:
+            config_path = Path(folder) / "controller.json"
+            config_path.write_text(config.to_json())
+            log = (Path(folder) / "controller.log").open("wb")
+            process = subprocess.Popen(
+                [
+                    sys.executable,
+                    "-m",
+                    "controllers",
+                    "--config",
+                    str(config_path),
+                    "--bus",
+                    str(spec),
+                ],
+                stdout=log,
+                stderr=subprocess.STDOUT,
+                env={**os.environ, "PYTHONUNBUFFERED": "1"},
+            )
+            plant = _ReplayPlant(cycles, bus, timeout)
+            try:
+
+                def alive() -> str | None:
+                    code = process.poll()
+                    return None if code is None else f"the controller exited with code {code}"
+
+                plant.run(alive)
+                code = process.wait(timeout=timeout)
+            finally:
+                if process.poll() is None:
+                    process.kill()
+                    process.wait()
+                log.close()
+                bus.shutdown()
+            if code != 0:
+                words = (Path(folder) / "controller.log").read_text(errors="replace").strip()
+                raise ReplayError(
+                    f"the replayed controller exited with code {code}"
+                    + (f" ({words.splitlines()[-1]})" if words else "")
+                )
+            return plant.sent
+    finally:
+        hub.stop()
+
+
+def assert_replays(
+    log: str | os.PathLike[str],
+    config: ControllerConfig | None = None,
+    *,
+    tolerance: float = 0.0,
+    tolerances: Mapping[str, float] | None = None,
+    process: bool = False,
+) -> ReplayResult:
+    """For pytest: replay a recorded run against a controller and fail on the first divergence.
+
+    >>> from hil.replay import assert_replays
+    >>> assert_replays("runs/default-1/can.log")          # doctest: +SKIP
+    """
+    result = replay(Path(log), config, process=process, tolerance=tolerance, tolerances=tolerances)
+    if not result.ok:
+        raise AssertionError(
+            f"{log}: {len(result.divergences)} divergence(s); first: {result.divergences[0]}"
+            f"; by signal: {json.dumps(result.by_signal, sort_keys=True)}"
+        )
+    return result

@@ -1,0 +1,148 @@
+"""CAN-log replay: a recorded run replays with zero divergence against its own controller, in
+this process and across processes, in every log format; a changed controller fails and names
+the first diverging cycle and signal; bad logs get one line."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import can
+import pytest
+
+from hil.cli import main
+from hil.replay import ReplayError, assert_replays, replay
+from hil.run import RunOptions, run_scenario
+from hil.scenario import DEFAULT_SCENARIO, load_scenario
+
+pytest_plugins = ["pytester"]
+
+
+@pytest.fixture(scope="module")
+def recorded(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A 1.5 s default run (steps up and down), recorded in-process."""
+    folder = tmp_path_factory.mktemp("replay")
+    text = DEFAULT_SCENARIO.read_text().replace("duration = 10.0", "duration = 1.5")
+    text = text.replace("[0.5, 10.0], [2.5, -10.0]", "[0.2, 10.0], [0.9, -6.0]")
+    scenario = folder / "short.toml"
+    scenario.write_text(text)
+    run_scenario(
+        load_scenario(scenario), RunOptions(out=folder / "run", inprocess=True, progress=False)
+    )
+    return folder / "run" / "can.log"
+
+
+def test_a_run_replays_exactly_in_process_and_as_a_program(recorded: Path) -> None:
+    for process in (False, True):
+        result = replay(recorded, process=process)
+        assert result.ok, result.divergences[:3]
+        assert result.cycles == 151
+        assert result.frames_compared == 2 * 150  # command + state per cycle, none after the last
+
+
+def test_a_changed_gain_fails_and_names_the_first_cycle(
+    recorded: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    text = (recorded.parent / "scenario.toml").read_text()
+    changed = tmp_path / "changed.toml"
+    changed.write_text(text.replace("crossover = 1.0", "crossover = 1.0\nki = 0.02"))
+    code = main(
+        ["replay", str(recorded), "--scenario", str(changed), "--json", str(tmp_path / "r.json")]
+    )
+    out = capsys.readouterr().out
+    assert code == 1
+    result = replay(recorded, load_scenario_config(changed))
+    first = result.divergences[0]
+    # nothing differs before the step at 0.2 s (cycle 20): zero error, zero integral; the
+    # setpoints part once the recorded one leaves the stroke's end
+    assert first.cycle > 20 and (first.message, first.signal) == (
+        "DriveCommand1",
+        "piston_setpoint",
+    )
+    assert f"first divergence: cycle {first.cycle} (t = {first.time:.3f} s): " in out
+    assert first.expected != first.actual
+    # a tolerance wider than the change lets it pass
+    wide = replay(recorded, load_scenario_config(changed), tolerance=0.05)
+    assert wide.ok
+
+
+def load_scenario_config(path: Path):  # noqa: ANN201
+    from hil.robots import robot_kind
+
+    scenario = load_scenario(path)
+    return robot_kind(scenario.robot.kind).controller_config(scenario)
+
+
+@pytest.mark.parametrize("suffix", [".asc", ".blf", ".trc"])
+def test_a_log_converted_by_python_can_replays_the_same(
+    recorded: Path, tmp_path: Path, suffix: str
+) -> None:
+    converted = recorded.parent / f"converted{suffix}"
+    subprocess.run(
+        [sys.executable, "-m", "can.logconvert", str(recorded), str(converted)], check=True
+    )
+    try:
+        assert replay(converted).ok
+    finally:
+        converted.unlink()
+
+
+def test_the_pytest_fixture_for_users(recorded: Path, pytester: pytest.Pytester) -> None:
+    pytester.makepyfile(
+        f"""
+        def test_my_controller(softhil_replay):
+            result = softhil_replay({str(recorded)!r})
+            assert result.cycles == 151
+        """
+    )
+    pytester.runpytest_inprocess().assert_outcomes(passed=1)
+
+
+def test_assert_replays_raises_with_the_first_divergence(recorded: Path, tmp_path: Path) -> None:
+    text = (recorded.parent / "scenario.toml").read_text()
+    changed = tmp_path / "changed.toml"
+    changed.write_text(text.replace("crossover = 1.0", "crossover = 1.5"))
+    with pytest.raises(AssertionError, match=r"first: cycle \d+ .*DriveCommand1\.piston_setpoint"):
+        assert_replays(recorded, load_scenario_config(changed))
+
+
+def _write(tmp_path: Path, name: str, data: bytes | str) -> Path:
+    path = tmp_path / name
+    path.write_bytes(data if isinstance(data, bytes) else data.encode())
+    return path
+
+
+def test_bad_logs_get_one_line(recorded: Path, tmp_path: Path) -> None:
+    lines = recorded.read_text().splitlines()
+    config = load_scenario_config(recorded.parent / "scenario.toml")
+    cases = {
+        "empty.log": ("", "no SYNC frame"),
+        "nosync.log": ("\n".join(x for x in lines if " 080#" not in x), "no SYNC frame"),
+        "garbage.log": ("(1.0) can0 hello world\n", "not a readable CAN log"),
+        "random.blf": (bytes(range(256)) * 4, "not a readable CAN log"),
+        "truncated.blf": (None, ""),  # python-can reads what is whole: too few cycles
+        "unknown.log": (lines[0] + "\n(1433116800.0) can0 123#00 T\n", "unknown CAN id 0x123"),
+        "jump.log": (
+            "\n".join([lines[0], lines[0].replace("080#00", "080#05")]),
+            "SYNC counter 5 where 1 was due",
+        ),
+        "short.log": ("\n".join(lines[: len(lines) // 2]), "a log from a different scenario"),
+        "missing.log": (None, "no such log file"),
+    }
+    blf = tmp_path / "full.blf"
+    with can.Logger(str(blf)) as writer:  # type: ignore[attr-defined]
+        for message in can.LogReader(str(recorded)):
+            writer.on_message_received(message)
+    for name, (content, reason) in cases.items():
+        if name == "truncated.blf":
+            path = _write(tmp_path, name, blf.read_bytes()[: blf.stat().st_size // 2])
+        elif content is None:
+            path = tmp_path / name
+        else:
+            path = _write(tmp_path, name, content)
+        with pytest.raises(ReplayError) as error:
+            replay(path, config)
+        assert reason in str(error.value), (name, str(error.value))
+        assert "\n" not in str(error.value)
+        assert str(error.value).startswith(str(path)) or "different scenario" in str(error.value)
