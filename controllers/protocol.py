@@ -197,12 +197,75 @@ def frame_name(frame_id: int) -> str:
     return f"0x{frame_id:03X}"
 
 
+class _Codec:
+    """One message's encode/decode, compiled from its DBC layout: plain integer arithmetic on the
+    little-endian payload, the same rounding and range checks as cantools (strict), several
+    times faster. Checked byte for byte against cantools for every message (tests)."""
+
+    def __init__(self, message: Message) -> None:
+        self.message = message
+        self.length = message.length
+        self.signals = []
+        for s in message.signals:
+            if s.byte_order != "little_endian" or s.is_float or s.is_multiplexer:
+                raise ValueError(f"{message.name}.{s.name}: layout not compiled")
+            identity = s.scale == 1 and s.offset == 0 and isinstance(s.scale, int)
+            self.signals.append(
+                (
+                    s.name,
+                    s.start,
+                    (1 << s.length) - 1,
+                    s.length,
+                    s.is_signed,
+                    s.scale,
+                    s.offset,
+                    identity,
+                    -math.inf if s.minimum is None else s.minimum,
+                    math.inf if s.maximum is None else s.maximum,
+                )
+            )
+
+    def encode(self, values: Mapping[str, Any]) -> bytes:
+        bits = 0
+        for name, start, mask, _, _, scale, offset, identity, lo, hi in self.signals:
+            value = values[name]
+            if not lo <= value <= hi:
+                side = (
+                    f"greater than or equal to {lo}"
+                    if value < lo
+                    else f"smaller than or equal to {hi}"
+                )
+                raise FrameError(
+                    f"{self.message.name} ({frame_name(self.message.frame_id)}): Expected signal "
+                    f'"{name}" value {side} in message "{self.message.name}", but got {value}.'
+                )
+            if identity:
+                raw = round(value)
+            else:
+                shifted = value - offset
+                quotient, remainder = divmod(shifted, scale)
+                raw = round(quotient if remainder == 0 else shifted / scale)
+            bits |= (raw & mask) << start
+        return bits.to_bytes(self.length, "little")
+
+    def decode(self, data: bytes) -> dict[str, Any]:
+        bits = int.from_bytes(data, "little")
+        values: dict[str, Any] = {}
+        for name, start, mask, length, signed, scale, offset, identity, _, _ in self.signals:
+            raw = (bits >> start) & mask
+            if signed and raw >> (length - 1):
+                raw -= 1 << length
+            values[name] = raw if identity else raw * scale + offset
+        return values
+
+
 @dataclass(frozen=True)
 class _Entry:
     kind: str
     index: int | None
     message: Message
     type: FrameType | None
+    codec: _Codec | None
 
 
 class Protocol:
@@ -224,17 +287,23 @@ class Protocol:
         self.path = dbc_path
         self._by_id: dict[int, _Entry] = {}
         self._by_name: dict[str, _Entry] = {}
+        self._by_key: dict[tuple[str, int | None], _Entry] = {}
         for message in database.messages:
             match = _NAME.match(message.name)
             assert match is not None  # the pattern matches every string
             kind, digits = match["kind"], match["index"]
             ftype = _REGISTRY.get(kind)
             index = int(digits) if digits else None
-            entry = _Entry(kind, index, message, ftype)
+            try:
+                codec: _Codec | None = _Codec(message)
+            except ValueError:
+                codec = None  # a layout the compiler does not handle: cantools does it
+            entry = _Entry(kind, index, message, ftype, codec)
             if ftype is not None:
                 _check_layout(entry)
             self._by_id[message.frame_id] = entry
             self._by_name[message.name] = entry
+            self._by_key[(kind, index)] = entry
 
     # ------------------------------------------------------------------ the DBC as data
 
@@ -281,9 +350,9 @@ class Protocol:
                 raise FrameError(f"{type(frame).__name__} is not a registered frame type")
             kind = ftype.kind
             index = None if ftype.index_field is None else int(getattr(frame, ftype.index_field))
-        name = kind if index is None else f"{kind}{index}"
-        entry = self._by_name.get(name)
+        entry = self._by_key.get((kind, index))
         if entry is None:
+            name = kind if index is None else f"{kind}{index}"
             raise FrameError(f"{name}: no such frame in the DBC (index out of range)")
         return entry
 
@@ -293,31 +362,33 @@ class Protocol:
         """The CAN message of `frame`; out-of-range values raise FrameError naming the signal."""
         entry = self._entry_of(frame)
         message = entry.message
-        if isinstance(frame, GenericFrame):
-            given: dict[str, Any] = dict(frame.signals)
-        else:
-            given = {f.name: getattr(frame, f.name) for f in fields(frame)}
+        given: Mapping[str, Any] = (
+            frame.signals if isinstance(frame, GenericFrame) else frame.__dict__
+        )
         signals: dict[str, Any] = {}
         for signal in message.signals:
-            if signal.name not in given:
+            name = signal.name
+            if name not in given:
                 raise FrameError(
-                    f"{message.name} ({frame_name(message.frame_id)}): "
-                    f"no value for signal {signal.name}"
+                    f"{message.name} ({frame_name(message.frame_id)}): no value for signal {name}"
                 )
-            value = given[signal.name]
+            value = given[name]
             if isinstance(value, bool):
                 value = int(value)
-            if signal.name in WRAPPING_SIGNALS and isinstance(value, int):
+            elif name in WRAPPING_SIGNALS and isinstance(value, int):
                 value %= int(signal.maximum or COUNTER_MODULO - 1) + 1
-            if isinstance(value, float) and not math.isfinite(value):
+            elif value != value or value in (math.inf, -math.inf):  # NaN or infinite
                 raise FrameError(
-                    f"{message.name} ({frame_name(message.frame_id)}): {signal.name} is {value}"
+                    f"{message.name} ({frame_name(message.frame_id)}): {name} is {value}"
                 )
-            signals[signal.name] = value
-        try:
-            data = message.encode(signals, strict=True)
-        except (cantools.database.EncodeError, ValueError, KeyError) as exc:
-            raise FrameError(f"{message.name} ({frame_name(message.frame_id)}): {exc}") from exc
+            signals[name] = value
+        if entry.codec is not None:
+            data = entry.codec.encode(signals)
+        else:
+            try:
+                data = message.encode(signals, strict=True)
+            except (cantools.database.EncodeError, ValueError, KeyError) as exc:
+                raise FrameError(f"{message.name} ({frame_name(message.frame_id)}): {exc}") from exc
         return can.Message(
             arbitration_id=message.frame_id, data=data, is_extended_id=False, timestamp=timestamp
         )
@@ -335,9 +406,12 @@ class Protocol:
                 f"{message.name} ({frame_name(msg.arbitration_id)}): {len(msg.data)} data bytes, "
                 f"the DBC says {message.length}"
             )
-        values: dict[str, Any] = dict(
-            message.decode(bytes(msg.data), decode_choices=False, scaling=True)  # type: ignore[arg-type]
-        )
+        if entry.codec is not None:
+            values = entry.codec.decode(bytes(msg.data))
+        else:
+            values = dict(
+                message.decode(bytes(msg.data), decode_choices=False, scaling=True)  # type: ignore[arg-type]
+            )
         ftype = entry.type
         if ftype is None:
             return GenericFrame(entry.kind, entry.index, values)
