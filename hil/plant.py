@@ -107,7 +107,7 @@ class Plant:
         finally:
             self.stats.wall_time = time.perf_counter() - started
             self.signals.end_row()
-            self.can_log.flush()
+            self.can_log.flush(force=True)
         return self.stats
 
     def _decode(self, message: can.Message) -> Frame | None:

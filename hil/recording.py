@@ -8,18 +8,19 @@ the plant sent and R for frames it received.
 
 Signals are one CSV row per SYNC, columns from the robot's signal specs; `signals.units.csv`
 beside it gives every column's unit and meaning (`pandas.read_csv` reads either in one call).
-Both the CSV and a candump log are flushed at every SYNC, so whatever stops a run leaves complete,
-readable files up to the last finished control period. Values are written with `repr`, so equal
-runs give byte-identical files.
+Both are written in whole records and flushed in blocks (at most every FLUSH_INTERVAL of wall
+time, and whenever a run stops), so whatever stops a run leaves complete, readable files up to
+the last flushed control period, without a system call per SYNC. Values are written with
+`repr`, so equal runs give byte-identical files.
 """
 
 from __future__ import annotations
 
 import csv
 import math
+import time
 from collections.abc import Sequence
 from pathlib import Path
-from typing import TextIO
 
 import can
 
@@ -28,6 +29,41 @@ from hil.errors import HilError
 from hil.robots import SignalSpec
 
 UNITS_SUFFIX = ".units.csv"
+FLUSH_INTERVAL = 0.25  # [s] of wall time between flushes of the recorders
+
+
+class BlockFile:
+    """A text file written in blocks of whole records: `write` collects, `flush` hands the
+    collected text to the OS in one write call, so the file never ends inside a record (a
+    killed process loses at most the block since the last flush, never half a line)."""
+
+    def __init__(self, path: Path) -> None:
+        self.name = str(path)
+        self._file = path.open("w", encoding="utf-8", newline="", buffering=1 << 20)
+        self._parts: list[str] = []
+
+    @property
+    def closed(self) -> bool:
+        return self._file.closed
+
+    def write(self, text: str) -> int:
+        self._parts.append(text)
+        return len(text)
+
+    def writelines(self, lines: Sequence[str]) -> None:
+        self._parts.extend(lines)
+
+    def flush(self) -> None:
+        if self._parts:
+            text = "".join(self._parts)
+            self._parts.clear()
+            self._file.write(text)
+        self._file.flush()
+
+    def close(self) -> None:
+        if not self._file.closed:
+            self.flush()
+            self._file.close()
 
 
 class SignalRecorder:
@@ -45,10 +81,11 @@ class SignalRecorder:
             writer.writerow(["time", "s", "simulation time of the SYNC"])
             for s in self.specs:
                 writer.writerow([s.column, s.unit, s.description])
-        self._file: TextIO = path.open("w", newline="")
+        self._file = BlockFile(path)
         self._writer = csv.writer(self._file, lineterminator="\n")
         self._writer.writerow(self.columns)
         self._row: dict[str, float] | None = None
+        self._flushed = time.monotonic()
         self.rows = 0
         self.table: list[list[float]] = []  # every row, for the MF4 copy and the summary
 
@@ -74,7 +111,10 @@ class SignalRecorder:
             return
         values = [self._row.get(c, math.nan) for c in self.columns]
         self._writer.writerow([_format(v) for v in values])
-        self._file.flush()
+        now = time.monotonic()
+        if now - self._flushed > FLUSH_INTERVAL:
+            self._file.flush()
+            self._flushed = now
         self.table.append(values)
         self._row = None
         self.rows += 1
@@ -135,6 +175,8 @@ class CanLogger:
         try:
             if path.suffix == ".asc":
                 self._writer: can.io.generic.MessageWriter = _AscWriter(path, start)
+            elif path.suffix == ".log":
+                self._writer = can.CanutilsLogWriter(BlockFile(path))  # type: ignore[arg-type]
             else:
                 self._writer = can.Logger(str(path))  # type: ignore[abstract]
         except ImportError as exc:
@@ -142,6 +184,7 @@ class CanLogger:
         except ValueError as exc:
             raise HilError(f"{path.name}: {exc}") from None
         self._flushable = path.suffix == ".log"
+        self._flushed = time.monotonic()
         self.sent = 0
         self.received = 0
         self.bits = 0
@@ -162,11 +205,15 @@ class CanLogger:
         else:
             self.sent += 1
 
-    def flush(self) -> None:
-        """Whole records on disk at every SYNC for the line formats; binary formats (BLF, MF4)
-        are complete when closed."""
-        if self._flushable:
+    def flush(self, force: bool = False) -> None:
+        """Whole records on disk, in blocks (every FLUSH_INTERVAL of wall time, or now with
+        `force`) for the line formats; binary formats (BLF, MF4) are complete when closed."""
+        if not self._flushable:
+            return
+        now = time.monotonic()
+        if force or now - self._flushed > FLUSH_INTERVAL:
             self._writer.file.flush()  # type: ignore[attr-defined]
+            self._flushed = now
 
     def close(self) -> None:
         self._writer.stop()
