@@ -73,6 +73,7 @@ class Plant:
         self.sim_time = 0.0
         self.cycle = -1
         self.heartbeat_every = heartbeat_every
+        self._progress: Callable[[int], None] | None = None
 
     def run(
         self, peer_alive: Callable[[], str | None], progress: Callable[[int], None] | None = None
@@ -109,6 +110,29 @@ class Plant:
             self.signals.end_row()
             self.can_log.flush(force=True)
         return self.stats
+
+    def run_driven(
+        self, driver: Callable[[], object], progress: Callable[[int], None] | None = None
+    ) -> PlantStats:
+        """Serve a controller that drives the run from this thread (the direct in-process bus):
+        each frame it sends reaches `handle` synchronously; `driver` returns when it is done."""
+        started = time.perf_counter()
+        self._progress = progress
+        try:
+            driver()
+            if self.cycle < self.scenario.cycles:
+                raise ProtocolError(
+                    f"the controller stopped after SYNC {self.cycle} of {self.scenario.cycles}"
+                )
+        finally:
+            self.stats.wall_time = time.perf_counter() - started
+            self.signals.end_row()
+            self.can_log.flush(force=True)
+        return self.stats
+
+    def handle(self, message: can.Message) -> None:
+        """One frame from the bus (the direct bus's handler)."""
+        self._handle(message, self._progress)
 
     def _decode(self, message: can.Message) -> Frame | None:
         try:

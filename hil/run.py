@@ -33,6 +33,7 @@ from controllers.node import (
     RealtimeClock,
 )
 from controllers.protocol import Protocol
+from hil.bus.direct import direct_pair
 from hil.bus.loopback import LoopbackHub
 from hil.devices import HEARTBEAT_PERIOD
 from hil.errors import BusError, HilError
@@ -96,8 +97,14 @@ def run_scenario(scenario: Scenario, options: RunOptions) -> RunResult:
     with ExitStack() as stack:
         rig = robot.build(scenario)
         stack.callback(rig.close)
-        plant_spec, controller_spec = _bus_specs(scenario, options, stack)
-        plant_bus = _open(plant_spec)
+        direct = options.inprocess and not options.bus
+        if direct:  # plant and controller in this thread, frames handed over synchronously
+            plant_bus, controller_bus = direct_pair(f"softhil-{scenario.name}")
+            stack.callback(controller_bus.shutdown)
+            plant_spec = controller_spec = BusSpec("direct", "in-process")
+        else:
+            plant_spec, controller_spec = _bus_specs(scenario, options, stack)
+            plant_bus = _open(plant_spec)
         stack.callback(plant_bus.shutdown)
         signals = SignalRecorder(out / "signals.csv", rig.signals)
         stack.callback(signals.close)
@@ -105,11 +112,21 @@ def run_scenario(scenario: Scenario, options: RunOptions) -> RunResult:
         stack.callback(can_log.close)
         heartbeat_every = max(1, round(HEARTBEAT_PERIOD / scenario.timing.control_period))
         plant = Plant(scenario, plant_bus, rig, signals, can_log, protocol, heartbeat_every)
-        peer = _start_controller(config, controller_spec, options, out, stack)
         progress = _progress_bar(scenario, options, stack)
+        peer = _Peer()
         try:
-            stats = plant.run(peer.gone, progress)
-            report = peer.finish()
+            if direct:
+                plant_bus.handler = plant.handle
+                clock = (
+                    RealtimeClock(config.control_period) if options.realtime else LockstepClock()
+                )
+                node = ControllerNode(config, controller_bus, clock, protocol)
+                stats = plant.run_driven(node.run, progress)
+                report = asdict(node.report)
+            else:
+                peer = _start_controller(config, controller_spec, options, out, stack)
+                stats = plant.run(peer.gone, progress)
+                report = peer.finish()
         except BaseException as exc:
             summary["error"] = "interrupted" if isinstance(exc, KeyboardInterrupt) else str(exc)
             peer.stop()
@@ -120,7 +137,9 @@ def run_scenario(scenario: Scenario, options: RunOptions) -> RunResult:
             signals.write_mf4(out / "signals.mf4")
     summary = summarise(scenario, out / "signals.csv", stats, can_log, report, protocol)
     summary["bus"] = str(plant_spec)
-    summary["controller_process"] = "thread" if options.inprocess else "process"
+    summary["controller_process"] = (
+        "this thread" if direct else "thread" if options.inprocess else "process"
+    )
     summary["parameters"] = {name: dict(values) for name, values in rig.parameters.items()}
     _write_summary(out, summary)
     from hil.plots import plot_run
@@ -269,6 +288,10 @@ class _Peer:
                 raise HilError(f"the controller failed: {self.error}")
             return asdict(self.report) if self.report is not None else {}
         return {}
+
+
+def _clock(config: ControllerConfig, options: RunOptions) -> LockstepClock | RealtimeClock:
+    return RealtimeClock(config.control_period) if options.realtime else LockstepClock()
 
 
 def _start_controller(

@@ -299,3 +299,14 @@ def test_version_and_defaults_in_help(capsys: pytest.CaptureFixture[str]) -> Non
         main(["bus", "serve", "--help"])
     text = capsys.readouterr().out
     assert "(default: 29536)" in text and "(default: 127.0.0.1)" in text
+
+
+def test_direct_in_process_bus_equals_the_virtual_bus_with_a_thread(tmp_path: Path) -> None:
+    """The synchronous in-process pair changes no byte of the run."""
+    scenario = short_default(tmp_path)
+    direct = run(tmp_path, scenario, "direct")
+    threaded = run(tmp_path, scenario, "thread", bus="virtual:softhil-test-thread")
+    assert direct.summary["controller_process"] == "this thread"
+    assert threaded.summary["controller_process"] == "thread"
+    for name in ("can.log", "signals.csv"):
+        assert (direct.out / name).read_bytes() == (threaded.out / name).read_bytes()
