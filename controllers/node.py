@@ -39,6 +39,7 @@ from controllers.estimation import (
 )
 from controllers.protocol import (
     COUNTER_MODULO,
+    CameraFrame,
     CameraMarker,
     DriveStatus,
     Emcy,
@@ -243,29 +244,46 @@ class RealtimeClock:
 
 
 class CameraAssembler:
-    """Groups marker frames by camera frame index (modulo 256) until a frame is complete."""
+    """Collects each camera picture: its CameraFrame header says which markers it holds; the
+    picture is complete when all of them have arrived, in whatever order."""
 
     def __init__(self, markers: int) -> None:
         self.markers = markers
+        self._headers: dict[int, CameraFrame] = {}
         self._pending: dict[int, dict[int, CameraMarker]] = {}
 
-    def add(self, marker: CameraMarker) -> None:
-        if 0 <= marker.marker_id < self.markers:
-            self._pending.setdefault(marker.frame_index, {})[marker.marker_id] = marker
+    def add(self, frame: CameraFrame | CameraMarker) -> None:
+        if isinstance(frame, CameraFrame):
+            self._headers[frame.frame_index] = frame
+        elif 0 <= frame.marker_id < self.markers:
+            self._pending.setdefault(frame.frame_index, {})[frame.marker_id] = frame
 
     def complete(self, index: int) -> bool:
-        return len(self._pending.get(index % COUNTER_MODULO, {})) == self.markers
+        header = self._headers.get(index % COUNTER_MODULO)
+        if header is None:
+            return False
+        have = self._pending.get(index % COUNTER_MODULO, {})
+        return all(m in have for m in range(self.markers) if header.marker_mask >> m & 1)
 
     def take(self, index: int, sync_time: float) -> MarkerFrame:
-        """The frame `index` (complete) as a MarkerFrame stamped with its exposure time."""
-        frame = self._pending.pop(index % COUNTER_MODULO)
-        offset = frame[0].exposure_offset
-        points = np.array([[frame[m].x, frame[m].y] for m in range(self.markers)])
-        return MarkerFrame(exposure_time=sync_time - offset, points=points)
+        """The picture `index` (complete) stamped with its exposure time; markers it does not
+        hold are NaN."""
+        key = index % COUNTER_MODULO
+        header = self._headers.pop(key)
+        frame = self._pending.pop(key, {})
+        points = np.full((self.markers, 2), np.nan)
+        for m, marker in frame.items():
+            if header.marker_mask >> m & 1:
+                points[m] = (marker.x, marker.y)
+        return MarkerFrame(exposure_time=sync_time - header.exposure_offset, points=points)
 
     def drop(self, index: int) -> bool:
-        """Forget a frame that will not complete; True if part of it had arrived."""
-        return self._pending.pop(index % COUNTER_MODULO, None) is not None
+        """Forget a picture that will not complete; True if part of it had arrived."""
+        key = index % COUNTER_MODULO
+        had = key in self._headers or key in self._pending
+        self._headers.pop(key, None)
+        self._pending.pop(key, None)
+        return had
 
 
 class ControllerNode:
@@ -385,7 +403,7 @@ class ControllerNode:
                     continue
                 self.status[frame.node] = frame
                 needed.discard(frame.node)
-            elif isinstance(frame, CameraMarker):
+            elif isinstance(frame, CameraMarker | CameraFrame):
                 self.camera.add(frame)
             elif isinstance(frame, Emcy):
                 self.report.emcy.append({"cycle": cycle, **asdict(frame)})

@@ -27,6 +27,7 @@ from controllers.protocol import (
     EMCY_COMMAND_TIMEOUT,
     EMCY_OVER_PRESSURE,
     NMT_OPERATIONAL,
+    CameraFrame,
     CameraMarker,
     DriveCommand,
     DriveStatus,
@@ -279,11 +280,16 @@ class CameraNode:
         raise AssertionError("the camera receives no frames")
 
     def act(self, sync: SyncContext, inputs: Mapping[str, float]) -> list[tuple[int, Frame]]:
-        """Marker frames of every exposure available by this SYNC, oldest first."""
+        """Every picture available by this SYNC, oldest first: its CameraFrame header (which
+        markers it holds) and a marker frame for each marker seen."""
         frames: list[tuple[int, Frame]] = []
         while self.queue and self.queue[0][0] <= sync.tick:
             _, exposure, index, points = self.queue.popleft()
             offset = (sync.tick - exposure) * self.macro_step
-            for m, (x, y) in enumerate(points):
+            seen = [m for m in range(len(points)) if not np.isnan(points[m]).any()]
+            mask = sum(1 << m for m in seen)
+            frames.append((MEASUREMENT, CameraFrame(index, offset, mask, len(seen))))
+            for m in seen:
+                x, y = points[m][0], points[m][1]
                 frames.append((MEASUREMENT, CameraMarker(m, float(x), float(y), index, offset)))
         return frames

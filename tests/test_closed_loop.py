@@ -414,22 +414,23 @@ def test_hil_run_cli_reports_a_bad_scenario_in_one_line(tmp_path: Path) -> None:
 
 
 def test_bus_load_above_70_percent_is_a_warning(tmp_path: Path) -> None:
-    path = shortened(tmp_path, 0.2, ("bitrate = 1000000", "bitrate = 100000"))
+    path = shortened(tmp_path, 0.2, ("bitrate = 1000000", "bitrate = 125000"))
     result = run_inprocess(load_scenario(path), tmp_path / "run")
-    # 1 segment at 100 Hz: SYNC, status, command, state frames and 2 markers per 10 ms
-    assert result.summary["bus_load"] == pytest.approx(0.67, abs=0.01)
+    # 1 segment at 100 Hz: SYNC, status, command, state, camera header and 2 markers per 10 ms:
+    # (65 + 135 + 95 + 105 + 135 + 2 x 135) bits x 100 Hz + 1 Hz heartbeats = 80565 bit/s
+    assert result.summary["bus_load"] == pytest.approx(80565 / 125000, rel=1e-9)
     assert result.summary["warnings"] == []
     path = shortened(tmp_path, 0.2, ("bitrate = 1000000", "bitrate = 50000"), name="slow.toml")
     slow = run_inprocess(load_scenario(path), tmp_path / "slow")
-    assert slow.summary["bus_load"] == pytest.approx(2 * 0.67, abs=0.02)
-    assert slow.summary["warnings"] == ["bus load 134 % exceeds 70 %"]
+    assert slow.summary["bus_load"] == pytest.approx(80565 / 50000, rel=1e-9)
+    assert slow.summary["warnings"] == ["bus load 161 % exceeds 70 %"]
     cli = subprocess.run(
         [sys.executable, "-m", "hil", "bus", "load", str(path)],
         capture_output=True,
         text=True,
         timeout=60,
     )
-    assert "bus load 134.1 % at 50000 bit/s" in cli.stdout
+    assert "bus load 161.1 % at 50000 bit/s" in cli.stdout
     assert "warning: above 70 %" in cli.stdout
 
 

@@ -310,3 +310,28 @@ def test_direct_in_process_bus_equals_the_virtual_bus_with_a_thread(tmp_path: Pa
     assert threaded.summary["controller_process"] == "thread"
     for name in ("can.log", "signals.csv"):
         assert (direct.out / name).read_bytes() == (threaded.out / name).read_bytes()
+
+
+def test_camera_pictures_complete_by_their_header_whatever_the_order() -> None:
+    from controllers.node import CameraAssembler, CameraTiming
+    from controllers.protocol import CameraFrame, CameraMarker
+
+    assembler = CameraAssembler(3)
+    # picture 300 (256 + 44 on the wire) holds markers 0 and 2; marker 2 arrives first, the
+    # header last, as on a bus where ids arbitrate
+    assembler.add(CameraMarker(2, 0.02, 0.03, 44, 0.01))
+    assert not assembler.complete(300)
+    assembler.add(CameraMarker(0, 0.0, 0.0, 44, 0.01))
+    assert not assembler.complete(300)  # no header yet: it could hold marker 1 too
+    assembler.add(CameraFrame(44, 0.01, 0b101, 2))
+    assert assembler.complete(300)
+    picture = assembler.take(300, 3.01)
+    assert picture.exposure_time == pytest.approx(3.0)
+    assert picture.seen.tolist() == [True, False, True]
+    assert np.isnan(picture.points[1]).all() and picture.points[2].tolist() == [0.02, 0.03]
+    assert not assembler.complete(300)
+    # which pictures are due by which SYNC: 100 Hz, 6 ms latency, 10 ms period
+    timing = CameraTiming(period_ticks=10, latency_ticks=6, control_ticks=10, markers=3)
+    assert [timing.frames_due(c) for c in range(4)] == [0, 1, 2, 3]
+    slow = CameraTiming(period_ticks=20, latency_ticks=6, control_ticks=10, markers=3)
+    assert [slow.frames_due(c) for c in range(5)] == [0, 1, 1, 2, 2]

@@ -400,6 +400,7 @@ class PlanarArm:
             rates[f"DriveCommand{n}"] = per_period
             rates[f"ControllerState{n}"] = per_period
             rates[f"Heartbeat{n}"] = 1.0 / HEARTBEAT_PERIOD
+        rates["CameraFrame"] = scenario.camera.rate
         for m in range(scenario.robot.segments + 1):
             rates[f"CameraMarker{m}"] = scenario.camera.rate
         return rates
