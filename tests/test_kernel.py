@@ -182,19 +182,24 @@ def test_switching_to_python_for_an_observer_and_back_keeps_identity(
             self.calls.append((tick, dict(values)))
 
     def observed(master: Master, target: int) -> None:
-        # SYNCs 5..7 run with an observer (every tick in Python), the others in C
-        if target == 50:
-            master.add_observer(recorders[master.uses_kernel])
-        if target == 80:
-            master.observers.clear()
+        # the periods ending at SYNC 2 and 33 run with an observer (every tick in Python), the
+        # others in C. The firmware's setpoint is 0.025 in both Python periods and 0.03 in the C
+        # period just before the second, so the kernel must hand back what it last sent, or the
+        # Python path would skip setting 0.025 again and the cylinder would keep 0.03.
+        recorder = recorders[master.uses_kernel]
+        if target in (20, 330):
+            master.add_observer(recorder)
         master.advance_to(target)
+        master.observers.clear()
 
     recorders = {False: Recorder(), True: Recorder()}
-    python, _, _ = run_syncs(drive_cylinder_fmu, fea_segment_fmu, False, 20, observed)
-    kernel, _, used = run_syncs(drive_cylinder_fmu, fea_segment_fmu, True, 20, observed)
+    python, _, _ = run_syncs(drive_cylinder_fmu, fea_segment_fmu, False, 40, observed)
+    kernel, _, used = run_syncs(drive_cylinder_fmu, fea_segment_fmu, True, 40, observed)
     assert used
     assert recorders[True].calls == recorders[False].calls
-    assert [tick for tick, _ in recorders[True].calls] == list(range(40, 71))
+    expected = [*range(10, 21), *range(320, 331)]
+    assert [tick for tick, _ in recorders[True].calls] == expected
+    assert setpoint(1) == setpoint(32) != setpoint(31)
     assert kernel == python
 
 
