@@ -198,7 +198,7 @@ class Master:
                 fast.append(p)
         if not fast:
             return None
-        links = {}
+        links: dict[str, list[tuple[str, int, float, float]]] = {}
         for p in fast:
             links[p.name] = []
             for variable, source, gain, offset in self._connections[p.name]:

@@ -248,3 +248,13 @@ def test_fmu_error_inside_the_kernel_is_the_python_paths_fmu_error(
     assert "\n" not in message
     assert message.startswith("segment2 (FeaSegment): fmi2SetReal failed: ")
     assert "non-finite" in message
+
+
+def test_a_closed_instance_is_an_error_not_a_crash(drive_cylinder_fmu: BuiltFmu) -> None:
+    slave = FmuSlave(drive_cylinder_fmu, "cylinder1")
+    master = Master([FmuParticipant(slave)], [], H, kernel=True)
+    master.advance_to(2)
+    slave.close()
+    with pytest.raises(FmuError, match=r"^cylinder1: the FMU instance is closed$"):
+        master.advance_to(4)
+    assert master.tick == 2

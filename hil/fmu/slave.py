@@ -206,6 +206,11 @@ class FmuSlave:
         """Fast path for the master: set Real values by value reference."""
         self._call("fmi2SetReal", self._fmu.setReal, list(vrs), [float(v) for v in values])
 
+    @property
+    def alive(self) -> bool:
+        """Instantiated and not yet closed."""
+        return self._alive
+
     def fmi_handles(self) -> tuple[ctypes.CDLL, int]:
         """The FMU's loaded shared library and its instance pointer, for the stepping kernel
         (hil/kernel), which calls the FMI functions directly from C."""

@@ -21,6 +21,7 @@ import subprocess
 import tempfile
 from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import Any
 
 from hil.errors import BuildError, FmuError
 from hil.fmu.build import CFLAGS, cache_root, compiler
@@ -147,7 +148,8 @@ def load_kernel() -> ctypes.CDLL:
 FmuPlan = tuple[str, FmuSlave, int, list[tuple[str, str]], list[tuple[str, str, int]]]
 
 
-def _array(ctype: type, values: Sequence) -> ctypes.Array:
+def _array(ctype: Any, values: Sequence[Any]) -> Any:
+    """A C array of `values` (at least one element, so that empty plans stay valid pointers)."""
     return (ctype * max(1, len(values)))(*values)
 
 
@@ -191,7 +193,7 @@ class Kernel:
             dll, component = slave.fmi_handles()
             handles["component"].append(component)
             for call in _CALLS:
-                handles[call].append(ctypes.cast(getattr(dll, call), ctypes.c_void_p).value)
+                handles[call].append(ctypes.cast(getattr(dll, call), ctypes.c_void_p).value or 0)
             links = {variable: (s, g, o) for variable, s, g, o in connections.get(name, [])}
             for variable, type_name in inputs:
                 self._input_index[(name, variable)] = len(self.inputs)
@@ -272,6 +274,9 @@ class Kernel:
     def advance(self, k_begin: int, k_end: int) -> None:
         """Step ticks k_begin .. k_end - 1; an FMU failure raises the FmuError the Python path
         would raise (instance, FMI function, what the FMU logged)."""
+        for slave in self.slaves:
+            if not slave.alive:
+                raise FmuError(f"{slave.instance_name}: the FMU instance is closed")
         before = [len(slave.messages) for slave in self.slaves]
         if self._library.softhil_advance(
             self._plan_ref, self.values, k_begin, k_end, self.step,
