@@ -245,7 +245,7 @@ def main() -> int:
         base = rows["1"]["pure C"]["wall_time"] / ticks  # per macro step, 1 segment
         closed_ticks = round(scenario.duration / h)
         print(f"closed loop, default scenario: {scenario.duration:g} s, 1 segment")
-        print(f"{'layer':40s} {'wall [s]':>9s} {'RTF':>7s} {'us/FMU step':>12s} {'x pure C':>9s}")
+        print(f"{'layer':44s} {'wall [s]':>9s} {'RTF':>7s} {'us/FMU step':>12s} {'x pure C':>9s}")
         for inprocess in (True, False):
             for kernel in (True, False):
                 name = "hil run --inprocess" if inprocess else "hil run (separate process)"
@@ -259,7 +259,7 @@ def main() -> int:
                     "ratio_to_pure_c": ratio,
                 }
                 print(
-                    f"{name:40s} {wall:9.3f} {scenario.duration / wall:7.1f} "
+                    f"{name:44s} {wall:9.3f} {scenario.duration / wall:7.1f} "
                     f"{wall / (closed_ticks * 2) * 1e6:12.1f} {ratio:9.2f}"
                 )
     if args.json:
