@@ -1,71 +1,188 @@
-"""Benchmark: real-time factor of the default scenario and the cost of a macro step.
+"""Benchmark: the cost of stepping the plant's FMUs, layer by layer, against the pure-C loop.
 
-Every figure is a ratio against a baseline measured in the same process and run: fmpy stepping
-the same two FMUs alone (inputs and outputs transferred by value reference, no master, no bus).
-Layers measured on top of it, all for the same simulated time:
-  master        the co-simulation master stepping the same FMUs (connections, observers)
-  inprocess     `hil run --inprocess`: master + plant node + controller thread, virtual bus
-  process       `hil run`: controller as a separate process over the loopback hub
+Every figure is a ratio against a baseline measured in the same process and run: the pure-C loop
+(bench/pure_loop.c: the same FMU instances stepped with their coupling in one C call, no Python at
+all: the physical limit). For 1, 2, 4 and 6 planar-arm segments (DriveCylinder + FeaSegment each,
+coupled as in hil.robots.planar_arm (PlanarArm.build): cylinder.x -> segment.x_piston, segment.p_a/p_b ->
+cylinder.p_a/p_b, a constant x_ref input), the same simulated time is stepped by
+  pure C        one call of the C loop over every tick
+  kernel        hil.master.Master with the C kernel, advanced SYNC by SYNC (10 macro steps)
+  python        hil.master.Master(kernel=False), advanced SYNC by SYNC: the reference
+  fmpy          fmpy alone: the same FMI calls from a Python loop, no master
+reported as microseconds per FMU macro step, the ratio to the pure-C loop, and per layer the
+fitted cost slope in microseconds per segment per SYNC. The issue 8 target: the kernel within 1.5x
+of the pure-C loop. Then the closed loop on the default scenario (1 segment), as before:
+  hil run --inprocess             master + plant node + controller thread, virtual bus
+  hil run (separate process)      controller as a separate process over the loopback hub
+each with the kernel and with SOFTHIL_KERNEL=0.
 
-Run: python bench/bench_run.py [--repeat 3] [--json out.json]
+Run from the checkout: PYTHONPATH=. python bench/bench_run.py [--repeat 3] [--seconds 2]
+[--no-closed-loop] [--json out.json]
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import ctypes
+import hashlib
 import json
+import os
 import statistics
+import subprocess
 import tempfile
 import time
+from collections.abc import Callable, Iterator
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
+
+from hil.fmu.build import CFLAGS, cache_root, compiler
 from hil.fmu.slave import FmuSlave
-from hil.master import Master
-from hil.robots import build_rig
+from hil.master import Connection, FmuParticipant, Master
 from hil.run import RunOptions, run_scenario
 from hil.scenario import Scenario, load_scenario
 
+PURE_LOOP = Path(__file__).with_name("pure_loop.c")
+SEGMENTS = (1, 2, 4, 6)
+X_REF = 0.03  # [m] constant setpoint: the pistons move, the pressures build
+LAYERS = ("pure C", "kernel", "python", "fmpy")
 
-def baseline(scenario: Scenario) -> float:
-    """fmpy alone: step DriveCylinder and FeaSegment with the same coupling, no framework."""
-    cylinder = FmuSlave("DriveCylinder", "cylinder1")
-    segment = FmuSlave("FeaSegment", "segment1")
-    vr = {name: cylinder.value_reference(name) for name in ("x", "p_a", "p_b")}
-    sv = {name: segment.value_reference(name) for name in ("x_piston", "p_a", "p_b")}
-    h = scenario.timing.step
-    ticks = round(scenario.duration / h)
-    start = time.perf_counter()
-    x, pa, pb = 0.025, 0.0, 0.0
-    for k in range(ticks):
-        cylinder.set_reals([vr["p_a"], vr["p_b"]], [pa, pb])
-        segment.set_reals([sv["x_piston"]], [x])
-        cylinder.do_step(k * h, h)
-        segment.do_step(k * h, h)
-        (x,) = cylinder.get_reals([vr["x"]])
-        pa, pb = segment.get_reals([sv["p_a"], sv["p_b"]])
-    elapsed = time.perf_counter() - start
-    cylinder.close()
-    segment.close()
+
+class _Segment(ctypes.Structure):
+    _fields_ = [
+        *((name, ctypes.c_void_p) for name in ("cylinder", "segment")),
+        *(
+            (name, ctypes.c_void_p)
+            for name in ("cyl_set", "cyl_get", "cyl_step", "seg_set", "seg_get", "seg_step")
+        ),
+        ("cyl_p", ctypes.c_uint * 2),
+        ("cyl_x", ctypes.c_uint),
+        ("seg_x", ctypes.c_uint),
+        ("seg_p", ctypes.c_uint * 2),
+    ]
+
+
+def pure_loop_library() -> ctypes.CDLL:
+    flags = (*CFLAGS, "-ffp-contract=off")
+    digest = hashlib.sha256(" ".join((compiler(), *flags)).encode() + PURE_LOOP.read_bytes())
+    target = cache_root() / "bench" / f"pure_loop-{digest.hexdigest()[:16]}.so"
+    if not target.is_file():
+        target.parent.mkdir(parents=True, exist_ok=True)
+        work = target.with_suffix(f".{os.getpid()}.tmp")
+        subprocess.run([compiler(), *flags, str(PURE_LOOP), "-o", str(work)], check=True)
+        os.replace(work, target)
+    library = ctypes.CDLL(str(target))
+    library.pure_loop.restype = ctypes.c_int
+    library.pure_loop.argtypes = [
+        ctypes.POINTER(_Segment),
+        ctypes.c_int,
+        ctypes.c_longlong,
+        ctypes.c_double,
+    ]
+    return library
+
+
+@contextlib.contextmanager
+def arm(segments: int) -> Iterator[list[tuple[FmuSlave, FmuSlave]]]:
+    pairs = []
+    try:
+        for n in range(1, segments + 1):
+            cylinder = FmuSlave("DriveCylinder", f"cylinder{n}", {"x_ref": X_REF})
+            pairs.append((cylinder, FmuSlave("FeaSegment", f"segment{n}")))
+        yield pairs
+    finally:
+        for cylinder, segment in pairs:
+            cylinder.close()
+            segment.close()
+
+
+def pure_c(library: ctypes.CDLL, segments: int, ticks: int, h: float) -> float:
+    with arm(segments) as pairs:
+        table = (_Segment * segments)()
+        for row, (cylinder, segment) in zip(table, pairs, strict=True):
+            c_dll, row.cylinder = cylinder.fmi_handles()
+            s_dll, row.segment = segment.fmi_handles()
+            for field, dll, call in (
+                ("cyl_set", c_dll, "fmi2SetReal"),
+                ("cyl_get", c_dll, "fmi2GetReal"),
+                ("cyl_step", c_dll, "fmi2DoStep"),
+                ("seg_set", s_dll, "fmi2SetReal"),
+                ("seg_get", s_dll, "fmi2GetReal"),
+                ("seg_step", s_dll, "fmi2DoStep"),
+            ):
+                setattr(row, field, ctypes.cast(getattr(dll, call), ctypes.c_void_p).value)
+            row.cyl_p[:] = [cylinder.value_reference("p_a"), cylinder.value_reference("p_b")]
+            row.cyl_x = cylinder.value_reference("x")
+            row.seg_x = segment.value_reference("x_piston")
+            row.seg_p[:] = [segment.value_reference("p_a"), segment.value_reference("p_b")]
+        start = time.perf_counter()
+        status = library.pure_loop(table, segments, ticks, h)
+        elapsed = time.perf_counter() - start
+    if status != 0:
+        raise RuntimeError(f"pure C loop failed with FMI status {status}")
     return elapsed
 
 
-def master_only(scenario: Scenario) -> float:
-    rig = build_rig(scenario)
-    master = Master(rig.participants, rig.connections, scenario.timing.step)
-    start = time.perf_counter()
-    master.advance_to(round(scenario.duration / scenario.timing.step))
-    elapsed = time.perf_counter() - start
-    rig.close()
-    return elapsed
+def master_layer(segments: int, ticks: int, h: float, kernel: bool, sync_ticks: int) -> float:
+    with arm(segments) as pairs:
+        participants: list[FmuParticipant] = []
+        connections = []
+        for n, (cylinder, segment) in enumerate(pairs, start=1):
+            participants += [FmuParticipant(cylinder), FmuParticipant(segment)]
+            connections += [
+                Connection(f"cylinder{n}.x", f"segment{n}.x_piston"),
+                Connection(f"segment{n}.p_a", f"cylinder{n}.p_a"),
+                Connection(f"segment{n}.p_b", f"cylinder{n}.p_b"),
+            ]
+        master = Master(participants, connections, h, kernel=kernel)
+        assert master.uses_kernel == kernel
+        for n in range(1, segments + 1):
+            master.set_input(f"cylinder{n}", "x_ref", X_REF)
+        start = time.perf_counter()
+        for sync_tick in range(sync_ticks, ticks + 1, sync_ticks):
+            master.advance_to(sync_tick)
+        return time.perf_counter() - start
 
 
-def full_run(scenario: Scenario, inprocess: bool) -> float:
-    with tempfile.TemporaryDirectory() as out:
-        result = run_scenario(
-            scenario, RunOptions(out=Path(out), inprocess=inprocess, progress=False)
-        )
-        return float(result.summary["wall_time"])
+def fmpy_alone(segments: int, ticks: int, h: float) -> float:
+    with arm(segments) as pairs:
+        refs = []
+        for cylinder, segment in pairs:
+            cv = [cylinder.value_reference(name) for name in ("x", "p_a", "p_b")]
+            sv = [segment.value_reference(name) for name in ("x_piston", "p_a", "p_b")]
+            refs.append((cylinder, segment, cv, sv))
+        state = [(cyl.get_reals(cv[:1])[0], seg.get_reals(sv[1:])) for cyl, seg, cv, sv in refs]
+        start = time.perf_counter()
+        for k in range(ticks):
+            for (cylinder, segment, cv, sv), (x, p) in zip(refs, state, strict=True):
+                cylinder.set_reals(cv[1:], p)
+                segment.set_reals(sv[:1], [x])
+                cylinder.do_step(k * h, h)
+                segment.do_step(k * h, h)
+            state = [(cyl.get_reals(cv[:1])[0], seg.get_reals(sv[1:])) for cyl, seg, cv, sv in refs]
+        return time.perf_counter() - start
+
+
+def full_run(scenario: Scenario, inprocess: bool, kernel: bool) -> float:
+    previous = os.environ.get("SOFTHIL_KERNEL")
+    os.environ["SOFTHIL_KERNEL"] = "1" if kernel else "0"
+    try:
+        with tempfile.TemporaryDirectory() as out:
+            result = run_scenario(
+                scenario, RunOptions(out=Path(out), inprocess=inprocess, progress=False)
+            )
+            return float(result.summary["wall_time"])
+    finally:
+        if previous is None:
+            del os.environ["SOFTHIL_KERNEL"]
+        else:
+            os.environ["SOFTHIL_KERNEL"] = previous
+
+
+def median(repeat: int, f: Callable[[], float]) -> float:
+    return statistics.median(f() for _ in range(repeat))
 
 
 def main() -> int:
@@ -73,43 +190,81 @@ def main() -> int:
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument("--repeat", type=int, default=3, help="runs per layer (median taken)")
+    parser.add_argument("--seconds", type=float, default=2.0, help="simulated time per run [s]")
+    parser.add_argument("--no-closed-loop", action="store_true", help="skip the hil run rows")
     parser.add_argument("--json", type=Path, help="also write the figures as JSON")
     args = parser.parse_args()
     scenario = load_scenario()
     scenario = replace(scenario, bus=replace(scenario.bus, kind="loopback", port=0))
-    layers = {
-        "baseline (fmpy alone)": lambda: baseline(scenario),
-        "master": lambda: master_only(scenario),
-        "hil run --inprocess": lambda: full_run(scenario, inprocess=True),
-        "hil run (separate process)": lambda: full_run(scenario, inprocess=False),
+    h = scenario.timing.step
+    sync_ticks = scenario.control_ticks
+    ticks = round(args.seconds / h) // sync_ticks * sync_ticks
+    syncs = ticks // sync_ticks
+    library = pure_loop_library()
+    fmpy_alone(1, 10, h)  # warm up: build/load the FMUs once
+    layers: dict[str, Callable[[int], float]] = {
+        "pure C": lambda n: pure_c(library, n, ticks, h),
+        "kernel": lambda n: master_layer(n, ticks, h, True, sync_ticks),
+        "python": lambda n: master_layer(n, ticks, h, False, sync_ticks),
+        "fmpy": lambda n: fmpy_alone(n, ticks, h),
     }
-    baseline(scenario)  # warm up: build/load the FMUs once
-    medians = {
-        name: statistics.median(f() for _ in range(args.repeat)) for name, f in layers.items()
-    }
-    ticks = round(scenario.duration / scenario.timing.step)
-    fmus = 2 * scenario.robot.segments
-    base = medians["baseline (fmpy alone)"]
     print(
-        f"default scenario: {scenario.duration:g} s simulated, {ticks} macro steps of "
-        f"{fmus} FMUs, median of {args.repeat}"
+        f"{args.seconds:g} s simulated ({ticks} macro steps of {h * 1e3:g} ms, {syncs} SYNCs), "
+        f"median of {args.repeat}; us per FMU macro step (x pure C)"
     )
-    print(f"{'layer':28s} {'wall [s]':>9s} {'RTF':>7s} {'us/FMU step':>12s} {'x baseline':>11s}")
-    rows = {}
-    for name, wall in medians.items():
-        per_step = wall / (ticks * fmus) * 1e6
-        rows[name] = {
-            "wall_time": wall,
-            "real_time_factor": scenario.duration / wall,
-            "us_per_fmu_step": per_step,
-            "ratio_to_baseline": wall / base,
+    print(f"{'segments':>8s} " + " ".join(f"{name:>18s}" for name in LAYERS))
+    rows: dict[str, dict[str, dict[str, float]]] = {}
+    for n in SEGMENTS:
+        walls = {name: median(args.repeat, lambda f=f, n=n: f(n)) for name, f in layers.items()}
+        base = walls["pure C"]
+        fmu_steps = ticks * 2 * n
+        rows[str(n)] = {
+            name: {
+                "wall_time": wall,
+                "us_per_fmu_step": wall / fmu_steps * 1e6,
+                "ratio_to_pure_c": wall / base,
+            }
+            for name, wall in walls.items()
         }
+        cells = [f"{wall / fmu_steps * 1e6:9.2f} ({wall / base:5.2f}x)" for wall in walls.values()]
+        print(f"{n:8d} " + " ".join(f"{cell:>18s}" for cell in cells))
+    slopes = {}
+    for name in LAYERS:
+        per_sync = [rows[str(n)][name]["wall_time"] / syncs * 1e6 for n in SEGMENTS]
+        slope, intercept = np.polyfit(SEGMENTS, per_sync, 1)
+        slopes[name] = {"us_per_segment_per_sync": slope, "us_per_sync_intercept": intercept}
+    print("fitted cost per SYNC [us] = slope * segments + intercept")
+    for name, fit in slopes.items():
         print(
-            f"{name:28s} {wall:9.3f} {scenario.duration / wall:7.1f} {per_step:12.1f} "
-            f"{wall / base:11.2f}"
+            f"{name:>8s}: {fit['us_per_segment_per_sync']:9.1f} us/segment/SYNC "
+            f"({fit['us_per_segment_per_sync'] / slopes['pure C']['us_per_segment_per_sync']:.2f}"
+            f"x pure C), intercept {fit['us_per_sync_intercept']:7.1f} us"
         )
+    closed: dict[str, dict[str, float]] = {}
+    if not args.no_closed_loop:
+        base = rows["1"]["pure C"]["wall_time"] / ticks  # per macro step, 1 segment
+        closed_ticks = round(scenario.duration / h)
+        print(f"closed loop, default scenario: {scenario.duration:g} s, 1 segment")
+        print(f"{'layer':44s} {'wall [s]':>9s} {'RTF':>7s} {'us/FMU step':>12s} {'x pure C':>9s}")
+        for inprocess in (True, False):
+            for kernel in (True, False):
+                name = "hil run --inprocess" if inprocess else "hil run (separate process)"
+                name += "" if kernel else " SOFTHIL_KERNEL=0"
+                wall = median(args.repeat, lambda i=inprocess, k=kernel: full_run(scenario, i, k))
+                ratio = wall / (base * closed_ticks)
+                closed[name] = {
+                    "wall_time": wall,
+                    "real_time_factor": scenario.duration / wall,
+                    "us_per_fmu_step": wall / (closed_ticks * 2) * 1e6,
+                    "ratio_to_pure_c": ratio,
+                }
+                print(
+                    f"{name:44s} {wall:9.3f} {scenario.duration / wall:7.1f} "
+                    f"{wall / (closed_ticks * 2) * 1e6:12.1f} {ratio:9.2f}"
+                )
     if args.json:
-        args.json.write_text(json.dumps(rows, indent=2) + "\n")
+        report = {"ticks": ticks, "segments": rows, "slopes": slopes, "closed_loop": closed}
+        args.json.write_text(json.dumps(report, indent=2) + "\n")
     return 0
 
 

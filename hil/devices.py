@@ -110,13 +110,13 @@ class DriveNode:
     stale: int = 0
     emcy_sent: int = 0
     servo_fault: int = 0
+    decimation: int = 1  # ticks between master steps: its outputs change only at SYNC
     setpoint: float = field(init=False)
 
     def __post_init__(self) -> None:
         self.active_setpoint = self.x_start
         self.setpoint = self.x_start
         self.name = f"drive{self.node}"
-        self.decimation = 1
 
     # participant: outputs held between SYNCs, inputs read at SYNC only
     def input_names(self) -> list[str]:

@@ -6,18 +6,26 @@ transfer) and the execution (integer tick k, t = k h: time is never accumulated 
 observers see read-only values after every tick. Participant `p` with decimation d steps only at
 ticks that are multiples of d, with step d h, so slow subsystems cost less.
 
+Between two events nothing crosses the bus, so the FMU participants are stepped by a small C kernel
+(hil/kernel) when it can be used: it makes the same FMI calls with the same arguments as
+`_step_once`, so results are bit-identical. Python participants are still stepped here, at their
+ticks; with observers registered every tick runs in Python. `kernel=False` or SOFTHIL_KERNEL=0
+keeps everything in Python (the reference).
+
 Invariant: within a tick every participant reads the inputs computed from the outputs at the
 start of the tick (Jacobi), so the result does not depend on the order of participants.
 """
 
 from __future__ import annotations
 
+import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from types import MappingProxyType
 from typing import Protocol
 
-from hil.errors import HilError
+from hil import kernel as kernel_module
+from hil.errors import BuildError, HilError
 from hil.fmu.slave import FmuSlave
 
 
@@ -118,6 +126,9 @@ class Master:
         Output-to-input links. Each input is driven by at most one connection or external value.
     step
         Macro step h [s]; simulation time is `tick * step`.
+    kernel
+        Step the FMU participants in C between events: None (default) when it can be built and
+        SOFTHIL_KERNEL is not "0"; False never; True always (a failed kernel build raises).
     """
 
     def __init__(
@@ -125,6 +136,8 @@ class Master:
         participants: Sequence[Participant],
         connections: Sequence[Connection],
         step: float,
+        *,
+        kernel: bool | None = None,
     ) -> None:
         if not step > 0.0:
             raise HilError(f"macro step must be positive, got {step}")
@@ -154,8 +167,63 @@ class Master:
         self._driven = driven
         self.values: dict[str, float] = {}
         self._view = MappingProxyType(self.values)  # what observers get: read-only
+        self._kernel: kernel_module.Kernel | None = None
+        self._kernel_synced = False
         for p in participants:
             self._publish(p)
+        if kernel is None:
+            kernel = os.environ.get("SOFTHIL_KERNEL", "1") != "0"
+            try:
+                self._kernel = self._make_kernel() if kernel else None
+            except BuildError:
+                self._kernel = None  # no compiler: the Python path is the reference anyway
+        elif kernel:
+            self._kernel = self._make_kernel()
+
+    @property
+    def uses_kernel(self) -> bool:
+        """Whether FMU participants are stepped in C between events."""
+        return self._kernel is not None
+
+    def _make_kernel(self) -> kernel_module.Kernel | None:
+        """Bind the FMU participants with Real, Integer and Boolean variables to the kernel;
+        every other participant (and an FMU with other types) stays in Python."""
+        self._slots = {key: i for i, key in enumerate(self.values)}
+        fast: list[FmuParticipant] = []
+        for p in self.participants.values():
+            if isinstance(p, FmuParticipant) and all(
+                p.slave.variable_type(n) in kernel_module.TYPES
+                for n in (*p.input_names(), *p.output_names())
+            ):
+                fast.append(p)
+        if not fast:
+            return None
+        links: dict[str, list[tuple[str, int, float, float]]] = {}
+        for p in fast:
+            links[p.name] = []
+            for variable, source, gain, offset in self._connections[p.name]:
+                if source not in self._slots:
+                    return None  # an output its participant never published
+                links[p.name].append((variable, self._slots[source], gain, offset))
+        plan = [
+            (
+                p.name,
+                p.slave,
+                p.decimation,
+                [(n, p.slave.variable_type(n)) for n in p.input_names()],
+                [
+                    (n, p.slave.variable_type(n), self._slots[f"{p.name}.{n}"])
+                    for n in p.output_names()
+                ],
+            )
+            for p in fast
+        ]
+        kernel = kernel_module.Kernel(plan, links, len(self._slots), self.step)
+        self._fast = fast
+        self._slow = [p for p in self.participants.values() if p not in fast]
+        self._fast_keys = [f"{p.name}.{n}" for p in fast for n in p.output_names()]
+        self._fast_slots = [self._slots[key] for key in self._fast_keys]
+        return kernel
 
     def _endpoint(self, name: str, kind: str) -> tuple[str, str]:
         participant, _, variable = name.partition(".")
@@ -173,8 +241,15 @@ class Master:
         return participant, variable
 
     def _publish(self, participant: Participant) -> None:
-        for name, value in participant.get_outputs().items():
+        outputs = participant.get_outputs()
+        for name, value in outputs.items():
             self.values[f"{participant.name}.{name}"] = value
+        if self._kernel_synced:
+            array = self._kernel.values  # type: ignore[union-attr]
+            for name, value in outputs.items():
+                slot = self._slots.get(f"{participant.name}.{name}")
+                if slot is not None:
+                    array[slot] = value
 
     def publish(self, participant: str) -> None:
         """Refresh a participant's outputs after an event changed them between ticks (a device
@@ -207,6 +282,8 @@ class Master:
         if variable not in self._participant(participant).input_names():
             raise HilError(f"{participant} has no input {variable!r}")
         self._externals[participant][variable] = value
+        if self._kernel is not None and self.participants[participant] in self._fast:
+            self._kernel.set_external(participant, variable, value)
 
     def add_observer(self, observer: Observer) -> None:
         self.observers.append(observer)
@@ -214,10 +291,57 @@ class Master:
 
     def advance_to(self, tick: int) -> None:
         """Step all participants until simulation tick `tick`."""
+        if self._kernel is not None and not self.observers:
+            self._advance_in_kernel(tick)
+            return
         while self.tick < tick:
             self._step_once()
 
+    def _advance_in_kernel(self, tick: int) -> None:
+        """The FMUs in C up to the next tick where a Python participant is due; at that tick
+        the Python participants read their inputs from the values at its start (Jacobi), the
+        kernel steps the FMUs one tick, then the Python participants step and publish."""
+        kernel = self._kernel
+        assert kernel is not None
+        if not self._kernel_synced:  # the Python path stepped last: take over its state
+            kernel.load_last_inputs([p._last_inputs for p in self._fast])
+            for key, slot in self._slots.items():
+                kernel.values[slot] = self.values[key]
+            self._kernel_synced = True
+        slow = self._slow
+        while self.tick < tick:
+            k = self.tick
+            next_due = min([tick, *(-(-k // p.decimation) * p.decimation for p in slow)])
+            if next_due > k:
+                self._kernel_advance(k, next_due)
+                continue
+            due = [p for p in slow if k % p.decimation == 0]
+            inputs = [self.inputs_of(p.name) for p in due]
+            self._kernel_advance(k, k + 1)
+            self.tick = k
+            for p, values in zip(due, inputs, strict=True):
+                if values:
+                    p.set_inputs(values)
+                p.step(k * self.step, p.decimation * self.step)
+            for p in due:
+                self._publish(p)
+            self.tick = k + 1
+
+    def _kernel_advance(self, k_begin: int, k_end: int) -> None:
+        kernel = self._kernel
+        assert kernel is not None
+        try:
+            kernel.advance(k_begin, k_end)
+        finally:
+            array = kernel.values
+            fresh = [array[i] for i in self._fast_slots]
+            self.values.update(zip(self._fast_keys, fresh, strict=True))
+            self.tick = kernel.ticks_done
+
     def _step_once(self) -> None:
+        if self._kernel_synced:  # the kernel stepped last: hand its state back to Python
+            self._kernel.store_last_inputs([p._last_inputs for p in self._fast])  # type: ignore[union-attr]
+            self._kernel_synced = False
         k = self.tick
         due = [p for p in self.participants.values() if k % p.decimation == 0]
         inputs = [self.inputs_of(p.name) for p in due]

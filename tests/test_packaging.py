@@ -37,6 +37,7 @@ def test_non_editable_install_ships_fmu_sources_and_builds(tmp_path: Path) -> No
         "fmus/DriveCylinder/model.toml",
         "fmus/FeaSegment/model.c",
         "hil/cli/fmu.py",
+        "hil/kernel/kernel.c",
     ):
         assert (target / relative).is_file(), relative
     env = {**os.environ, "PYTHONPATH": str(target), "SOFTHIL_CACHE_DIR": str(tmp_path / "cache")}

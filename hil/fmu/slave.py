@@ -206,6 +206,17 @@ class FmuSlave:
         """Fast path for the master: set Real values by value reference."""
         self._call("fmi2SetReal", self._fmu.setReal, list(vrs), [float(v) for v in values])
 
+    @property
+    def alive(self) -> bool:
+        """Instantiated and not yet closed."""
+        return self._alive
+
+    def fmi_handles(self) -> tuple[ctypes.CDLL, int]:
+        """The FMU's loaded shared library and its instance pointer, for the stepping kernel
+        (hil/kernel), which calls the FMI functions directly from C."""
+        component = self._fmu.component
+        return self._fmu.dll, int(getattr(component, "value", component) or 0)
+
     def do_step(self, time: float, step: float) -> None:
         """Advance from communication point `time` by `step` seconds (the master passes
         time = k * h from its integer tick, so no time is ever accumulated in floats here)."""

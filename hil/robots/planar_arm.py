@@ -277,6 +277,9 @@ class PlanarArm:
                 timeout_ticks,
                 position_range=protocol.signal_range("DriveStatus1", "piston_position"),
                 pressure_range=protocol.signal_range("DriveStatus1", "p_a"),
+                # the firmware holds its outputs between SYNCs: stepping it at SYNC ticks only
+                # changes nothing and keeps the master's C kernel running between SYNCs
+                decimation=scenario.control_ticks,
             )
             for n in range(1, r.segments + 1)
         ]

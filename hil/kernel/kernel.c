@@ -1,0 +1,173 @@
+/* The stepping kernel: Jacobi macro steps of FMU instances between two SYNCs, in C.
+ *
+ * hil/master.py is the reference; this file does exactly what Master._step_once does for FMU
+ * participants, through the FMI 2.0 function pointers of the libraries fmpy loaded:
+ *   for each tick k in [k_begin, k_end):
+ *     every FMU due at k (k % decimation == 0) gets each input that has a source
+ *       (an external value, or gain * values[source] + offset from the values at the start of the
+ *       tick), set only when it differs from what was last set (as FmuParticipant.set_inputs),
+ *       then fmi2DoStep(k * h, decimation * h);
+ *     then every due FMU's outputs are read into values[] (fmi2GetReal, then the other types).
+ * Time is (double)k * h and the step (double)d * h, as `k * self.step` in Python. The build
+ * passes -ffp-contract=off so that gain * v + offset is rounded twice, as in Python.
+ * No global state: everything is in the Plan the caller owns.
+ */
+#include <stddef.h>
+
+#define EXPORT __attribute__((visibility("default")))
+
+typedef void *fmi2Component;
+typedef unsigned int fmi2ValueReference;
+typedef int fmi2Status; /* fmi2OK 0, fmi2Warning 1, fmi2Discard 2, fmi2Error 3, fmi2Fatal 4 */
+typedef fmi2Status (*SetReal)(fmi2Component, const fmi2ValueReference[], size_t, const double[]);
+typedef fmi2Status (*GetReal)(fmi2Component, const fmi2ValueReference[], size_t, double[]);
+typedef fmi2Status (*SetInt)(fmi2Component, const fmi2ValueReference[], size_t, const int[]);
+typedef fmi2Status (*GetInt)(fmi2Component, const fmi2ValueReference[], size_t, int[]);
+typedef fmi2Status (*DoStep)(fmi2Component, double, double, int);
+
+enum { TYPE_REAL = 0, TYPE_INTEGER = 1, TYPE_BOOLEAN = 2 };
+enum { SOURCE_NONE = 0, SOURCE_EXTERNAL = 1, SOURCE_CONNECTION = 2 };
+/* which call failed, reported in Failure.function (names are made in Python) */
+enum {
+    CALL_SET_REAL = 0,
+    CALL_DO_STEP = 1,
+    CALL_GET_REAL = 2,
+    CALL_SET_INTEGER = 3,
+    CALL_SET_BOOLEAN = 4,
+    CALL_GET_INTEGER = 5,
+    CALL_GET_BOOLEAN = 6
+};
+
+typedef struct {
+    int n_fmus;
+    /* per FMU f */
+    void **component;
+    void **set_real, **get_real, **set_integer, **get_integer, **set_boolean, **get_boolean;
+    void **do_step;
+    const int *decimation;
+    const int *input_begin;  /* inputs of f are [input_begin[f], input_begin[f + 1]) */
+    const int *output_begin; /* outputs of f are [output_begin[f], output_begin[f + 1]) */
+    /* per input i */
+    const unsigned int *input_vr;
+    const int *input_type;
+    int *input_source;        /* SOURCE_*; an external value may appear between runs */
+    const int *input_slot;    /* values[] index of the connected output */
+    const double *input_gain;
+    const double *input_offset;
+    double *input_external;
+    double *input_last;       /* what was last set, valid where input_has_last */
+    int *input_has_last;
+    /* per output o */
+    const unsigned int *output_vr;
+    const int *output_type;
+    const int *output_slot;
+    /* scratch, at least max inputs (outputs) of one FMU */
+    unsigned int *scratch_vr;
+    double *scratch_real;
+} Plan;
+
+typedef struct {
+    long long tick;
+    int fmu;
+    int function; /* CALL_* */
+    int index;    /* the input or output of a by-name call, else -1 */
+    int status;
+} Failure;
+
+static int failed(Failure *failure, long long k, int f, int function, int index, int status) {
+    failure->tick = k;
+    failure->fmu = f;
+    failure->function = function;
+    failure->index = index;
+    failure->status = status;
+    return 1;
+}
+
+static int set_inputs(const Plan *plan, int f, const double *values, long long k,
+                      Failure *failure) {
+    void *c = plan->component[f];
+    size_t n_real = 0;
+    for (int i = plan->input_begin[f]; i < plan->input_begin[f + 1]; ++i) {
+        double value;
+        if (plan->input_source[i] == SOURCE_CONNECTION)
+            value = plan->input_gain[i] * values[plan->input_slot[i]] + plan->input_offset[i];
+        else if (plan->input_source[i] == SOURCE_EXTERNAL)
+            value = plan->input_external[i];
+        else
+            continue;
+        if (plan->input_has_last[i] && plan->input_last[i] == value) continue;
+        plan->input_has_last[i] = 1;
+        plan->input_last[i] = value;
+        const fmi2ValueReference vr = plan->input_vr[i];
+        if (plan->input_type[i] == TYPE_REAL) {
+            plan->scratch_vr[n_real] = vr;
+            plan->scratch_real[n_real] = value;
+            ++n_real;
+        } else if (plan->input_type[i] == TYPE_INTEGER) {
+            const int v = (int)value;
+            const fmi2Status s = ((SetInt)plan->set_integer[f])(c, &vr, 1, &v);
+            if (s > 1) return failed(failure, k, f, CALL_SET_INTEGER, i, s);
+        } else {
+            const int v = value != 0.0;
+            const fmi2Status s = ((SetInt)plan->set_boolean[f])(c, &vr, 1, &v);
+            if (s > 1) return failed(failure, k, f, CALL_SET_BOOLEAN, i, s);
+        }
+    }
+    if (n_real > 0) {
+        const fmi2Status s =
+            ((SetReal)plan->set_real[f])(c, plan->scratch_vr, n_real, plan->scratch_real);
+        if (s > 1) return failed(failure, k, f, CALL_SET_REAL, -1, s);
+    }
+    return 0;
+}
+
+static int get_outputs(const Plan *plan, int f, double *values, long long k, Failure *failure) {
+    void *c = plan->component[f];
+    size_t n_real = 0;
+    for (int o = plan->output_begin[f]; o < plan->output_begin[f + 1]; ++o)
+        if (plan->output_type[o] == TYPE_REAL) plan->scratch_vr[n_real++] = plan->output_vr[o];
+    if (n_real > 0) {
+        const fmi2Status s =
+            ((GetReal)plan->get_real[f])(c, plan->scratch_vr, n_real, plan->scratch_real);
+        if (s > 1) return failed(failure, k, f, CALL_GET_REAL, -1, s);
+    }
+    size_t r = 0;
+    for (int o = plan->output_begin[f]; o < plan->output_begin[f + 1]; ++o) {
+        if (plan->output_type[o] == TYPE_REAL) {
+            values[plan->output_slot[o]] = plan->scratch_real[r++];
+            continue;
+        }
+        const fmi2ValueReference vr = plan->output_vr[o];
+        int v = 0;
+        const int boolean = plan->output_type[o] == TYPE_BOOLEAN;
+        const fmi2Status s = ((GetInt)(boolean ? plan->get_boolean[f] : plan->get_integer[f]))(
+            c, &vr, 1, &v);
+        if (s > 1)
+            return failed(failure, k, f, boolean ? CALL_GET_BOOLEAN : CALL_GET_INTEGER, o, s);
+        values[plan->output_slot[o]] = boolean ? (v != 0 ? 1.0 : 0.0) : (double)v;
+    }
+    return 0;
+}
+
+/* Step ticks k_begin .. k_end - 1. Returns 0, or 1 with *failure filled and *ticks_done the
+ * failing tick (values[] then holds the outputs published at the start of that tick). */
+EXPORT int softhil_advance(const Plan *plan, double *values, long long k_begin, long long k_end,
+                           double h, long long *ticks_done, Failure *failure) {
+    for (long long k = k_begin; k < k_end; ++k) {
+        *ticks_done = k;
+        for (int f = 0; f < plan->n_fmus; ++f) {
+            const int d = plan->decimation[f];
+            if (k % d != 0) continue;
+            if (set_inputs(plan, f, values, k, failure)) return 1;
+            const fmi2Status s =
+                ((DoStep)plan->do_step[f])(plan->component[f], (double)k * h, (double)d * h, 1);
+            if (s > 1) return failed(failure, k, f, CALL_DO_STEP, -1, s);
+        }
+        for (int f = 0; f < plan->n_fmus; ++f) {
+            if (k % plan->decimation[f] != 0) continue;
+            if (get_outputs(plan, f, values, k, failure)) return 1;
+        }
+    }
+    *ticks_done = k_end;
+    return 0;
+}
