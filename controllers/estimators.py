@@ -44,7 +44,7 @@ from controllers.estimation import (
     Estimator,
     MarkerFrame,
 )
-from controllers.kinematics import curvatures_from_markers, forward
+from controllers.kinematics import curvatures_from_markers
 
 GATE_PROBABILITY = 0.999  # chi-square quantile of the outlier gate
 PRESSURE_QUANTUM = 10.0  # [Pa] DriveStatus p_a, p_b scale (softhil.dbc)
@@ -279,7 +279,8 @@ class _LatencyFilter:
 
 class SegmentKalmanEstimator(_LatencyFilter):
     """One linear Kalman filter (filterpy) per segment on (theta, omega), measuring the segment's
-    curvature from the chord angle of its two end markers.
+    curvature from the chord angle of its two end markers. The filters' predictions are batched
+    over the segments in numpy (the same F x + G u, F P F' + Q, without a call per segment).
 
     Start heading: a segment's measurement kappa = 2 (alpha - th0) / L needs th0, the heading at
     its start. It is taken from the filters' own prior at the exposure time (base heading plus
@@ -307,12 +308,10 @@ class SegmentKalmanEstimator(_LatencyFilter):
     def _predict(
         self, x: np.ndarray, P: np.ndarray, u: np.ndarray, dt: float
     ) -> tuple[np.ndarray, np.ndarray]:
-        x, P = x.copy(), P.copy()
-        for i, (kf, discretise) in enumerate(zip(self.filters, self.discretisers, strict=True)):
-            F, G, Q = discretise(dt)
-            kf.x, kf.P = x[i].reshape(2, 1), P[i]
-            kf.predict(u=np.array([[u[i]]]), B=G.reshape(2, 1), F=F, Q=Q)
-            x[i], P[i] = kf.x.ravel(), kf.P
+        # the filters' prediction x = F x + G u, P = F P F' + Q, batched over the segments
+        F, G, Q = (np.stack(m) for m in zip(*(d(dt) for d in self.discretisers), strict=True))
+        x = np.einsum("nij,nj->ni", F, x) + G * u[:, np.newaxis]
+        P = np.einsum("nij,njk,nlk->nil", F, P, F) + Q
         return x, P
 
     def _correct(
@@ -403,10 +402,25 @@ class ArmUnscentedEstimator(_LatencyFilter):
         P = F @ P @ F.T + Q
         return F @ x + G @ u, 0.5 * (P + P.T)
 
+    def _segment_ends(self, states: np.ndarray) -> np.ndarray:
+        """Segment-end marker positions for states shape (S, 2N): shape (S, N, 2) [m].
+
+        The PCC chain of `controllers.kinematics.forward` in its chord form (chord L sinc(theta/2)
+        along the start heading plus theta/2), vectorised over the sigma points."""
+        theta = states[:, : self.segments]
+        start = self.base[2] + np.cumsum(theta, axis=1) - theta
+        half = 0.5 * theta
+        direction = start + half
+        safe = np.where(half == 0.0, 1.0, half)
+        chord = self.lengths * np.where(half == 0.0, 1.0, np.sin(safe) / safe)
+        ends = np.empty((*theta.shape, 2))
+        ends[..., 0] = self.base[0] + np.cumsum(chord * np.cos(direction), axis=1)
+        ends[..., 1] = self.base[1] + np.cumsum(chord * np.sin(direction), axis=1)
+        return ends
+
     def _markers(self, state: np.ndarray, which: np.ndarray) -> np.ndarray:
-        """Positions of the segment-end markers `which` (indices 1..N), flattened [m]."""
-        kappas = state[: self.segments] / self.lengths
-        return forward(kappas, self.lengths, self.base)[which, :2].ravel()
+        """Positions of the markers `which` (indices 1..N) for one state, flattened [m]."""
+        return self._segment_ends(state[np.newaxis])[0, which - 1].ravel()
 
     def _correct(
         self, x: np.ndarray, P: np.ndarray, points: np.ndarray
@@ -417,7 +431,7 @@ class ArmUnscentedEstimator(_LatencyFilter):
             return x, P, 0, 0
         ukf = self.ukf
         sigmas = self.points_fn.sigma_points(x, P)
-        predicted = np.array([self._markers(s, visible) for s in sigmas])
+        predicted = self._segment_ends(sigmas)[:, visible - 1].reshape(len(sigmas), -1)
         zp = self.points_fn.Wm @ predicted
         deviation = predicted - zp
         R_marker = self.sigma**2 * np.eye(2)
@@ -432,12 +446,17 @@ class ArmUnscentedEstimator(_LatencyFilter):
         if not accepted:
             return x, P, gated, 0
         which = np.array(accepted)
+        # the sigma points were already carried through the kinematics for the gate: hx looks
+        # them up (by value) and computes only a point it has not seen
+        columns = np.concatenate([[2 * k, 2 * k + 1] for k, m in enumerate(visible) if m in which])
+        known = {s.tobytes(): row for s, row in zip(sigmas, predicted[:, columns], strict=True)}
+
+        def hx(state: np.ndarray) -> np.ndarray:
+            row = known.get(state.tobytes())
+            return self._markers(state, which) if row is None else row
+
         ukf.x, ukf.P, ukf.sigmas_f = x.copy(), P.copy(), sigmas
-        ukf.update(
-            points[which].ravel(),
-            R=self.sigma**2 * np.eye(2 * which.size),
-            hx=lambda state: self._markers(state, which),
-        )
+        ukf.update(points[which].ravel(), R=self.sigma**2 * np.eye(2 * which.size), hx=hx)
         self.innovation, self.innovation_covariance = ukf.y.copy(), ukf.S.copy()
         return ukf.x.copy(), 0.5 * (ukf.P + ukf.P.T), gated, which.size
 

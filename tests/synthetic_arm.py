@@ -32,7 +32,7 @@ class Run:
 
     cycles: list[tuple[float, dict[int, DriveReading], list[MarkerFrame]]]
     kappa: np.ndarray
-    outliers: int  # outlier markers the camera delivered
+    outliers: np.ndarray  # outlier markers the camera delivered, per marker, shape (N + 1,)
     delivered: int  # markers the camera delivered
 
 
@@ -74,7 +74,7 @@ def simulate(
     x = np.zeros((segments, 2))
     pending: list[tuple[int, MarkerFrame]] = []
     out, truth = [], []
-    outliers = delivered = 0
+    outliers, delivered = np.zeros(segments + 1, dtype=int), 0
     torque = np.zeros(segments)
     next_exposure = camera.exposure_tick(0, 0)
     frame = 0
@@ -92,7 +92,7 @@ def simulate(
             if k == next_exposure:
                 true_points = markers(x[:, 0] / bend.length, lengths, BASE)
                 picture = camera.picture(frame, frame * T, true_points)
-                outliers += int(picture.outlier.sum())
+                outliers += picture.outlier
                 delivered += int(picture.seen.sum())
                 pending.append(
                     (k + LATENCY_TICKS, MarkerFrame(picture.exposure_time, picture.points))
@@ -100,5 +100,5 @@ def simulate(
                 frame += 1
                 next_exposure = camera.exposure_tick(frame, frame * ticks_per_cycle)
             u = pressure(k * H)
-            x = x @ F.T + np.outer(u, G) + np.outer(torque, Gw)
+            x = x @ F.T + u[:, np.newaxis] * G + torque[:, np.newaxis] * Gw
     return Run(out, np.array(truth), outliers, delivered)
