@@ -207,8 +207,8 @@ class Camera:
         time = tick * self.macro_step
         # fixed draw counts per picture: M x dims normals, M uniforms, M uniforms + M x dims normals
         noise = self._rng_noise.normal(0.0, 1.0, (markers, dims)) * e.noise
-        dropped = self._rng_dropout.random(markers) < e.dropout
-        outlier = self._rng_outlier.random(markers) < e.outlier_rate
+        dropped = np.asarray(self._rng_dropout.random(markers) < e.dropout)
+        outlier = np.asarray(self._rng_outlier.random(markers) < e.outlier_rate)
         direction = self._rng_outlier.normal(0.0, 1.0, (markers, dims))
         direction /= np.maximum(np.linalg.norm(direction, axis=1, keepdims=True), 1e-300)
         occluded = self._occluded(time, markers)
