@@ -169,9 +169,11 @@ def test_nis_within_the_chi_square_band_over_a_long_run() -> None:
     run = synthetic(effects, 800, 4)
     for name in ("kf", "ukf"):
         estimator = make_estimator(name, [SEGMENT] * SEGMENTS, BASE, camera_noise(effects), T)
-        total, dof = 0.0, 0
+        total, dof, gated, measured = 0.0, 0, 0, 0
         for c, (t, drives, frames) in enumerate(run.cycles):
             estimate_ = estimator.update(t, drives, frames)
+            gated += estimate_.gated
+            measured += estimate_.measured + estimate_.gated
             if c < SETTLE or estimate_.measured == 0:
                 continue
             y = estimator.innovation
@@ -184,6 +186,9 @@ def test_nis_within_the_chi_square_band_over_a_long_run() -> None:
             dof += len(y)
         low, high = chi2.ppf([0.025, 0.975], dof) / dof
         assert low < total / dof < high, (name, total / dof, low, high)
+        # without outliers the gate rejects a good measurement with probability 0.001
+        expected = 0.001 * measured
+        assert gated <= expected + 3.0 * np.sqrt(expected) + 1.0, (name, gated, measured)
 
 
 @pytest.mark.parametrize("name", ["raw", "kf", "ukf"])
