@@ -244,3 +244,37 @@ def test_raw_inverts_complete_frames_and_holds_otherwise() -> None:
 def test_unknown_estimator_is_named() -> None:
     with pytest.raises(ValueError, match="unknown estimator 'ekf'"):
         make_estimator("ekf", [SEGMENT], BASE, camera_noise(DEFAULT), T)
+
+
+@pytest.mark.parametrize("name", ["kf", "ukf"])
+def test_a_late_frame_gives_the_estimate_of_a_frame_fused_on_time(name: str) -> None:
+    """Latency compensation is exact: frames fused late (at the SYNC after they became
+    available) leave the same estimate as an estimator that was called at each exposure time
+    itself, with the drive readings then in force, and given the frame there. Exposures jitter
+    between SYNCs; estimates are compared at the SYNCs where both have seen the same frames."""
+    effects = CameraEffects(noise=5e-4, dropout=0.1, jitter=3e-3)
+    run = synthetic(effects, 150, 6)
+    frames_all = sorted(
+        (f for _, _, frames in run.cycles for f in frames), key=lambda f: f.exposure_time
+    )
+    late = make_estimator(name, [SEGMENT] * SEGMENTS, BASE, camera_noise(effects), T)
+    on_time = make_estimator(name, [SEGMENT] * SEGMENTS, BASE, camera_noise(effects), T)
+    previous: dict[int, DriveReading] = {}
+    fused_late: set[float] = set()
+    fused_on_time: set[float] = set()
+    compared = between = 0
+    for t, drives, frames in run.cycles:
+        while frames_all and frames_all[0].exposure_time < t - 1e-9:
+            frame = frames_all.pop(0)
+            between += frame.exposure_time > t - T + 1e-9
+            on_time.update(frame.exposure_time, previous, [frame])
+            fused_on_time.add(frame.exposure_time)
+        expected = on_time.update(t, drives, [])
+        result = late.update(t, drives, frames)
+        fused_late.update(f.exposure_time for f in frames)
+        previous = drives
+        if fused_late == fused_on_time:
+            np.testing.assert_allclose(result.kappa, expected.kappa, rtol=1e-9, atol=1e-12)
+            np.testing.assert_allclose(result.kappa_std, expected.kappa_std, rtol=1e-9)
+            compared += 1
+    assert between > 50 and compared > 100

@@ -126,6 +126,10 @@ def test_jitter_is_quantised_clamped_and_announced_before_the_picture() -> None:
     # the offset is round(N(0, jitter) / h) clamped at 0: positive when the draw exceeds h / 2
     positive = 0.5 * math.erfc(0.5 * H / jitter / math.sqrt(2.0))
     assert binomial_ok(int((offsets > 0).sum()), len(offsets), positive)
+    # a jitter near the period reaches the clamp, one tick before the next nominal exposure
+    wide = Camera(CameraEffects(jitter=0.009), np.random.default_rng(4), PERIOD, H)
+    wide_offsets = [wide.exposure_tick(j, 10 * j) - 10 * j for j in range(200)]
+    assert min(wide_offsets) == 0 and max(wide_offsets) == 9
     no_jitter = shoot(CameraEffects(), 50)
     assert [p.exposure_tick for p in no_jitter] == [10 * j for j in range(50)]
 
