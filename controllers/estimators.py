@@ -1,0 +1,550 @@
+"""Curvature estimators behind the `Estimator` contract: `raw` (geometric inversion), `kf` (a
+linear Kalman filter per segment) and `ukf` (an unscented Kalman filter on the whole arm).
+
+Models (PHYSICS.md sections 2, 3, 5), nothing tuned by hand:
+
+- Process: each segment bends as `I theta'' + d theta' + k theta = G_a (p_a - p_b) + w`, state
+  (theta, omega), driven by the pressures of each cycle's DriveReading held constant until the
+  next SYNC (ZOH) and discretised exactly (matrix exponential; Van Loan for the noise).
+  The unmodelled torque w is white with the spectral density of a torque that is constant over
+  one control period T with standard deviation `unmodelled_torque_std` (q = sigma^2 T): the
+  pressure quantisation of the DriveStatus frame (10 Pa per channel, uniform, so
+  G_a 10 Pa / sqrt(6) for the difference) and the table's Coulomb friction mu m g L / 2
+  (mu = 0.3, m = 20 I / L^2 from the PCC bend inertia I = m L^2 / 20), added in quadrature.
+- Measurement: marker positions with isotropic noise sigma^2 = noise^2 + q_m^2 / 12, the camera's
+  noise plus the 20 um quantisation of the CameraMarker frame. `kf` measures one segment's
+  curvature by the chord-angle inverse; `ukf` measures the visible markers themselves.
+- Outliers: a Mahalanobis gate at the chi-square 0.999 quantile (per segment measurement, 1 dof,
+  in `kf`; per marker, 2 dof, in `ukf`): a good measurement is rejected one time in a thousand.
+- Latency: a picture is fused at its exposure time. The filters keep a short history of nodes
+  (time, x, P, input held from that time); a frame is fused by predicting from the last node at
+  or before its exposure, inserting a node there, and re-predicting every later node to the
+  present with the inputs recorded since. Without compensation the picture counts as taken at
+  the SYNC time.
+
+Invariant: an estimate depends only on the sequence of `update` calls (bit-identical reruns).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from filterpy.kalman import KalmanFilter, MerweScaledSigmaPoints, UnscentedKalmanFilter
+from scipy.linalg import expm
+from scipy.stats import chi2
+
+from controllers.estimation import (
+    BendModel,
+    CameraNoise,
+    DriveReading,
+    Estimate,
+    Estimator,
+    MarkerFrame,
+)
+from controllers.kinematics import curvatures_from_markers
+
+GATE_PROBABILITY = 0.999  # chi-square quantile of the outlier gate
+PRESSURE_QUANTUM = 10.0  # [Pa] DriveStatus p_a, p_b scale (softhil.dbc)
+MARKER_QUANTUM = 2e-5  # [m] CameraMarker x, y scale (softhil.dbc)
+TABLE_FRICTION = 0.3  # Coulomb coefficient of an elastomer on the table (PHYSICS.md section 2)
+GRAVITY = 9.81  # [m/s^2]
+NAMES = ("raw", "kf", "ukf")
+
+
+def unmodelled_torque_std(bend: BendModel) -> float:
+    """Standard deviation of the torque the bend model leaves out [N m]: pressure quantisation
+    (G_a 10 Pa / sqrt 6) and table friction (mu m g L / 2, m = 20 I / L^2), in quadrature."""
+    quantisation = bend.G_a * PRESSURE_QUANTUM / math.sqrt(6.0)
+    mass = 20.0 * bend.inertia / bend.length**2
+    friction = TABLE_FRICTION * mass * GRAVITY * bend.length / 2.0
+    return math.hypot(quantisation, friction)
+
+
+def marker_std(camera: CameraNoise) -> float:
+    """Per-axis marker position standard deviation [m]: camera noise and bus quantisation."""
+    return math.sqrt(camera.noise**2 + MARKER_QUANTUM**2 / 12.0)
+
+
+class BendDiscretiser:
+    """Exact discretisation of one segment's bend over a step dt, cached by dt.
+
+    Parameters
+    ----------
+    bend
+        The segment's model.
+    torque_psd
+        Spectral density of the unmodelled torque [N^2 m^2 s].
+    """
+
+    def __init__(self, bend: BendModel, torque_psd: float) -> None:
+        self.A = np.array([[0.0, 1.0], [-bend.k_bend / bend.inertia, -bend.d_bend / bend.inertia]])
+        self.B = np.array([0.0, bend.G_a / bend.inertia])
+        noise_input = np.array([0.0, 1.0 / bend.inertia])
+        self.Qc = torque_psd * np.outer(noise_input, noise_input)
+        self._cache: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+
+    def __call__(self, dt: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """F (2, 2), G (2,) [input per Pa] and Q (2, 2) for a step of dt [s]."""
+        key = round(dt * 1e9)  # whole nanoseconds: float dt from subtraction hits the cache
+        if key not in self._cache:
+            step = key * 1e-9
+            augmented = np.zeros((3, 3))
+            augmented[:2, :2] = self.A
+            augmented[:2, 2] = self.B
+            transition = expm(augmented * step)
+            F, G = transition[:2, :2], transition[:2, 2]
+            # Van Loan: Q = F * integral of e^{-As} Qc e^{-A's} ds over the step
+            van_loan = np.zeros((4, 4))
+            van_loan[:2, :2] = -self.A
+            van_loan[:2, 2:] = self.Qc
+            van_loan[2:, 2:] = self.A.T
+            block = expm(van_loan * step)
+            Q = block[2:, 2:].T @ block[:2, 2:]
+            self._cache[key] = (F, G, 0.5 * (Q + Q.T))
+        return self._cache[key]
+
+
+def _pressure_inputs(
+    drives: Mapping[int, DriveReading], previous: np.ndarray | None, segments: int
+) -> np.ndarray:
+    """p_a - p_b per segment [Pa] from drives 1..N; a missing drive keeps its last value."""
+    u = np.zeros(segments) if previous is None else previous.copy()
+    for n in range(1, segments + 1):
+        if n in drives:
+            u[n - 1] = drives[n].p_a - drives[n].p_b
+    return u
+
+
+class RawEstimator:
+    """Today's geometric inversion: the newest complete frame (every marker seen) through
+    `curvatures_from_markers`, held until the next; the rate is the finite difference between
+    successive complete frames over their exposure times. No model, so no latency compensation
+    and no standard deviation (NaN)."""
+
+    name = "raw"
+
+    def __init__(self, bends: Sequence[BendModel], base: tuple[float, float, float]) -> None:
+        self.lengths = [b.length for b in bends]
+        self.base = base
+        n = len(bends)
+        self.kappa = np.zeros(n)
+        self.kappa_rate = np.zeros(n)
+        self._exposure: float | None = None
+
+    def update(
+        self, t: float, drives: Mapping[int, DriveReading], frames: Sequence[MarkerFrame]
+    ) -> Estimate:
+        measured = 0
+        for frame in frames:
+            if not frame.seen.all():
+                continue
+            kappa = curvatures_from_markers(frame.points[:, :2], self.lengths, self.base[2])
+            if self._exposure is not None and frame.exposure_time > self._exposure:
+                self.kappa_rate = (kappa - self.kappa) / (frame.exposure_time - self._exposure)
+            self.kappa, self._exposure = kappa, frame.exposure_time
+            measured += len(kappa)
+        nan = np.full(len(self.kappa), np.nan)
+        return Estimate(self.kappa.copy(), self.kappa_rate.copy(), nan, 0, measured)
+
+
+@dataclass
+class _Node:
+    """A point of the filter's history: the estimate at `time` and the input held from it."""
+
+    time: float
+    x: np.ndarray
+    P: np.ndarray
+    u: np.ndarray
+
+
+class _LatencyFilter:
+    """History, latency compensation and the update cycle shared by `kf` and `ukf`; subclasses
+    supply the prediction, the correction and the read-out of the state."""
+
+    name = "filter"
+
+    def __init__(
+        self,
+        bends: Sequence[BendModel],
+        base: tuple[float, float, float],
+        camera: CameraNoise,
+        control_period: float,
+        latency_compensation: bool,
+        torque_std: float | None,
+    ) -> None:
+        self.bends = list(bends)
+        self.lengths = np.array([b.length for b in bends])
+        self.base = base
+        self.segments = len(bends)
+        self.sigma = marker_std(camera)
+        self.latency_compensation = latency_compensation
+        self.discretisers = [
+            BendDiscretiser(
+                b,
+                (unmodelled_torque_std(b) if torque_std is None else torque_std) ** 2
+                * control_period,
+            )
+            for b in bends
+        ]
+        # long enough for a frame to arrive: its latency, a frame period and a few SYNCs
+        self.horizon = camera.latency + 1.0 / camera.rate + 4.0 * control_period
+        self._nodes: list[_Node] = []
+        self._u: np.ndarray | None = None
+        self.stale = 0  # frames older than the history, not fused
+        self.innovation: np.ndarray | None = None
+        self.innovation_covariance: np.ndarray | None = None
+
+    # subclass hooks -------------------------------------------------------------------------
+    def _initial(self) -> tuple[np.ndarray, np.ndarray]:
+        raise NotImplementedError
+
+    def _predict(
+        self, x: np.ndarray, P: np.ndarray, u: np.ndarray, dt: float
+    ) -> tuple[np.ndarray, np.ndarray]:
+        raise NotImplementedError
+
+    def _correct(
+        self, x: np.ndarray, P: np.ndarray, points: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, int, int]:
+        raise NotImplementedError
+
+    def _read(self, x: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """theta, omega, theta variance, each shape (N,)."""
+        raise NotImplementedError
+
+    def _initial_variances(self) -> tuple[np.ndarray, np.ndarray]:
+        """Prior variances of theta [rad^2] and omega [rad^2/s^2]: the mechanical limit, and the
+        limit over the bend's time constant."""
+        theta_max = np.array([b.theta_max for b in self.bends])
+        tau = np.array([b.d_bend / b.k_bend for b in self.bends])
+        return theta_max**2, (theta_max / tau) ** 2
+
+    # the cycle ------------------------------------------------------------------------------
+    def update(
+        self, t: float, drives: Mapping[int, DriveReading], frames: Sequence[MarkerFrame]
+    ) -> Estimate:
+        self._u = _pressure_inputs(drives, self._u, self.segments)
+        if not self._nodes:
+            x, P = self._initial()
+        else:
+            last = self._nodes[-1]
+            x, P = self._predict(last.x, last.P, last.u, t - last.time)
+        self._nodes.append(_Node(t, x, P, self._u))
+        gated = measured = 0
+        for frame in frames:
+            exposure = min(frame.exposure_time, t) if self.latency_compensation else t
+            g, m = self._fuse(exposure, frame.points[:, :2])
+            gated += g
+            measured += m
+        self._nodes = [n for n in self._nodes[:-1] if n.time >= t - self.horizon] + [
+            self._nodes[-1]
+        ]
+        last = self._nodes[-1]
+        theta, omega, variance = self._read(last.x, last.P)
+        return Estimate(
+            theta / self.lengths,
+            omega / self.lengths,
+            np.sqrt(np.maximum(variance, 0.0)) / self.lengths,
+            gated,
+            measured,
+        )
+
+    def _fuse(self, exposure: float, points: np.ndarray) -> tuple[int, int]:
+        """Fuse one picture at `exposure` and carry the history to the present."""
+        tolerance = 1e-9
+        j = len(self._nodes) - 1
+        while j >= 0 and self._nodes[j].time > exposure + tolerance:
+            j -= 1
+        if j < 0:
+            self.stale += 1
+            return 0, 0
+        node = self._nodes[j]
+        x, P = self._predict(node.x, node.P, node.u, exposure - node.time)
+        x, P, gated, measured = self._correct(x, P, points)
+        if exposure - node.time <= tolerance:
+            node.x, node.P = x, P
+        else:
+            j += 1
+            self._nodes.insert(j, _Node(exposure, x, P, node.u))
+        for k in range(j + 1, len(self._nodes)):
+            previous, current = self._nodes[k - 1], self._nodes[k]
+            current.x, current.P = self._predict(
+                previous.x, previous.P, previous.u, current.time - previous.time
+            )
+        return gated, measured
+
+
+class SegmentKalmanEstimator(_LatencyFilter):
+    """One linear Kalman filter (filterpy) per segment on (theta, omega), measuring the segment's
+    curvature from the chord angle of its two end markers. The filters' predictions are batched
+    over the segments in numpy (the same F x + G u, F P F' + Q, without a call per segment).
+
+    Start heading: a segment's measurement kappa = 2 (alpha - th0) / L needs th0, the heading at
+    its start. It is taken from the filters' own prior at the exposure time (base heading plus
+    the predicted bend angles of the segments before it), not from the markers, so a segment
+    whose two markers are seen updates even when markers nearer the base are missing, and an
+    outlier near the base does not leak into every later segment. Its uncertainty enters R:
+    R = (2/L)^2 (var(alpha) + sum over earlier segments of var(theta_j)), var(alpha) =
+    2 sigma^2 / chord^2 (the cross-chord noise of two markers), treating the segments'
+    errors as independent. They are not: a segment's error is anti-correlated with the heading
+    error of the segments before it, so on segments 2.. the innovations come out smaller than S
+    says (NIS about 0.8) and the reported standard deviation about 1.4x too small. `ukf`, which
+    carries these correlations, has neither defect."""
+
+    name = "kf"
+
+    def __init__(
+        self,
+        bends: Sequence[BendModel],
+        base: tuple[float, float, float],
+        camera: CameraNoise,
+        control_period: float,
+        latency_compensation: bool = True,
+        torque_std: float | None = None,
+    ) -> None:
+        super().__init__(bends, base, camera, control_period, latency_compensation, torque_std)
+        self.filters = [KalmanFilter(dim_x=2, dim_z=1) for _ in self.bends]
+        self.gate = float(chi2.ppf(GATE_PROBABILITY, 1))
+
+    def _initial(self) -> tuple[np.ndarray, np.ndarray]:
+        var_theta, var_omega = self._initial_variances()
+        x = np.zeros((self.segments, 2))
+        P = np.zeros((self.segments, 2, 2))
+        P[:, 0, 0], P[:, 1, 1] = var_theta, var_omega
+        return x, P
+
+    def _predict(
+        self, x: np.ndarray, P: np.ndarray, u: np.ndarray, dt: float
+    ) -> tuple[np.ndarray, np.ndarray]:
+        # the filters' prediction x = F x + G u, P = F P F' + Q, batched over the segments
+        F, G, Q = (np.stack(m) for m in zip(*(d(dt) for d in self.discretisers), strict=True))
+        x = np.einsum("nij,nj->ni", F, x) + G * u[:, np.newaxis]
+        P = np.einsum("nij,njk,nlk->nil", F, P, F) + Q
+        return x, P
+
+    def _correct(
+        self, x: np.ndarray, P: np.ndarray, points: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, int, int]:
+        seen = ~np.isnan(points).any(axis=1)
+        prior_theta = x[:, 0].copy()
+        prior_var = P[:, 0, 0].copy()
+        x, P = x.copy(), P.copy()
+        gated = measured = 0
+        innovations, variances = [], []
+        heading, heading_var = self.base[2], 0.0
+        for i, (kf, length) in enumerate(zip(self.filters, self.lengths, strict=True)):
+            if seen[i] and seen[i + 1]:
+                dx, dy = points[i + 1] - points[i]
+                half = math.remainder(math.atan2(dy, dx) - heading, 2.0 * math.pi)
+                z = 2.0 * half / length
+                half_prior = 0.5 * prior_theta[i]
+                chord = length * (math.sin(half_prior) / half_prior if half_prior else 1.0)
+                alpha_var = 2.0 * self.sigma**2 / chord**2
+                R = (2.0 / length) ** 2 * (alpha_var + heading_var)
+                H = np.array([[1.0 / length, 0.0]])
+                S = float((H @ P[i] @ H.T)[0, 0]) + R
+                y = z - x[i, 0] / length
+                if y * y / S > self.gate:
+                    gated += 1
+                else:
+                    kf.x, kf.P = x[i].reshape(2, 1), P[i]
+                    kf.update(np.array([[z]]), R=np.array([[R]]), H=H)
+                    x[i], P[i] = kf.x.ravel(), kf.P
+                    innovations.append(float(kf.y[0, 0]))
+                    variances.append(float(kf.S[0, 0]))
+                    measured += 1
+            heading += prior_theta[i]
+            heading_var += prior_var[i]
+        if innovations:
+            self.innovation = np.array(innovations)
+            self.innovation_covariance = np.diag(variances)
+        return x, P, gated, measured
+
+    def _read(self, x: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        return x[:, 0], x[:, 1], P[:, 0, 0]
+
+
+class ArmUnscentedEstimator(_LatencyFilter):
+    """An unscented Kalman filter (filterpy, Merwe scaled sigma points: alpha 0.3, beta 2,
+    kappa 0) over the whole arm, state (theta_1..N, omega_1..N), measuring the visible segment-end
+    markers through the PCC forward kinematics; any subset of markers updates what it can. The
+    base marker carries no information on the state (the base is fixed) and is not used. The
+    dynamics are linear, so the prediction is the exact linear one; the unscented transform is
+    used for the measurement. Each marker is gated on its own 2 x 2 block of the innovation
+    covariance, and the accepted markers update together."""
+
+    name = "ukf"
+
+    def __init__(
+        self,
+        bends: Sequence[BendModel],
+        base: tuple[float, float, float],
+        camera: CameraNoise,
+        control_period: float,
+        latency_compensation: bool = True,
+        torque_std: float | None = None,
+    ) -> None:
+        super().__init__(bends, base, camera, control_period, latency_compensation, torque_std)
+        n = self.segments
+        self.points_fn = MerweScaledSigmaPoints(2 * n, alpha=0.3, beta=2.0, kappa=0.0)
+        self.ukf = UnscentedKalmanFilter(
+            dim_x=2 * n, dim_z=2 * n, dt=0.0, hx=None, fx=None, points=self.points_fn
+        )
+        self.gate = float(chi2.ppf(GATE_PROBABILITY, 2))
+        self._arm_cache: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+
+    def _initial(self) -> tuple[np.ndarray, np.ndarray]:
+        var_theta, var_omega = self._initial_variances()
+        return np.zeros(2 * self.segments), np.diag(np.concatenate([var_theta, var_omega]))
+
+    def _arm_matrices(self, dt: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """F (2N, 2N), G (2N, N) and Q (2N, 2N) of the whole arm over dt [s], cached by dt."""
+        key = round(dt * 1e9)
+        if key not in self._arm_cache:
+            n = self.segments
+            F, Q, G = np.zeros((2 * n, 2 * n)), np.zeros((2 * n, 2 * n)), np.zeros((2 * n, n))
+            for i, discretise in enumerate(self.discretisers):
+                Fi, Gi, Qi = discretise(dt)
+                index = np.ix_([i, n + i], [i, n + i])
+                F[index], Q[index] = Fi, Qi
+                G[[i, n + i], i] = Gi
+            self._arm_cache[key] = (F, G, Q)
+        return self._arm_cache[key]
+
+    def _predict(
+        self, x: np.ndarray, P: np.ndarray, u: np.ndarray, dt: float
+    ) -> tuple[np.ndarray, np.ndarray]:
+        F, G, Q = self._arm_matrices(dt)
+        P = F @ P @ F.T + Q
+        return F @ x + G @ u, 0.5 * (P + P.T)
+
+    def _segment_ends(self, states: np.ndarray) -> np.ndarray:
+        """Segment-end marker positions for states shape (S, 2N): shape (S, N, 2) [m].
+
+        The PCC chain of `controllers.kinematics.forward` in its chord form (chord L sinc(theta/2)
+        along the start heading plus theta/2), vectorised over the sigma points."""
+        theta = states[:, : self.segments]
+        start = self.base[2] + np.cumsum(theta, axis=1) - theta
+        half = 0.5 * theta
+        direction = start + half
+        safe = np.where(half == 0.0, 1.0, half)
+        chord = self.lengths * np.where(half == 0.0, 1.0, np.sin(safe) / safe)
+        ends = np.empty((*theta.shape, 2))
+        ends[..., 0] = self.base[0] + np.cumsum(chord * np.cos(direction), axis=1)
+        ends[..., 1] = self.base[1] + np.cumsum(chord * np.sin(direction), axis=1)
+        return ends
+
+    def _markers(self, state: np.ndarray, which: np.ndarray) -> np.ndarray:
+        """Positions of the markers `which` (indices 1..N) for one state, flattened [m]."""
+        return self._segment_ends(state[np.newaxis])[0, which - 1].ravel()
+
+    def _correct(
+        self, x: np.ndarray, P: np.ndarray, points: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, int, int]:
+        seen = ~np.isnan(points).any(axis=1)
+        visible = np.flatnonzero(seen[1:]) + 1
+        if visible.size == 0:
+            return x, P, 0, 0
+        ukf = self.ukf
+        sigmas = self.points_fn.sigma_points(x, P)
+        predicted = self._segment_ends(sigmas)[:, visible - 1].reshape(len(sigmas), -1)
+        zp = self.points_fn.Wm @ predicted
+        deviation = predicted - zp
+        R_marker = self.sigma**2 * np.eye(2)
+        accepted = []
+        for k, m in enumerate(visible):
+            block = deviation[:, 2 * k : 2 * k + 2]
+            S = (block.T * self.points_fn.Wc) @ block + R_marker
+            y = points[m] - zp[2 * k : 2 * k + 2]
+            if float(y @ np.linalg.solve(S, y)) <= self.gate:
+                accepted.append(m)
+        gated = visible.size - len(accepted)
+        if not accepted:
+            return x, P, gated, 0
+        which = np.array(accepted)
+        # the sigma points were already carried through the kinematics for the gate: hx looks
+        # them up (by value) and computes only a point it has not seen
+        columns = np.concatenate([[2 * k, 2 * k + 1] for k, m in enumerate(visible) if m in which])
+        known = {s.tobytes(): row for s, row in zip(sigmas, predicted[:, columns], strict=True)}
+
+        def hx(state: np.ndarray) -> np.ndarray:
+            row = known.get(state.tobytes())
+            return self._markers(state, which) if row is None else row
+
+        ukf.x, ukf.P, ukf.sigmas_f = x.copy(), P.copy(), sigmas
+        ukf.update(points[which].ravel(), R=self.sigma**2 * np.eye(2 * which.size), hx=hx)
+        self.innovation, self.innovation_covariance = ukf.y.copy(), ukf.S.copy()
+        return ukf.x.copy(), 0.5 * (ukf.P + ukf.P.T), gated, which.size
+
+    def _read(self, x: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        n = self.segments
+        return x[:n], x[n:], np.diag(P)[:n]
+
+
+def make_estimator(
+    name: str,
+    bends: Sequence[BendModel],
+    base: tuple[float, float, float],
+    camera: CameraNoise,
+    control_period: float,
+    latency_compensation: bool = True,
+    torque_std: float | None = None,
+) -> Estimator:
+    """The estimator called `name` ("raw", "kf" or "ukf").
+
+    Parameters
+    ----------
+    name
+        Which estimator.
+    bends
+        One bend model per segment, base to tip, shape (N,).
+    base
+        Base pose: x [m], y [m], heading [rad].
+    camera
+        What the controller knows of its camera (noise, rate, latency).
+    control_period
+        T [s]: the SYNC period, over which the unmodelled torque is held.
+    latency_compensation
+        Fuse each picture at its exposure time (True) or at the SYNC time (False).
+    torque_std
+        Unmodelled torque standard deviation [N m]; None derives it per segment
+        (`unmodelled_torque_std`).
+    """
+    if name == "raw":
+        return RawEstimator(bends, base)
+    if name == "kf":
+        return SegmentKalmanEstimator(
+            bends, base, camera, control_period, latency_compensation, torque_std
+        )
+    if name == "ukf":
+        return ArmUnscentedEstimator(
+            bends, base, camera, control_period, latency_compensation, torque_std
+        )
+    raise ValueError(f"unknown estimator {name!r}: choose one of {', '.join(NAMES)}")
+
+
+@dataclass(frozen=True)
+class OfflineEstimates:
+    """Estimates over a run: kappa and kappa_std shape (cycles, N) [1/m]; counts shape (cycles,)."""
+
+    kappa: np.ndarray
+    kappa_std: np.ndarray
+    gated: np.ndarray
+    measured: np.ndarray
+
+
+def run_offline(
+    estimator: Estimator,
+    cycles: Iterable[tuple[float, Mapping[int, DriveReading], Sequence[MarkerFrame]]],
+) -> OfflineEstimates:
+    """Feed recorded cycles (SYNC time [s], drive readings, camera frames) to `estimator`."""
+    estimates = [estimator.update(t, drives, frames) for t, drives, frames in cycles]
+    return OfflineEstimates(
+        np.array([e.kappa for e in estimates]),
+        np.array([e.kappa_std for e in estimates]),
+        np.array([e.gated for e in estimates], dtype=int),
+        np.array([e.measured for e in estimates], dtype=int),
+    )
