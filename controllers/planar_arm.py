@@ -7,46 +7,29 @@ ControllerState frame per segment (the reference it tracks and the estimate it u
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any
 
-import numpy as np
-
 from controllers.curvature import CurvaturePI
-from controllers.estimation import DriveReading, Estimate, MarkerFrame
-from controllers.kinematics import curvatures_from_markers
+from controllers.estimation import DriveReading, Estimate
 from controllers.protocol import ControllerState, DriveCommand, Protocol
 
 if TYPE_CHECKING:
     from controllers.node import ControllerConfig
 
 
-class NewestFrame:
-    """The `raw` estimator: the chord-angle inversion of the newest complete camera frame; the
-    last value is held while no frame arrives (no rate, no covariance)."""
-
-    name = "raw"
-
-    def __init__(self, lengths: Sequence[float], base_heading: float) -> None:
-        self.lengths = tuple(lengths)
-        self.base_heading = base_heading
-        self.kappa = np.zeros(len(self.lengths))
-
-    def update(
-        self, t: float, drives: Mapping[int, DriveReading], frames: Sequence[MarkerFrame]
-    ) -> Estimate:
-        complete = [f for f in frames if f.seen.all()]
-        if complete:
-            self.kappa = curvatures_from_markers(
-                complete[-1].points, self.lengths, self.base_heading
-            )
-        nan = np.full(len(self.lengths), np.nan)
-        return Estimate(self.kappa.copy(), nan, nan.copy(), measured=len(complete))
-
-
 def make_estimator(config: ControllerConfig) -> Any:
-    """The estimator named by the configuration."""
-    return NewestFrame(config.lengths, config.base[2])
+    """The estimator the configuration names (controllers.estimators)."""
+    from controllers import estimators
+
+    return estimators.make_estimator(
+        config.estimator,
+        config.bends,
+        config.base,
+        config.camera,
+        config.control_period,
+        config.latency_compensation,
+    )
 
 
 class CurvatureControl:

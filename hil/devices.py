@@ -35,6 +35,7 @@ from controllers.protocol import (
     Frame,
     Heartbeat,
 )
+from hil.vision import Camera, Picture
 
 # send phases: the documented order of a SYNC's answer
 EMERGENCY, HEARTBEAT, MEASUREMENT, STATUS = 0, 1, 2, 3
@@ -222,9 +223,11 @@ MarkerModel = Callable[[Sequence[float]], np.ndarray]
 
 
 class CameraNode:
-    """The camera: it exposes at its rate (its decimation), sees the true shape (the robot's
-    marker model applied to its inputs at the exposure tick) and delivers each frame `latency`
-    later, with optional Gaussian marker noise, as one marker frame per marker."""
+    """The camera: it takes a picture at each exposure tick (its rate, plus the camera model's
+    jitter) of the true shape (the robot's marker model applied to its inputs at that tick),
+    through the camera model's imperfections (noise, dropouts, occlusions, outliers), and
+    delivers it `latency_ticks` later: a CameraFrame header naming the markers seen, then one
+    marker frame per marker seen. Without jitter it steps at its rate only (its decimation)."""
 
     name = "camera"
 
@@ -232,22 +235,19 @@ class CameraNode:
         self,
         inputs: Sequence[str],
         marker_model: MarkerModel,
-        period_ticks: int,
         latency_ticks: int,
-        macro_step: float,
-        noise: float,
-        rng: np.random.Generator,
+        camera: Camera,
     ) -> None:
         self._inputs = list(inputs)
         self.marker_model = marker_model
-        self.period_ticks = period_ticks
+        self.camera = camera
+        self.period_ticks = camera.period_ticks
         self.latency_ticks = latency_ticks
-        self.macro_step = macro_step
-        self.noise = noise
-        self.rng = rng
-        self.decimation = period_ticks
+        self.macro_step = camera.macro_step
+        self.decimation = 1 if camera.effects.jitter > 0.0 else self.period_ticks
         self.frame_index = 0
-        self.queue: deque[tuple[int, int, int, np.ndarray]] = deque()
+        self.next_exposure = camera.exposure_tick(0, 0)
+        self.queue: deque[tuple[int, Picture]] = deque()
         self.values = [0.0] * len(self._inputs)
         self._position = {name: i for i, name in enumerate(self._inputs)}
 
@@ -265,13 +265,20 @@ class CameraNode:
         return {}
 
     def step(self, time: float, step: float) -> None:
-        """An exposure at `time` of the shape on the inputs (set from the state at `time`)."""
+        """At an exposure tick: a picture of the shape on the inputs (set from the state at
+        `time`)."""
         tick = round(time / self.macro_step)
-        points = self.marker_model(self.values)
-        if self.noise > 0.0:
-            points = points + self.rng.normal(0.0, self.noise, points.shape)
-        self.queue.append((tick + self.latency_ticks, tick, self.frame_index, points))
+        if tick != self.next_exposure:
+            return
+        index = self.frame_index
+        picture = self.camera.picture(
+            index, index * self.period_ticks * self.macro_step, self.marker_model(self.values)
+        )
+        self.queue.append((picture.exposure_tick + self.latency_ticks, picture))
         self.frame_index += 1
+        self.next_exposure = self.camera.exposure_tick(
+            self.frame_index, self.frame_index * self.period_ticks
+        )
 
     def accepts(self, frame: Frame) -> bool:
         return False
@@ -284,8 +291,9 @@ class CameraNode:
         markers it holds) and a marker frame for each marker seen."""
         frames: list[tuple[int, Frame]] = []
         while self.queue and self.queue[0][0] <= sync.tick:
-            _, exposure, index, points = self.queue.popleft()
-            offset = (sync.tick - exposure) * self.macro_step
+            _, picture = self.queue.popleft()
+            index, points = picture.frame_index, picture.points
+            offset = (sync.tick - picture.exposure_tick) * self.macro_step
             seen = [m for m in range(len(points)) if not np.isnan(points[m]).any()]
             mask = sum(1 << m for m in seen)
             frames.append((MEASUREMENT, CameraFrame(index, offset, mask, len(seen))))

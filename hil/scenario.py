@@ -20,10 +20,11 @@ from pathlib import Path
 from typing import Any
 
 from controllers.canbus import KINDS as BUS_KINDS
-from controllers.node import POLICIES
+from controllers.node import ESTIMATORS, POLICIES
 from controllers.protocol import Protocol
 from controllers.trajectories import CurvatureProfile, Sine
 from hil.errors import HilError, ScenarioError
+from hil.vision import CameraEffects, check_effects
 
 DEFAULT_SCENARIO = Path(str(files("hil") / "scenarios" / "default.toml"))
 DEFAULT_LOG_START = "2015-06-01T00:00:00Z"  # the thesis's year; see RecordingSpec
@@ -71,9 +72,31 @@ class BusConfig:
 
 @dataclass(frozen=True)
 class CameraSpec:
+    """The camera (PHYSICS.md section 5): SI units, 0 switches an effect off. The defaults are a
+    realistic commercial motion-capture system, not an ideal camera."""
+
     rate: float = 100.0  # [Hz]
     latency: float = 0.006  # exposure to availability [s]
-    noise: float = 0.0  # marker position standard deviation [m]
+    noise: float = 0.5e-3  # isotropic marker position standard deviation [m]
+    dropout: float = 0.01  # per-marker probability of a missing marker
+    occlusion_interval: float = 0.0  # mean time between occlusion bursts [s]
+    occlusion_duration: float = 0.0  # [s]
+    occlusion_scope: str = "frame"  # a burst hides the whole "frame" or one "marker"
+    outlier_rate: float = 0.001  # per-marker probability of a displaced marker
+    outlier_distance: float = 0.02  # [m]
+    jitter: float = 0.0  # exposure-time jitter standard deviation [s]
+
+    def effects(self) -> CameraEffects:
+        return CameraEffects(
+            noise=self.noise,
+            dropout=self.dropout,
+            occlusion_interval=self.occlusion_interval,
+            occlusion_duration=self.occlusion_duration,
+            occlusion_scope=self.occlusion_scope,
+            outlier_rate=self.outlier_rate,
+            outlier_distance=self.outlier_distance,
+            jitter=self.jitter,
+        )
 
 
 @dataclass(frozen=True)
@@ -90,6 +113,8 @@ class ControllerSpec:
     feedforward: bool = True  # static inverse of the segment's curvature per piston travel
     policy: str = "strict"
     timeout: float = 10.0  # wall-clock wait for a peer [s]
+    estimator: str = "ukf"  # raw, kf or ukf (see README: ukf measures best on the default)
+    latency_compensation: bool = True  # fuse camera frames at their exposure time
 
 
 @dataclass(frozen=True)
@@ -238,6 +263,10 @@ def _convert(hint: Any, raw: Any, file: str, key: str) -> Any:
         return _robot_section(raw, file, key)
     if hint is Any:
         return raw
+    if hint is bool:
+        if not isinstance(raw, bool):
+            raise _fail(file, key, f"must be true or false, got {raw!r}")
+        return raw
     if hint is float:
         if isinstance(raw, bool) or not isinstance(raw, int | float):
             raise _fail(file, key, f"must be a number, got {raw!r}")
@@ -301,8 +330,17 @@ def _check(s: Scenario) -> None:
     if s.camera.latency < 0:
         raise _fail(file, "camera.latency", "must not be negative")
     _multiple(file, "camera.latency", s.camera.latency, t.step, "timing.step", allow_zero=True)
-    if s.camera.noise < 0:
-        raise _fail(file, "camera.noise", "must not be negative")
+    try:
+        check_effects(s.camera.effects(), 1.0 / s.camera.rate, t.step)
+    except ValueError as exc:
+        key, _, reason = str(exc).partition(": ")
+        raise _fail(file, key, reason) from None
+    if s.controller.estimator not in ESTIMATORS:
+        raise _fail(
+            file,
+            "controller.estimator",
+            f"unknown estimator {s.controller.estimator!r} (known: {', '.join(ESTIMATORS)})",
+        )
     if s.camera.latency + s.timing.control_period > exposure_range:
         raise _fail(
             file,
@@ -350,6 +388,15 @@ def _check(s: Scenario) -> None:
     robot.check(s)
     reach = robot.reach(s)
     base = getattr(s.robot, "base", (0.0, 0.0))
+    margin = 6.0 * s.camera.noise + (s.camera.outlier_distance if s.camera.outlier_rate else 0.0)
+    if margin > 0.0 and max(abs(base[0]), abs(base[1])) + reach + margin > marker_range:
+        raise _fail(
+            file,
+            "camera.noise",
+            f"markers up to {reach:g} m from the base, plus 6 sigma of noise and the outlier "
+            f"distance ({margin:g} m), leave the camera's +-{marker_range:g} m field of view "
+            "(the CameraMarker range in the DBC)",
+        )
     if max(abs(base[0]), abs(base[1])) + reach > marker_range:
         raise _fail(
             file,

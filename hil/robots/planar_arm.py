@@ -17,13 +17,15 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from controllers import kinematics
-from controllers.curvature import PiGains, SegmentModel, design_pi
+from controllers.curvature import PiGains, SegmentModel
 from controllers.estimation import BendModel, CameraNoise
+from controllers.loop_design import design_outer_loop, effective_delay, estimator_delay
 from controllers.node import CameraTiming, ControllerConfig
 from controllers.protocol import Protocol
 from hil.devices import HEARTBEAT_PERIOD, CameraNode, DriveNode
 from hil.master import Connection, FmuParticipant, Participant
 from hil.robots import PlotSpec, Rig, SignalSpec, fmu_ref
+from hil.vision import Camera
 
 if TYPE_CHECKING:
     from hil.scenario import Scenario
@@ -288,11 +290,13 @@ class PlanarArm:
         camera = CameraNode(
             [f"kappa_{n}" for n in range(1, r.segments + 1)],
             lambda kappas: kinematics.markers(kappas, lengths, base),
-            scenario.camera_ticks,
             scenario.latency_ticks,
-            scenario.timing.step,
-            scenario.camera.noise,
-            np.random.default_rng(scenario.seed),
+            Camera(
+                scenario.camera.effects(),
+                np.random.default_rng(scenario.seed),
+                1.0 / scenario.camera.rate,
+                scenario.timing.step,
+            ),
         )
         fmus: list[FmuParticipant] = []
         connections: dict[str, Connection] = {}
@@ -430,8 +434,14 @@ class PlanarArm:
         models = self.segment_models(scenario)
         segments = self.parameters(scenario, "segment")
         gains = []
+        delay = effective_delay(
+            estimator_delay(c.estimator, scenario.timing.control_period, c.latency_compensation),
+            scenario.timing.control_period,
+        )
         for model in models:
-            designed = design_pi(model, c.crossover)
+            # the design of `hil tune`: a pole-cancelling PI at the scenario's crossover, or
+            # lower where the estimator's effective delay leaves less than 60 deg of phase
+            designed = design_outer_loop(model, delay, max_crossover_hz=c.crossover).gains
             gains.append(
                 PiGains(
                     Kp=c.kp if c.kp is not None else designed.Kp,
@@ -465,9 +475,14 @@ class PlanarArm:
             ),
             camera=CameraNoise(
                 noise=scenario.camera.noise,
+                dropout=scenario.camera.dropout,
+                outlier_rate=scenario.camera.outlier_rate,
+                outlier_distance=scenario.camera.outlier_distance,
                 rate=scenario.camera.rate,
                 latency=scenario.camera.latency,
             ),
+            estimator=c.estimator,
+            latency_compensation=c.latency_compensation,
             camera_timing=CameraTiming(
                 period_ticks=scenario.camera_ticks,
                 latency_ticks=scenario.latency_ticks,
