@@ -425,8 +425,7 @@ def test_abrupt_disconnects_do_not_disturb_others(hub: LoopbackHub, make_bus: Bu
 
 
 def test_client_that_stops_reading_is_disconnected() -> None:
-    limit = 256 * 1024
-    with LoopbackHub(max_buffer_bytes=limit) as hub:
+    with LoopbackHub(max_clients=4, max_buffer_bytes=4 * 1024 * 1024) as hub:
         stalled = socket.socket()
         stalled.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
         stalled.connect(("127.0.0.1", hub.port))

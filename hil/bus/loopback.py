@@ -14,9 +14,16 @@ Key invariant: the bus is **ordered, lossless and loopback-only**.
 
 * Ordered: a single-threaded ``selectors`` loop handles all sockets, so every client receives
   the frames of a channel in the one global order in which the hub received them.
-* Lossless: frames are never dropped. Each client has an unbounded-in-principle outgoing buffer;
-  only if a client stops reading and its buffer exceeds ``max_buffer_bytes`` (64 MiB by
-  default) is that client disconnected, with a logged error. It never loses frames silently.
+* Lossless: frames are never dropped for a connected client. The hub buffers at most
+  ``max_buffer_bytes`` of outgoing frames in total: each of at most ``max_clients`` connections
+  may hold an equal share (``max_buffer_bytes // max_clients``). A client that stops reading
+  until its share is full is disconnected (counted in :attr:`LoopbackHub.slow_clients_dropped`,
+  logged), rather than silently losing frames while it stays connected: a closed connection is
+  a loss its owner can see, a gap in a lockstep stream would surface later as a confusing
+  protocol error. The well-behaved clients never wait for it.
+* Bounded: a connection beyond ``max_clients`` is refused with ``< error ... >``. The hub's own
+  warnings are rate-limited per kind (``log_burst`` per ``log_interval`` seconds, then one
+  "suppressed N similar" line), so a flood of junk costs CPU time but not a flood of log lines.
 * Loopback-only: the hub binds to 127.0.0.1 by default; a non-loopback address must be asked
   for explicitly with ``allow_remote=True``.
 
@@ -38,13 +45,15 @@ Zero-length frames are forwarded in socketcand's own format (``< frame 123 SEC.U
 an empty data field), which python-can 4.6.1 parses correctly; softhil itself never sends
 zero-length frames. Remote (RTR), error and CAN FD frames are not supported.
 
-Run standalone with ``python -m hil.bus.loopback [--host H] [--port P]``.
+Run standalone with ``python -m hil.bus.loopback [--host H] [--port P] [--max-clients N]
+[--max-buffer BYTES]``.
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
+import errno
 import ipaddress
 import logging
 import re
@@ -58,15 +67,30 @@ from collections.abc import Callable
 from types import FrameType, TracebackType
 from typing import Self
 
-__all__ = ["DEFAULT_PORT", "LoopbackHub", "main"]
+from hil.errors import BusError, HilError
+
+__all__ = ["DEFAULT_PORT", "HubSettingError", "LoopbackHub", "main"]
 
 log = logging.getLogger(__name__)
 
 DEFAULT_PORT = 29536
 """Default TCP port of the standalone hub (``python -m hil.bus.loopback``)."""
 
+DEFAULT_MAX_CLIENTS = 64
+"""Connections the hub serves at once; more are refused."""
+
 DEFAULT_MAX_BUFFER_BYTES = 64 * 1024 * 1024
-"""Outgoing bytes buffered for one client before it is disconnected as not reading."""
+"""Outgoing bytes the hub buffers for all clients together (each may use an equal share)."""
+
+MIN_CLIENT_SHARE = 64 * 1024
+"""Smallest per-client share of the buffer allowed: below it, a client that reads but lags a
+moment behind a fast sender (its kernel socket buffer full) would be taken for a stalled one."""
+
+DEFAULT_LOG_BURST = 20
+"""Warnings of one kind logged per ``DEFAULT_LOG_INTERVAL`` before the rest are only counted."""
+
+DEFAULT_LOG_INTERVAL = 10.0
+"""Seconds of the warning rate limit's window."""
 
 DEFAULT_HANDSHAKE_GRACE = 0.05
 """Seconds frames are held for a client after its rawmode ``< ok >``."""
@@ -83,8 +107,15 @@ _HEX_ID = re.compile(rb"[0-9A-Fa-f]{3}|[0-9A-Fa-f]{8}")
 _CHANNEL_NAME = re.compile(rb"[!-;=?-~]{1,64}")  # printable ASCII without '<' and '>'
 
 
+class HubSettingError(BusError, ValueError):
+    """A hub setting (host, port, a limit) is invalid; one line naming the setting.
+
+    Also a ``ValueError``, the type the hub raised for bad settings before there was this class.
+    """
+
+
 def _check_host(host: str, allow_remote: bool) -> None:
-    """Raise ``ValueError`` unless ``host`` is an IPv4 loopback address or remote is allowed.
+    """Raise `HubSettingError` unless ``host`` is an IPv4 loopback address or remote is allowed.
 
     Parameters
     ----------
@@ -95,25 +126,125 @@ def _check_host(host: str, allow_remote: bool) -> None:
     """
     try:
         infos = socket.getaddrinfo(host, None, socket.AF_INET, socket.SOCK_STREAM)
-    except socket.gaierror as exc:
-        raise ValueError(f"cannot resolve hub host {host!r} to an IPv4 address: {exc}") from exc
+    except (socket.gaierror, UnicodeError) as exc:
+        raise HubSettingError(
+            f"cannot resolve hub host {host!r} to an IPv4 address: {exc}"
+        ) from exc
     addresses = {str(info[4][0]) for info in infos}
     if allow_remote:
         return
     remote = sorted(a for a in addresses if not ipaddress.ip_address(a).is_loopback)
     if remote:
-        raise ValueError(
+        raise HubSettingError(
             f"refusing to bind the loopback CAN hub to non-loopback address {host!r} "
-            f"({', '.join(remote)}): this would expose the CAN bus to the network. "
-            "Pass allow_remote=True (CLI: --allow-remote) if that is really intended."
+            f"({', '.join(remote)}): this would expose the CAN bus to the network; "
+            "pass allow_remote=True (CLI: --allow-remote) if that is really intended"
         )
+
+
+def _check_settings(
+    port: int,
+    max_clients: int,
+    max_buffer_bytes: int,
+    handshake_grace: float,
+    log_burst: int,
+    log_interval: float,
+) -> None:
+    """Raise `HubSettingError` naming the first setting that is out of range."""
+    if not 0 <= port <= 65535:
+        raise HubSettingError(f"hub port must be in 0..65535 (0 = any free port), got {port}")
+    if max_clients < 1:
+        raise HubSettingError(f"max_clients must be at least 1, got {max_clients}")
+    if max_buffer_bytes // max_clients < MIN_CLIENT_SHARE:
+        raise HubSettingError(
+            f"max_buffer_bytes {max_buffer_bytes} leaves each of max_clients {max_clients} "
+            f"clients less than {MIN_CLIENT_SHARE} bytes; "
+            f"use at least {MIN_CLIENT_SHARE * max_clients}"
+        )
+    if not handshake_grace >= 0:
+        raise HubSettingError(f"handshake_grace must be >= 0 s, got {handshake_grace}")
+    if log_burst < 1:
+        raise HubSettingError(f"log_burst must be at least 1, got {log_burst}")
+    if not log_interval > 0:
+        raise HubSettingError(f"log_interval must be > 0 s, got {log_interval}")
+
+
+class _RateLimitedLog:
+    """The hub's warnings, at most ``burst`` per ``interval`` seconds of each kind.
+
+    The first ``burst`` messages of a kind in a window are logged; the rest are only counted,
+    and when the window ends (or the hub stops) one line says how many were suppressed. Windows
+    start at the first message of a kind, so a quiet hub logs every warning.
+    """
+
+    def __init__(
+        self, logger: logging.Logger, burst: int, interval: float, clock: Callable[[], float]
+    ) -> None:
+        self._log = logger
+        self._burst = burst
+        self._interval = interval
+        self._clock = clock
+        self._windows: dict[str, list[float]] = {}  # kind -> [window end, logged, suppressed]
+        self.suppressed = 0
+        """Messages suppressed so far, all kinds."""
+
+    def log(self, level: int, kind: str, message: str, *args: object) -> None:
+        """Log ``message % args`` at ``level`` unless this kind's budget is used up."""
+        now = self._clock()
+        window = self._windows.get(kind)
+        if window is not None and now >= window[0]:
+            self._summarise(kind, window)
+            window = None
+        if window is None:
+            window = self._windows[kind] = [now + self._interval, 0, 0]
+        if window[1] < self._burst:
+            window[1] += 1
+            self._log.log(level, message, *args)
+        else:
+            window[2] += 1
+            self.suppressed += 1
+
+    def next_deadline(self) -> float | None:
+        """Monotonic time at which a pending "suppressed" line is due (None: none pending)."""
+        due = [w[0] for w in self._windows.values() if w[2]]
+        return min(due) if due else None
+
+    def flush(self, *, everything: bool = False) -> None:
+        """Write the "suppressed" lines of ended windows (of all windows if ``everything``)."""
+        now = self._clock()
+        for kind, window in list(self._windows.items()):
+            if everything or now >= window[0]:
+                self._summarise(kind, window)
+                del self._windows[kind]
+
+    def _summarise(self, kind: str, window: list[float]) -> None:
+        if window[2]:
+            self._log.warning(
+                "loopback CAN hub: suppressed %d similar %s messages "
+                "(at most %d per %g s are logged)",
+                window[2],
+                kind,
+                self._burst,
+                self._interval,
+            )
+
+
+def _bind_problem(exc: OSError) -> str:
+    """What a failed bind means, in the words a user of ``--host``/``--port`` needs."""
+    if exc.errno == errno.EADDRINUSE:
+        return "address already in use (another hub or program listens there; choose another port)"
+    if exc.errno == errno.EACCES:
+        return "permission denied (ports below 1024 need privileges; choose another port)"
+    if exc.errno == errno.EADDRNOTAVAIL:
+        return "address not available (it is not an address of this machine)"
+    return exc.strerror or str(exc)
 
 
 def _shorten(text: bytes) -> str:
     """Return ``text`` as a printable, length-limited string for log messages."""
-    s = text.decode("ascii", errors="backslashreplace")
-    if len(s) > _MAX_LOGGED_TEXT:
-        s = s[:_MAX_LOGGED_TEXT] + f"...({len(s)} chars)"
+    s = text[:_MAX_LOGGED_TEXT].decode("ascii", errors="backslashreplace")
+    if len(text) > _MAX_LOGGED_TEXT:
+        s += f"...({len(text)} bytes)"
     return repr(s)
 
 
@@ -163,17 +294,23 @@ class LoopbackHub:
         TCP port; 0 picks a free port (see :attr:`port` after :meth:`start`).
     allow_remote
         Must be ``True`` to bind to a non-loopback address.
+    max_clients
+        Connections served at once; further ones get ``< error ... >`` and are closed.
     max_buffer_bytes
-        A client whose outgoing buffer exceeds this many bytes (because it stopped reading) is
-        disconnected with a logged error.
+        Outgoing bytes buffered for all clients together. Each connection may hold an equal
+        share (``max_buffer_bytes // max_clients``, at least `MIN_CLIENT_SHARE`); a client whose
+        unread frames would exceed its share is disconnected (see module docstring).
     handshake_grace
         Seconds to hold frames for a client after its rawmode ``< ok >`` (see module docstring).
+    log_burst, log_interval
+        At most ``log_burst`` warnings of one kind are logged per ``log_interval`` seconds; the
+        rest are counted and summarised in one line.
 
     Raises
     ------
-    ValueError
-        If ``host`` is not a loopback address and ``allow_remote`` is false, or cannot be
-        resolved to an IPv4 address.
+    HubSettingError
+        (a ``ValueError``) If ``host`` is not a loopback address and ``allow_remote`` is
+        false, cannot be resolved to an IPv4 address, or a number is out of range.
 
     Examples
     --------
@@ -188,20 +325,23 @@ class LoopbackHub:
         port: int = 0,
         *,
         allow_remote: bool = False,
+        max_clients: int = DEFAULT_MAX_CLIENTS,
         max_buffer_bytes: int = DEFAULT_MAX_BUFFER_BYTES,
         handshake_grace: float = DEFAULT_HANDSHAKE_GRACE,
+        log_burst: int = DEFAULT_LOG_BURST,
+        log_interval: float = DEFAULT_LOG_INTERVAL,
     ) -> None:
+        _check_settings(
+            port, max_clients, max_buffer_bytes, handshake_grace, log_burst, log_interval
+        )
         _check_host(host, allow_remote)
-        if not 0 <= port <= 65535:
-            raise ValueError(f"port must be in 0..65535, got {port}")
-        if max_buffer_bytes <= 0:
-            raise ValueError(f"max_buffer_bytes must be positive, got {max_buffer_bytes}")
-        if handshake_grace < 0:
-            raise ValueError(f"handshake_grace must be >= 0, got {handshake_grace}")
         self._host = host
         self._requested_port = port
+        self._max_clients = max_clients
         self._max_buffer_bytes = max_buffer_bytes
+        self._share = max_buffer_bytes // max_clients
         self._grace = handshake_grace
+        self._warn = _RateLimitedLog(log, log_burst, log_interval, lambda: time.monotonic())
         self._listener: socket.socket | None = None
         self._address: tuple[str, int] | None = None
         self._selector: selectors.BaseSelector | None = None
@@ -220,6 +360,11 @@ class LoopbackHub:
         self._doomed: list[_Client] = []  # clients to disconnect at the end of this iteration
         self._frames_forwarded = 0
         self._rawmode_clients = 0
+        self._buffered = 0  # outgoing bytes in all clients' outbuf and held
+        self._buffered_peak = 0
+        self._slow_dropped = 0
+        self._refused = 0
+        self._malformed_count = 0
 
     # ------------------------------------------------------------------ public API
 
@@ -247,6 +392,41 @@ class LoopbackHub:
     def clients(self) -> int:
         """Number of currently connected clients in rawmode."""
         return self._rawmode_clients
+
+    @property
+    def max_client_buffer(self) -> int:
+        """Outgoing bytes one client may have buffered before it is disconnected."""
+        return self._share
+
+    @property
+    def buffered_bytes(self) -> int:
+        """Outgoing bytes the hub holds right now for all clients (at most ``max_buffer_bytes``)."""
+        return self._buffered
+
+    @property
+    def buffered_bytes_peak(self) -> int:
+        """The highest :attr:`buffered_bytes` so far."""
+        return self._buffered_peak
+
+    @property
+    def slow_clients_dropped(self) -> int:
+        """Clients disconnected because they did not read their frames (share exceeded)."""
+        return self._slow_dropped
+
+    @property
+    def clients_refused(self) -> int:
+        """Connections refused because ``max_clients`` were connected."""
+        return self._refused
+
+    @property
+    def malformed_messages(self) -> int:
+        """Malformed or refused pieces of client input (each one ignored)."""
+        return self._malformed_count
+
+    @property
+    def warnings_suppressed(self) -> int:
+        """Warnings counted but not logged by the rate limit."""
+        return self._warn.suppressed
 
     def start(self) -> Self:
         """Bind and serve in a daemon background thread.
@@ -346,6 +526,11 @@ class LoopbackHub:
                 listener.bind((self._host, self._requested_port))
                 listener.listen(128)
                 listener.setblocking(False)
+            except OSError as exc:
+                listener.close()
+                raise BusError(
+                    f"cannot listen on {self._host}:{self._requested_port}: {_bind_problem(exc)}"
+                ) from exc
             except BaseException:
                 listener.close()
                 raise
@@ -380,10 +565,11 @@ class LoopbackHub:
             sel.register(listener, selectors.EVENT_READ, None)
             sel.register(wake_r, selectors.EVENT_READ, None)
             while not self._stop_requested:
-                timeout: float | None = None
-                if self._holding:
-                    deadline = min(c.hold_until for c in self._holding.values())
-                    timeout = max(0.0, deadline - time.monotonic())
+                deadlines = [c.hold_until for c in self._holding.values()]
+                summary_due = self._warn.next_deadline()
+                if summary_due is not None:
+                    deadlines.append(summary_due)
+                timeout = max(0.0, min(deadlines) - time.monotonic()) if deadlines else None
                 for key, events in sel.select(timeout):
                     sock = key.fileobj
                     if sock is listener:
@@ -404,12 +590,15 @@ class LoopbackHub:
                 for client in self._doomed:
                     self._disconnect(client)
                 self._doomed.clear()
+                if summary_due is not None:
+                    self._warn.flush()
         except Exception:
             log.exception("loopback CAN hub event loop crashed")
             raise
         finally:
             for client in list(self._clients.values()):
                 self._disconnect(client, quiet=True)
+            self._warn.flush(everything=True)
             sel.close()
             self._selector = None
             self._close_listener()
@@ -432,15 +621,35 @@ class LoopbackHub:
             except (BlockingIOError, InterruptedError):
                 return
             except OSError as exc:  # e.g. EMFILE: keep serving the existing clients
-                log.error("loopback CAN hub: accept failed: %s", exc)
+                self._warn.log(logging.ERROR, "accept", "loopback CAN hub: accept failed: %s", exc)
                 return
             sock.setblocking(False)
+            addr = f"{peer[0]}:{peer[1]}"
+            if len(self._clients) >= self._max_clients:
+                self._refuse(sock, addr)
+                continue
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-            client = _Client(sock, f"{peer[0]}:{peer[1]}")
+            client = _Client(sock, addr)
             self._clients[sock.fileno()] = client
             self._selector.register(sock, selectors.EVENT_READ, client)
             log.debug("client %s connected", client.addr)
             self._queue(client, b"< hi >")
+
+    def _refuse(self, sock: socket.socket, addr: str) -> None:
+        """Tell a connection beyond ``max_clients`` why it is closed, then close it."""
+        self._refused += 1
+        self._warn.log(
+            logging.WARNING,
+            "refused connection",
+            "loopback CAN hub: refused client %s: %d clients connected (max_clients %d)",
+            addr,
+            len(self._clients),
+            self._max_clients,
+        )
+        # Best effort and non-blocking: python-can reports this text as its handshake failure.
+        with contextlib.suppress(OSError):
+            sock.send(b"< error too many clients (max_clients %d) >" % self._max_clients)
+        sock.close()
 
     def _on_readable(self, client: _Client) -> None:
         try:
@@ -489,7 +698,15 @@ class LoopbackHub:
             self._malformed(client, text, "text outside < >")
 
     def _malformed(self, client: _Client, text: bytes, why: str) -> None:
-        log.warning("client %s sent malformed input (%s): %s", client.addr, why, _shorten(text))
+        self._malformed_count += 1
+        self._warn.log(
+            logging.WARNING,
+            "malformed input",
+            "client %s sent malformed input (%s): %s",
+            client.addr,
+            why,
+            _shorten(text),
+        )
 
     # ------------------------------------------------------------------ protocol
 
@@ -592,23 +809,43 @@ class LoopbackHub:
     # ------------------------------------------------------------------ output
 
     def _queue(self, client: _Client, data: bytes) -> None:
+        """Buffer ``data`` for ``client``, or disconnect it if that would exceed its share."""
         if client.closed:
             return
+        size = len(data)
+        if client.pending() + size > self._share:
+            if client.held is None and client.outbuf:
+                self._flush(client)  # the kernel may take some now: only a stalled client fails
+            if client.closed:
+                return
+            if client.pending() + size > self._share:
+                self._drop_slow(client, size)
+                return
         if client.held is not None:
             client.held += data
         else:
             client.outbuf += data
             self._dirty[id(client)] = client
-        if client.pending() > self._max_buffer_bytes:
-            log.error(
-                "client %s is not reading: %d bytes of CAN frames buffered (limit %d); "
-                "disconnecting it",
-                client.addr,
-                client.pending(),
-                self._max_buffer_bytes,
-            )
-            client.closed = True  # stop queueing; actually closed at the end of the iteration
-            self._doomed.append(client)
+        self._buffered += size
+        if self._buffered > self._buffered_peak:
+            self._buffered_peak = self._buffered
+
+    def _drop_slow(self, client: _Client, size: int) -> None:
+        self._slow_dropped += 1
+        self._warn.log(
+            logging.ERROR,
+            "slow client",
+            "client %s is not reading: %d bytes of CAN frames buffered, %d more would exceed "
+            "its share of %d bytes (max_buffer_bytes %d / max_clients %d); disconnecting it",
+            client.addr,
+            client.pending(),
+            size,
+            self._share,
+            self._max_buffer_bytes,
+            self._max_clients,
+        )
+        client.closed = True  # stop queueing; actually closed at the end of the iteration
+        self._doomed.append(client)
 
     def _release_held(self) -> None:
         now = time.monotonic()
@@ -644,9 +881,12 @@ class LoopbackHub:
                 break
             except OSError as exc:
                 log.info("client %s: send failed (%s); disconnecting", client.addr, exc)
-                self._disconnect(client)
+                # Deferred: _flush may run inside the fan-out over a channel's members.
+                client.closed = True
+                self._doomed.append(client)
                 return
             del buf[:sent]
+            self._buffered -= sent
         want = bool(buf)
         if want != client.want_write:
             client.want_write = want
@@ -658,6 +898,9 @@ class LoopbackHub:
         if client.sock.fileno() < 0:
             return
         client.closed = True
+        self._buffered -= client.pending()
+        client.outbuf.clear()
+        client.held = None
         fd = client.sock.fileno()
         if self._clients.get(fd) is client:
             del self._clients[fd]
@@ -676,6 +919,17 @@ class LoopbackHub:
         client.sock.close()
         if not quiet:
             log.debug("client %s disconnected", client.addr)
+
+
+_SIZE_SUFFIXES = {"": 1, "K": 1024, "M": 1024**2, "G": 1024**3}
+
+
+def _byte_size(text: str) -> int:
+    """Parse ``--max-buffer``: a number of bytes with an optional K, M or G (binary) suffix."""
+    match = re.fullmatch(r"\s*(\d+)\s*([KMG]?)(?:i?B)?\s*", text, re.IGNORECASE)
+    if not match:
+        raise argparse.ArgumentTypeError(f"not a byte size: {text!r} (e.g. 1048576, 512K, 64M)")
+    return int(match[1]) * _SIZE_SUFFIXES[match[2].upper()]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -704,12 +958,33 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="permit binding to a non-loopback address (exposes the bus to the network)",
     )
+    parser.add_argument(
+        "--max-clients",
+        type=int,
+        default=DEFAULT_MAX_CLIENTS,
+        help=f"connections served at once, more are refused (default {DEFAULT_MAX_CLIENTS})",
+    )
+    parser.add_argument(
+        "--max-buffer",
+        type=_byte_size,
+        default=DEFAULT_MAX_BUFFER_BYTES,
+        metavar="BYTES",
+        help="outgoing bytes buffered for all clients together, e.g. 64M or 512K; each client "
+        "may use an equal share and is disconnected when it stops reading beyond it "
+        "(default 64M)",
+    )
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     try:
-        hub = LoopbackHub(args.host, args.port, allow_remote=args.allow_remote)
+        hub = LoopbackHub(
+            args.host,
+            args.port,
+            allow_remote=args.allow_remote,
+            max_clients=args.max_clients,
+            max_buffer_bytes=args.max_buffer,
+        )
         hub.bind()
-    except (ValueError, OSError) as exc:
+    except HilError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
 

@@ -44,8 +44,46 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
         "  hil fmu check FeaSegment\n  hil fmu check path/to/Other.fmu\n",
     )
     check.add_argument("name", metavar="NAME", help="a softhil model name or a path to an .fmu")
-    check.add_argument("--stop-time", type=float, default=0.5, help="simulated time [s]")
+    check.add_argument(
+        "--stop-time",
+        type=float,
+        default=0.5,
+        help=f"simulated time [s], at most {MAX_CHECK_STOP_TIME:g} (default 0.5)",
+    )
+    check.add_argument(
+        "--step",
+        type=float,
+        help="communication step [s] (default: the model's step, doubled until at most 1000 "
+        f"steps); at most {MAX_CHECK_STEPS} steps",
+    )
     check.set_defaults(handler=_check)
+
+
+MAX_CHECK_STOP_TIME = 100.0
+"""Longest `hil fmu check` simulation [s]: the FMUs take RK4 substeps of 20-100 us inside each
+step, so simulated time, not the number of steps, sets the cost (about 1 s of CPU per 100 s for
+DriveCylinder); a check is a smoke test, `hil run` is for long simulations."""
+
+MAX_CHECK_STEPS = 100_000
+"""Most communication steps of `hil fmu check` (each is a Python round trip in fmpy)."""
+
+
+def _check_limits(stop_time: float, step: float | None) -> None:
+    """One-line errors for a stop time or step that would make the check hang or fail."""
+    if not 0 < stop_time <= MAX_CHECK_STOP_TIME:
+        raise HilError(
+            f"--stop-time must be in (0, {MAX_CHECK_STOP_TIME:g}] s for a check, got {stop_time:g}"
+            " (use hil run for long simulations)"
+        )
+    if step is None:
+        return
+    if not 0 < step <= stop_time:
+        raise HilError(f"--step must be in (0, --stop-time {stop_time:g}] s, got {step:g}")
+    if stop_time / step > MAX_CHECK_STEPS:
+        raise HilError(
+            f"--step {step:g} s would take {stop_time / step:.3g} steps to reach --stop-time "
+            f"{stop_time:g} s; at most {MAX_CHECK_STEPS} are allowed (use a larger --step)"
+        )
 
 
 def _names(requested: list[str]) -> list[str]:
@@ -102,8 +140,7 @@ def _check(args: argparse.Namespace) -> int:
     from fmpy import read_model_description, simulate_fmu
     from fmpy.validation import validate_fmu
 
-    if not args.stop_time > 0:
-        raise HilError(f"--stop-time must be positive, got {args.stop_time}")
+    _check_limits(args.stop_time, args.step)
     path = Path(args.name)
     if path.suffix == ".fmu":
         if not path.is_file():
@@ -131,6 +168,7 @@ def _check(args: argparse.Namespace) -> int:
                 output=outputs,
                 fmi_type="CoSimulation",
                 input=stepped,
+                output_interval=args.step,
             )
     except Exception as exc:  # fmpy raises plain exceptions for FMI errors
         raise HilError(f"{fmu_path}: simulation in fmpy failed: {exc}") from exc

@@ -5,15 +5,25 @@ A model folder (`fmus/NAME`) plus the glue (`fmus/common`) and headers (`fmus/in
 source file, this generator and the compiler command, so a build is reused until a source changes
 and two processes building at once never see a half-written FMU (each builds in a private folder
 and renames it into place). The zip is byte-reproducible (fixed timestamps, sorted entries).
+
+Each cache entry records the SHA-256 of every file it holds in `manifest.sha256` (the format of
+`sha256sum`, so `cd <entry> && sha256sum -c manifest.sha256` checks it by hand). `build_fmu`
+verifies the whole entry against it on every call and rebuilds a damaged entry, saying so in one
+line on stderr: `hil fmu check` tests the zip while `hil run` loads `unzipped/`, so both must be
+known good. The check hashes the contents, not sizes and mtimes: an entry is ~150 kB, hashing it
+costs well under a millisecond (the source digest already reads every source on each call), and a
+flipped bit or a copy that kept its mtime would pass a stat check.
 """
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import os
 import re
 import shutil
 import subprocess
+import sys
 import tempfile
 import zipfile
 from dataclasses import dataclass
@@ -35,6 +45,7 @@ CFLAGS = (
     "-Werror",
 )
 _ZIP_DATE = (2020, 1, 1, 0, 0, 0)
+MANIFEST = "manifest.sha256"
 
 
 @dataclass(frozen=True)
@@ -88,29 +99,98 @@ def sources_digest(name: str) -> str:
 
 
 def build_fmu(name: str, *, force: bool = False) -> BuiltFmu:
-    """Build (or reuse from the cache) the FMU of model `name`."""
+    """Build (or reuse from the cache, once verified) the FMU of model `name`.
+
+    A cache entry whose files do not match its manifest is rebuilt, with a note on stderr.
+    """
     folder = model_folder(name)
     spec = load_spec(folder)
     digest = sources_digest(name)
     model_guid = guid(spec, digest)
     target = cache_root() / "fmus" / f"{name}-{digest[:16]}"
     fmu_path = target / f"{name}.fmu"
-    if fmu_path.is_file() and not force:
-        return BuiltFmu(name, fmu_path, target / "unzipped", spec, model_guid)
+    built = BuiltFmu(name, fmu_path, target / "unzipped", spec, model_guid)
+    if target.exists() and not force:
+        damage = cache_damage(target)
+        if damage is None:
+            return built
+        print(f"hil: note: rebuilt {name}: {damage}", file=sys.stderr)
     target.parent.mkdir(parents=True, exist_ok=True)
     work = Path(tempfile.mkdtemp(prefix=f".{name}-", dir=target.parent))
     try:
         _build_into(work, folder, spec, model_guid)
-        if target.exists():
-            shutil.rmtree(target, ignore_errors=True)
-        try:
-            os.replace(work, target)
-        except OSError:
-            if not fmu_path.is_file():  # someone else's identical build did not win either
-                raise
+        _write_manifest(work)
+        _install(work, target)
     finally:
         shutil.rmtree(work, ignore_errors=True)
-    return BuiltFmu(name, fmu_path, target / "unzipped", spec, model_guid)
+    return built
+
+
+def _install(work: Path, target: Path) -> None:
+    """Rename the complete build `work` into place as `target`, replacing what is there.
+
+    Every step is a rename, so a reader finds either a complete entry or none (and then builds
+    its own); it never finds a half-written one. A replaced entry is renamed away first and
+    deleted afterwards.
+    """
+    old = None
+    if target.exists():
+        old = Path(tempfile.mkdtemp(prefix=f".{target.name}-old-", dir=target.parent))
+        with contextlib.suppress(FileNotFoundError):  # another process moved it away first
+            os.replace(target, old)  # onto the empty folder: atomic
+    try:
+        os.replace(work, target)
+    except OSError as exc:
+        # Another process installed its identical build in between: use it if it is sound.
+        damage = cache_damage(target)
+        if damage is not None:
+            raise BuildError(f"could not install the FMU build into {target}: {exc}") from exc
+    finally:
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+
+
+def _file_digests(entry: Path) -> dict[str, str]:
+    return {
+        path.relative_to(entry).as_posix(): hashlib.sha256(path.read_bytes()).hexdigest()
+        for path in sorted(entry.rglob("*"))
+        if path.is_file() and path.name != MANIFEST
+    }
+
+
+def _write_manifest(entry: Path) -> None:
+    lines = [f"{digest}  {path}\n" for path, digest in _file_digests(entry).items()]
+    (entry / MANIFEST).write_text("".join(lines))
+
+
+def cache_damage(entry: Path) -> str | None:
+    """Why the cache entry `entry` cannot be used as it is (None: every file matches its digest).
+
+    Files that are not in the manifest are ignored; a missing or unreadable manifest is damage.
+    """
+    try:
+        text = (entry / MANIFEST).read_text()
+    except OSError:
+        return f"cached {entry.name} has no readable {MANIFEST}"
+    problems = []
+    for line in text.splitlines():
+        digest, sep, relative = line.partition("  ")
+        if not sep or len(digest) != 64:
+            return f"cached {entry.name}/{MANIFEST} is malformed"
+        try:
+            actual = hashlib.sha256((entry / relative).read_bytes()).hexdigest()
+        except FileNotFoundError:
+            problems.append(f"cached {relative} is missing")
+            continue
+        except OSError as exc:
+            problems.append(f"cached {relative} could not be read ({exc.strerror})")
+            continue
+        if actual != digest:
+            problems.append(f"cached {relative} did not match its digest")
+    if not problems:
+        return None
+    more = f" (and {len(problems) - 1} more)" if len(problems) > 1 else ""
+    return problems[0] + more
 
 
 def _build_into(work: Path, folder: Path, spec: ModelSpec, model_guid: str) -> None:
