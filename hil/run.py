@@ -141,6 +141,10 @@ def run_scenario(scenario: Scenario, options: RunOptions) -> RunResult:
         "this thread" if direct else "thread" if options.inprocess else "process"
     )
     summary["parameters"] = {name: dict(values) for name, values in rig.parameters.items()}
+    if recording.can_log.endswith((".log", ".blf", ".asc", ".trc")):
+        from hil.estimation import estimation_report
+
+        summary["estimation"] = estimation_report(out)
     _write_summary(out, summary)
     from hil.plots import plot_run
 

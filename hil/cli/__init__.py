@@ -14,12 +14,20 @@ from collections.abc import Callable, Sequence
 
 from hil.cli import bus as bus_command
 from hil.cli import controller as controller_command
+from hil.cli import estimate as estimate_command
 from hil.cli import fmu as fmu_command
 from hil.cli import replay as replay_command
 from hil.cli import run as run_command
 from hil.errors import HilError
 
-SUBCOMMANDS = (run_command, replay_command, controller_command, bus_command, fmu_command)
+SUBCOMMANDS = (
+    run_command,
+    replay_command,
+    estimate_command,
+    controller_command,
+    bus_command,
+    fmu_command,
+)
 
 EXIT_OK, EXIT_ERROR, EXIT_USAGE, EXIT_INTERRUPTED, EXIT_TERMINATED = 0, 1, 2, 130, 143
 

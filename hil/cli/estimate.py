@@ -1,0 +1,86 @@
+"""`hil estimate` and `hil tune`: estimation report of a recorded run; outer-loop design aid."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+
+def add_parser(commands: argparse._SubParsersAction) -> None:
+    from hil.cli import example_parser
+
+    estimate = example_parser(
+        commands,
+        "estimate",
+        "run every estimator (raw, kf, ukf) over a recorded run's measurements and score it",
+        "  hil estimate runs/default-1          table, estimation.json and estimation.png\n",
+    )
+    estimate.add_argument("run", type=Path, help="results folder of a run")
+    estimate.add_argument("--no-plot", action="store_true", help="skip estimation.png")
+    estimate.set_defaults(handler=_estimate)
+    tune = example_parser(
+        commands,
+        "tune",
+        "design the outer curvature PI for the scenario's estimator delay; margins, Bode plot",
+        "  hil tune                        the default scenario\n"
+        "  hil tune my.toml --out bode.png\n",
+    )
+    tune.add_argument("scenario", nargs="?", type=Path, help="scenario TOML (default: built-in)")
+    tune.add_argument("--out", type=Path, help="Bode plot PNG (default: tune-NAME.png)")
+    tune.set_defaults(handler=_tune)
+
+
+def _estimate(args: argparse.Namespace) -> int:
+    from hil.estimation import estimation_report
+
+    report = estimation_report(args.run, plot=not args.no_plot)
+    (args.run / "estimation.json").write_text(json.dumps(report, indent=2, sort_keys=True) + "\n")
+    print(f"{args.run}: estimation against the true curvature (controller used {report['chosen']})")
+    print("  estimator   rms [1/m]   max [1/m]   gated   update [us]")
+    for name in ("raw", "kf", "ukf"):
+        r = report[name]
+        print(
+            f"  {name:9s} {r['rms']:10.4f} {r['max']:11.4f} {100 * r['gated']:6.2f} % "
+            f"{1e6 * r['update_time']:11.0f}"
+        )
+    return 0
+
+
+def _tune(args: argparse.Namespace) -> int:
+    from controllers.loop_design import (
+        design_outer_loop,
+        effective_delay,
+        estimator_delay,
+        write_bode_png,
+    )
+    from hil.robots import robot_kind
+    from hil.scenario import load_scenario
+
+    scenario = load_scenario(args.scenario)
+    robot = robot_kind(scenario.robot.kind)
+    c, T = scenario.controller, scenario.timing.control_period
+    delay = effective_delay(estimator_delay(c.estimator, T, c.latency_compensation), T)
+    out = args.out or Path(f"tune-{scenario.name}.png")
+    print(
+        f"{scenario.name}: estimator {c.estimator} (latency compensation "
+        f"{'on' if c.latency_compensation else 'off'}), effective delay {1e3 * delay:.1f} ms, "
+        f"crossover cap {c.crossover:g} Hz"
+    )
+    for n, model in enumerate(robot.segment_models(scenario), start=1):  # type: ignore[attr-defined]
+        design = design_outer_loop(model, delay, max_crossover_hz=c.crossover)
+        print(
+            f"  segment {n}: Kp {design.gains.Kp:.5g} m/(1/m), Ki {design.gains.Ki:.5g} "
+            f"m/(1/m s), crossover {design.crossover_hz:.2f} Hz, phase margin "
+            f"{design.phase_margin_deg:.1f} deg, gain margin {_decibels(design.gain_margin)}"
+        )
+        if n == 1:
+            write_bode_png(model, design, out)
+    print(f"  Bode plot of segment 1: {out}")
+    return 0
+
+
+def _decibels(ratio: float) -> str:
+    import math
+
+    return "infinite" if not math.isfinite(ratio) else f"{20.0 * math.log10(ratio):.1f} dB"

@@ -1,0 +1,194 @@
+"""The estimation report: every estimator run over the same recorded measurements.
+
+A run's CAN log holds everything the controller measured: the drive status frames (pressures)
+and the camera's pictures (CameraFrame headers and marker frames) of every cycle. This module
+rebuilds, cycle by cycle, exactly what the controller node handed its estimator (the pictures
+due by each SYNC, assembled by content), runs `raw`, `kf` and `ukf` over it offline, and scores
+each against the true curvature the plant recorded at the same SYNC. The result is
+`summary.json`'s `estimation` section and `hil estimate RUN_DIR`; `estimation.png` shows truth,
+measurement and estimates with the dropouts and rejected outliers marked, and the residuals of
+the visible markers against the chosen estimate.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from controllers import kinematics
+from controllers.estimation import DriveReading, MarkerFrame
+from controllers.estimators import make_estimator
+from controllers.node import ESTIMATORS, CameraAssembler, ControllerConfig
+from controllers.protocol import CameraFrame, CameraMarker, DriveStatus, Protocol
+from hil.errors import HilError
+from hil.replay import config_beside, read_cycles, read_log
+from hil.summary import read_signals
+
+Cycle = tuple[float, dict[int, DriveReading], list[MarkerFrame]]
+
+
+@dataclass(frozen=True)
+class EstimatorScore:
+    name: str
+    kappa: np.ndarray  # (cycles, segments) [1/m]
+    kappa_std: np.ndarray
+    gated: np.ndarray  # (cycles,)
+    measured: np.ndarray
+    update_time: float  # mean wall time of one update [s]
+
+
+def measured_cycles(log: Path, config: ControllerConfig) -> list[Cycle]:
+    """What the controller's estimator was given at every SYNC of a recorded run."""
+    protocol = Protocol()
+    cycles = read_cycles(read_log(log), protocol, str(log))
+    timing = config.camera_timing
+    assembler = CameraAssembler(timing.markers)
+    taken = 0
+    drives: dict[int, DriveReading] = {}
+    result: list[Cycle] = []
+    for cycle in cycles:
+        t = cycle.index * config.control_period
+        for message in cycle.plant:
+            frame = protocol.decode(message)
+            if isinstance(frame, DriveStatus):
+                drives[frame.node] = DriveReading(
+                    frame.piston_position, frame.p_a, frame.p_b, frame.fault
+                )
+            elif isinstance(frame, CameraFrame | CameraMarker):
+                assembler.add(frame)
+        due = timing.frames_due(cycle.index)
+        frames = []
+        for j in range(taken, due):
+            if assembler.complete(j):
+                frames.append(assembler.take(j, t))
+            else:
+                assembler.drop(j)
+        taken = max(taken, due)
+        result.append((t, dict(drives), frames))
+    return result
+
+
+def score(name: str, config: ControllerConfig, cycles: list[Cycle]) -> EstimatorScore:
+    estimator = make_estimator(
+        name,
+        config.bends,
+        config.base,
+        config.camera,
+        config.control_period,
+        config.latency_compensation,
+    )
+    kappa, std, gated, measured = [], [], [], []
+    started = time.perf_counter()
+    for t, drives, frames in cycles:
+        estimate = estimator.update(t, drives, frames)
+        kappa.append(estimate.kappa)
+        std.append(estimate.kappa_std)
+        gated.append(estimate.gated)
+        measured.append(estimate.measured)
+    elapsed = time.perf_counter() - started
+    return EstimatorScore(
+        name,
+        np.array(kappa),
+        np.array(std),
+        np.array(gated),
+        np.array(measured),
+        elapsed / max(1, len(cycles)),
+    )
+
+
+def estimation_report(run: Path, plot: bool = True) -> dict[str, Any]:
+    """Per estimator: `rms` and `max` curvature error against truth [1/m] over every cycle but
+    the first (nothing is measured before the first picture arrives), `gated` (share of camera
+    measurements rejected as outliers) and `update_time` [s]."""
+    log = _log_of(run)
+    config = config_beside(log)
+    signals = read_signals(run / "signals.csv")
+    truth = np.column_stack([signals[f"kappa_{n}"] for n in range(1, config.segments + 1)])
+    cycles = measured_cycles(log, config)
+    if len(cycles) != len(truth):
+        raise HilError(
+            f"{run}: {len(cycles)} cycles in the CAN log but {len(truth)} rows in signals.csv"
+        )
+    scores = {name: score(name, config, cycles) for name in ESTIMATORS}
+    report: dict[str, Any] = {"chosen": config.estimator}
+    for name, s in scores.items():
+        error = np.abs(s.kappa[1:] - truth[1:])
+        considered = s.gated.sum() + s.measured.sum()
+        report[name] = {
+            "rms": float(np.sqrt(np.mean(error**2))),
+            "max": float(np.max(error)),
+            "gated": float(s.gated.sum() / considered) if considered else 0.0,
+            "update_time": s.update_time,
+        }
+    if plot:
+        _plot(run, config, signals, cycles, scores)
+    return report
+
+
+def _log_of(run: Path) -> Path:
+    for name in ("can.log", "can.blf", "can.asc", "can.trc", "can.csv", "can.mf4"):
+        if (run / name).is_file():
+            return run / name
+    raise HilError(f"{run}: no CAN log (can.log, can.blf, ...) in this folder")
+
+
+def _plot(
+    run: Path,
+    config: ControllerConfig,
+    signals: dict[str, np.ndarray],
+    cycles: list[Cycle],
+    scores: dict[str, EstimatorScore],
+) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    t = signals["time"]
+    n = config.segments
+    chosen = scores[config.estimator]
+    # per cycle: which segments' markers were missing, the raw inversion of each picture
+    missing = np.zeros((len(cycles), n), dtype=bool)
+    residual_t, residual = [], []
+    for c, (time_c, _, frames) in enumerate(cycles):
+        for frame in frames:
+            seen = frame.seen
+            missing[c] |= ~(seen[:-1] & seen[1:])
+            predicted = kinematics.markers(chosen.kappa[c], config.lengths, config.base)
+            for m in np.nonzero(seen)[0]:
+                residual_t.append(time_c)
+                residual.append(1e3 * float(np.linalg.norm(frame.points[m] - predicted[m])))
+    raw = scores["raw"].kappa
+    fig, axes = plt.subplots(n + 1, 1, figsize=(9, 2.6 * (n + 1) + 0.6), sharex=True)
+    for i in range(n):
+        ax = axes[i]
+        ax.plot(t, signals[f"kappa_{i + 1}"], color="black", lw=1.2, label="true")
+        ax.plot(t, raw[:, i], color="tab:grey", lw=0.6, alpha=0.7, label="measured (raw)")
+        for name, color in (("kf", "tab:green"), ("ukf", "tab:orange")):
+            ax.plot(t, scores[name].kappa[:, i], color=color, lw=0.9, label=name)
+        drops = missing[:, i]
+        ax.plot(t[drops], raw[drops, i], "x", color="tab:red", ms=4, label="markers missing")
+        gated = chosen.gated > 0
+        ax.plot(
+            t[gated],
+            chosen.kappa[gated, i],
+            "o",
+            mfc="none",
+            color="tab:purple",
+            ms=5,
+            label=f"outlier rejected ({config.estimator})",
+        )
+        ax.set_ylabel(f"segment {i + 1}\ncurvature [1/m]")
+        ax.grid(True, alpha=0.3)
+        ax.legend(loc="upper right", fontsize=7, ncol=3)
+    axes[-1].plot(residual_t, residual, ".", ms=2, color="tab:blue")
+    axes[-1].set_ylabel(f"marker residual\nvs {config.estimator} [mm]")
+    axes[-1].set_xlabel("time [s]")
+    axes[-1].grid(True, alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(run / "estimation.png", dpi=100)
+    plt.close(fig)
