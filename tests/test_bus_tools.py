@@ -683,3 +683,24 @@ def test_bus_up_without_socketcan_exits_2_with_the_hub_hint(
         assert main(["bus", action]) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and "no SocketCAN" in err[0] and "hil bus serve" in err[0]
+
+
+def test_each_seen_echo_satisfies_one_wait_only() -> None:
+    # After 256 cycles the counter repeats: a stale echo must not acknowledge a later cycle.
+    protocol = Protocol()
+    cycle = [protocol.encode(Sync(0)), protocol.encode(DriveStatus(1, 0.025, 0.0, 0.0, 0, 0))]
+    cycle[0].is_rx, cycle[1].is_rx = True, False
+    echo = protocol.encode(DriveStatus(1, 0.025, 0.0, 0.0, 0, 0))
+
+    class _EchoOnce(_SendOnly):
+        def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+            if len(self.sent) == 1 and not getattr(self, "echoed", False):
+                self.echoed = True
+                return echo, False
+            return None, False
+
+    bus = _EchoOnce()
+    database = load_database()
+    assert replay_lockstep(bus, cycle, "R", FrameFilter(), database, 1.0).acknowledged == 1
+    with pytest.raises(BusError, match="counter 0"):  # one echo, two cycles with counter 0
+        replay_lockstep(_EchoOnce(), cycle * 2, "R", FrameFilter(), database, 0.05)
