@@ -704,3 +704,22 @@ def test_each_seen_echo_satisfies_one_wait_only() -> None:
     assert replay_lockstep(bus, cycle, "R", FrameFilter(), database, 1.0).acknowledged == 1
     with pytest.raises(BusError, match="counter 0"):  # one echo, two cycles with counter 0
         replay_lockstep(_EchoOnce(), cycle * 2, "R", FrameFilter(), database, 0.05)
+
+
+def test_dump_ends_on_ctrl_c_with_the_count_line(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import hil.bustools.dump
+    import hil.bustools.frames
+
+    def two_then_ctrl_c(bus: can.BusABC, idle_timeout: float | None) -> Iterator[can.Message]:
+        yield Protocol().encode(Sync(4))
+        yield can.Message(arbitration_id=0x555, is_extended_id=False, data=b"\x01")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(hil.bustools.frames, "open_spec", lambda text: _SendOnly())
+    monkeypatch.setattr(hil.bustools.dump, "live_frames", two_then_ctrl_c)
+    assert main(["bus", "dump"]) == 0
+    captured = capsys.readouterr()
+    assert len(captured.out.splitlines()) == 2
+    assert captured.err.strip() == "2 frames, 1 decoded, 1 unknown (0x555 x1)"

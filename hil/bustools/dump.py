@@ -64,9 +64,11 @@ def dump(
     raw: bool,
     count: int | None,
     out: TextIO,
+    tally: DumpCount | None = None,
 ) -> DumpCount:
-    """Print the selected frames; stops after `count` of them or at the end of `frames`."""
-    tally = DumpCount()
+    """Print the selected frames; stops after `count` of them or at the end of `frames`.
+    Counts into `tally` as it goes, so a caller that is interrupted still has the counts."""
+    tally = DumpCount() if tally is None else tally
     for msg in frames:
         if count is not None and tally.shown >= count:
             break

@@ -283,7 +283,7 @@ def _dump(args: argparse.Namespace) -> int:
     frames, bus = _frames_of(args)
     tally = DumpCount()
     try:
-        tally = dump(frames, database, selection, args.raw, args.count, sys.stdout)
+        dump(frames, database, selection, args.raw, args.count, sys.stdout, tally)
     except KeyboardInterrupt:
         pass
     finally:
