@@ -19,7 +19,7 @@ from typing import TextIO
 import can
 from cantools.database.can import Database
 
-from hil.bustools.frames import FrameFilter, candump_text, dbc_message
+from hil.bustools.frames import FrameFilter, candump_text, dbc_message, decoded
 
 
 def _value_text(value: object) -> str:
@@ -35,7 +35,7 @@ def describe(database: Database, msg: can.Message) -> tuple[str, bool]:
         return "?", False
     if len(msg.data) != message.length:
         return f"{message.name} ? {len(msg.data)} bytes, the DBC says {message.length}", True
-    values = message.decode(bytes(msg.data), decode_choices=False)
+    values = decoded(message, msg)
     parts = []
     for signal in message.signals:
         unit = f" {signal.unit}" if signal.unit else ""

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import fnmatch
 from dataclasses import dataclass, field
+from typing import Any
 
 import can
 from cantools.database.can import Database, Message
@@ -100,7 +101,12 @@ def counter_of(database: Database, msg: can.Message) -> int | None:
         return None
     if not any(s.name == "counter" for s in message.signals):
         return None
-    return int(message.decode(bytes(msg.data), decode_choices=False)["counter"])
+    return int(decoded(message, msg)["counter"])
+
+
+def decoded(message: Message, msg: can.Message) -> dict[str, Any]:
+    """The signal values of a frame in physical units (numbers, no choice names)."""
+    return dict(message.decode(bytes(msg.data), decode_choices=False))  # type: ignore[arg-type]
 
 
 def load_database() -> Database:

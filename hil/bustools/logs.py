@@ -116,7 +116,8 @@ def iter_log(path: Path | str) -> Iterator[can.Message]:
         if suffix in TEXT_SUFFIXES:
             text = path.open(encoding="utf-8", errors="strict", newline=None)
             lines = _NumberedLines(text, _CHECKS.get(suffix))
-            reader = can.io.player.MESSAGE_READERS[suffix](lines)
+            # python-can's text readers take an open file; ours counts its lines
+            reader = can.io.player.MESSAGE_READERS[suffix](lines)  # type: ignore[arg-type]
         else:
             reader = _binary_reader(path, suffix)
         with reader:
