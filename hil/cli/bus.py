@@ -1,11 +1,19 @@
-"""`hil bus`: bus tools. `serve` runs the loopback inter-process CAN hub in the foreground."""
+"""`hil bus`: bus tools. `serve` runs the loopback inter-process CAN hub in the foreground;
+`up`/`down` manage a vcan interface; `dump`, `record`, `replay`, `send` and `load` work on a
+live bus (a `--bus` spec as `hil run` takes) or a log file; the work is in `hil.bustools`.
+"""
 
 from __future__ import annotations
 
 import argparse
+import sys
+from pathlib import Path
 
 from hil.bus import loopback
 from hil.errors import HilError
+
+DEFAULT_BUS = "loopback"
+BUS_HELP = "bus spec: loopback[:HOST:PORT] (default, the hub of `hil bus serve`), socketcan:IFACE"
 
 
 def add_parser(commands: argparse._SubParsersAction) -> None:
@@ -16,7 +24,13 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
         "bus",
         "CAN bus tools",
         "  hil bus serve                    loopback hub on 127.0.0.1:29536\n"
-        "  hil bus load                     bus load of the default scenario\n",
+        "  hil bus dump                     decode the hub's traffic with the DBC\n"
+        "  hil bus dump --log runs/x/can.log --message 'DriveStatus*'\n"
+        "  hil bus record run.blf           record the hub's traffic (Ctrl-C stops)\n"
+        "  hil bus replay can.log --direction R --lockstep\n"
+        "  hil bus send loopback 080#05\n"
+        "  hil bus load                     bus load of the default scenario\n"
+        "  hil bus load --log runs/x/can.log\n",
     )
     sub = parser.add_subparsers(dest="bus_command", metavar="ACTION", required=True)
     serve = example_parser(
@@ -38,12 +52,132 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     load = example_parser(
         sub,
         "load",
-        "bus load a scenario implies, computed from the DBC at its bitrate",
-        "  hil bus load\n  hil bus load my.toml --bitrate 250000\n",
+        "bus load a scenario implies (from the DBC at its bitrate), or measured from a log or "
+        "live traffic with per-message rates",
+        "  hil bus load\n  hil bus load my.toml --bitrate 250000\n"
+        "  hil bus load --log runs/default-1/can.log\n"
+        "  hil bus load --bus loopback --seconds 5\n",
     )
     load.add_argument("scenario", nargs="?", help="scenario TOML (default: built-in)")
-    load.add_argument("--bitrate", type=int, help="override the scenario's bitrate [bit/s]")
+    load.add_argument(
+        "--bitrate",
+        type=int,
+        help="bitrate [bit/s] (default: the scenario's, or 1000000 for --log/--bus)",
+    )
+    load.add_argument("--log", type=Path, help="measure the frames of this log instead")
+    load.add_argument("--bus", help="measure live traffic on this bus spec instead")
+    load.add_argument("--seconds", type=float, default=5.0, help="listening time for --bus")
     load.set_defaults(handler=_load)
+
+    for name, help_text in (
+        ("up", "create and bring up a vcan interface (needs SocketCAN)"),
+        ("down", "remove a vcan interface"),
+    ):
+        action = example_parser(sub, name, help_text, f"  sudo hil bus {name} vcan0\n")
+        action.add_argument("iface", nargs="?", default="vcan0", help="interface (vcan0)")
+        action.set_defaults(handler=_vcan, vcan_action=name)
+
+    dump = example_parser(
+        sub,
+        "dump",
+        "print frames decoded with the DBC, one candump-style line each (Ctrl-C stops)",
+        "  hil bus dump\n"
+        "  hil bus dump --id 0x180-0x18F --id 080\n"
+        "  hil bus dump --log can.log --message 'DriveCommand*' --count 10\n"
+        "  hil bus dump --raw > copy.log\n",
+    )
+    _add_source(dump)
+    _add_filters(dump)
+    dump.add_argument("--raw", action="store_true", help="candump -L lines only, no decoding")
+    dump.add_argument("--count", type=int, help="stop after N frames")
+    dump.add_argument(
+        "--timeout", type=float, help="stop after S seconds without a frame (live bus)"
+    )
+    dump.set_defaults(handler=_dump)
+
+    record = example_parser(
+        sub,
+        "record",
+        "record a bus into a log file, format by suffix: .log .asc .blf .trc .csv .mf4",
+        "  hil bus record run.log\n  hil bus record run.blf --bus socketcan:vcan0\n",
+    )
+    record.add_argument("file", type=Path, help="log file to write")
+    record.add_argument("--bus", default=DEFAULT_BUS, help=BUS_HELP)
+    record.add_argument("--overwrite", action="store_true", help="replace an existing file")
+    record.add_argument("--count", type=int, help="stop after N frames")
+    record.add_argument("--timeout", type=float, help="stop after S seconds without a frame")
+    record.set_defaults(handler=_record)
+
+    replay = example_parser(
+        sub,
+        "replay",
+        "transmit the frames of a log onto a bus, timed (--speed) or in lockstep by SYNC counter",
+        "  hil bus replay can.log --speed 2\n"
+        "  hil bus replay runs/x/can.log --direction R --lockstep   controller side vs a plant\n",
+    )
+    replay.add_argument("file", type=Path, help="log file (any python-can format)")
+    replay.add_argument("--bus", default=DEFAULT_BUS, help=BUS_HELP)
+    mode = replay.add_mutually_exclusive_group()
+    mode.add_argument("--speed", type=float, default=1.0, help="time scale (2 = twice as fast)")
+    mode.add_argument(
+        "--lockstep",
+        action="store_true",
+        help="no timing: per SYNC cycle wait for the receiver's frames echoing the counter",
+    )
+    replay.add_argument(
+        "--direction",
+        choices=("R", "T", "all"),
+        default="all",
+        help="replay only frames the logging node received (R) or sent (T); default all",
+    )
+    replay.add_argument(
+        "--timeout", type=float, default=2.0, help="lockstep: longest wait for one echo [s]"
+    )
+    _add_filters(replay)
+    replay.set_defaults(handler=_replay)
+
+    send = example_parser(
+        sub,
+        "send",
+        "send one frame: cansend ID#DATA, or a DBC message from signal values",
+        "  hil bus send loopback 080#05\n"
+        "  hil bus send loopback 18FF1234#01.02.03\n"
+        "  hil bus send loopback 123#R\n"
+        "  hil bus send loopback --message DriveCommand1 piston_setpoint=0.05 enable=1 "
+        "counter=3\n",
+    )
+    send.add_argument("spec", help="bus spec, e.g. loopback or socketcan:vcan0")
+    send.add_argument("frame", nargs="?", help="ID#DATA (cansend syntax)")
+    send.add_argument(
+        "--message",
+        nargs="+",
+        metavar="NAME [SIGNAL=VALUE ...]",
+        help="DBC message to encode, then every signal as name=value in physical units",
+    )
+    send.set_defaults(handler=_send)
+
+
+def _add_source(parser: argparse.ArgumentParser) -> None:
+    source = parser.add_mutually_exclusive_group()
+    source.add_argument("--bus", help=BUS_HELP)
+    source.add_argument("--log", type=Path, help="read frames from this log file instead")
+
+
+def _add_filters(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--id",
+        action="append",
+        default=[],
+        metavar="ID",
+        help="hex id (0x181) or range (0x180-0x18F), repeatable, comma lists ok",
+    )
+    parser.add_argument(
+        "--message",
+        action="append",
+        default=[],
+        metavar="NAME",
+        help="DBC message name, glob ok (DriveStatus*), repeatable",
+    )
 
 
 def _serve(args: argparse.Namespace) -> int:
@@ -52,6 +186,8 @@ def _serve(args: argparse.Namespace) -> int:
 
 
 def _load(args: argparse.Namespace) -> int:
+    if args.log is not None or args.bus is not None:
+        return _measured_load(args)
     from dataclasses import replace
     from pathlib import Path
 
@@ -73,4 +209,151 @@ def _load(args: argparse.Namespace) -> int:
         print(
             f"warning: above {100 * BUS_LOAD_WARNING:.0f} %: frames will be delayed on a real bus"
         )
+    return 0
+
+
+def _measured_load(args: argparse.Namespace) -> int:
+    from hil.bustools.dump import live_frames
+    from hil.bustools.frames import load_database, open_spec
+    from hil.bustools.load import measure
+    from hil.bustools.logs import iter_log
+
+    if args.scenario is not None:
+        raise HilError("give a scenario, or --log/--bus, not both")
+    if args.log is not None and args.bus is not None:
+        raise HilError("give --log or --bus, not both")
+    bitrate = 1_000_000 if args.bitrate is None else args.bitrate
+    database = load_database()
+    if args.log is not None:
+        report = measure(iter_log(args.log), database, bitrate)
+    else:
+        import time
+
+        if not args.seconds > 0:
+            raise HilError(f"--seconds must be positive, got {args.seconds}")
+        bus = open_spec(args.bus)
+        try:
+            end = time.monotonic() + args.seconds
+            frames = []
+            for msg in live_frames(bus, idle_timeout=args.seconds):
+                frames.append(msg)
+                if time.monotonic() >= end:
+                    break
+        finally:
+            bus.shutdown()
+        report = measure(frames, database, bitrate, span=args.seconds)
+    print("\n".join(report.lines()))
+    return 0
+
+
+def _vcan(args: argparse.Namespace) -> int:
+    from hil.bustools import vcan
+
+    if not vcan.socketcan_available():
+        print(
+            f"hil: this kernel has no SocketCAN (AF_CAN), so no {args.iface}; "
+            + vcan.LOOPBACK_HINT,
+            file=sys.stderr,
+        )
+        return vcan.NO_SOCKETCAN
+    action = vcan.up if args.vcan_action == "up" else vcan.down
+    print(action(args.iface))
+    return 0
+
+
+def _frames_of(args: argparse.Namespace):  # noqa: ANN202 - (frames, bus or None)
+    from hil.bustools.dump import live_frames
+    from hil.bustools.frames import open_spec
+    from hil.bustools.logs import iter_log
+
+    if args.log is not None:
+        return iter_log(args.log), None
+    bus = open_spec(args.bus or DEFAULT_BUS)
+    return live_frames(bus, args.timeout), bus
+
+
+def _dump(args: argparse.Namespace) -> int:
+    from hil.bustools.dump import DumpCount, dump, print_count
+    from hil.bustools.frames import FrameFilter, load_database
+
+    if args.count is not None and args.count <= 0:
+        raise HilError(f"--count must be positive, got {args.count}")
+    database = load_database()
+    selection = FrameFilter.parse(args.id, args.message, database)
+    frames, bus = _frames_of(args)
+    tally = DumpCount()
+    try:
+        dump(frames, database, selection, args.raw, args.count, sys.stdout, tally)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        if bus is not None:
+            bus.shutdown()
+    print_count(tally)
+    return 0
+
+
+def _record(args: argparse.Namespace) -> int:
+    from hil.bustools.frames import open_spec
+    from hil.bustools.logs import suffix_of
+    from hil.bustools.record import record
+
+    suffix_of(args.file)
+    if args.file.exists() and not args.overwrite:
+        raise HilError(f"{args.file}: exists; pass --overwrite to replace it")
+    bus = open_spec(args.bus)
+    try:
+        print(f"recording {args.bus} into {args.file} (Ctrl-C stops)", file=sys.stderr)
+        written = record(bus, args.file, args.overwrite, args.count, args.timeout)
+    finally:
+        bus.shutdown()
+    print(f"recorded {written} frames into {args.file}", file=sys.stderr)
+    return 0
+
+
+def _replay(args: argparse.Namespace) -> int:
+    from hil.bustools.frames import FrameFilter, load_database, open_spec
+    from hil.bustools.logs import read_log
+    from hil.bustools.replay import check_lockstep_direction, replay_lockstep, replay_timed
+
+    database = load_database()
+    selection = FrameFilter.parse(args.id, args.message, database)
+    messages = read_log(args.file)
+    if not args.lockstep and not args.speed > 0:
+        raise HilError(f"--speed must be positive, got {args.speed}")
+    if args.lockstep:
+        check_lockstep_direction(args.direction)
+    bus = open_spec(args.bus)
+    try:
+        if args.lockstep:
+            tally = replay_lockstep(
+                bus, messages, args.direction, selection, database, args.timeout
+            )
+        else:
+            tally = replay_timed(bus, messages, args.direction, selection, args.speed)
+    finally:
+        bus.shutdown()
+    print(tally.line(), file=sys.stderr)
+    return 0
+
+
+def _send(args: argparse.Namespace) -> int:
+    from hil.bustools.frames import load_database, open_spec
+    from hil.bustools.send import encode_message, parse_cansend, send_one
+
+    if args.message is not None:
+        if args.frame is not None:
+            raise HilError("give ID#DATA or --message NAME sig=value ..., not both")
+        msg = encode_message(load_database(), args.message[0], args.message[1:])
+    else:
+        if args.frame is None:
+            raise HilError(
+                "give one frame as ID#DATA (cansend syntax), or --message NAME sig=value"
+            )
+        msg = parse_cansend(args.frame)
+    bus = open_spec(args.spec)
+    try:
+        send_one(bus, msg)
+    finally:
+        bus.shutdown()
     return 0

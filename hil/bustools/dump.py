@@ -1,0 +1,109 @@
+"""`hil bus dump`: one candump-style line per frame, decoded with the DBC.
+
+Each line is the candump -L text of the frame (so `--raw` output is itself a `.log` file)
+followed, unless `--raw`, by the DBC message name and its signals with units, e.g.
+`(0.010000) can0 181#D430000000000001 T  DriveStatus1 piston_position=0.025 m ... counter=1`.
+Frames whose id the DBC does not know are shown raw, marked `?`, and counted by id. The count
+line goes to stderr at the end, also after Ctrl-C.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from collections import Counter
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from typing import TextIO
+
+import can
+from cantools.database.can import Database
+
+from hil.bustools.frames import FrameFilter, candump_text, dbc_message, decoded
+
+
+def _value_text(value: object) -> str:
+    if isinstance(value, float):
+        return f"{value:.6g}"
+    return str(value)
+
+
+def describe(database: Database, msg: can.Message) -> tuple[str, bool]:
+    """(decoded text, known) of a frame: `Name sig=value unit ...`, or `?` for unknown ids."""
+    message = dbc_message(database, msg)
+    if message is None:
+        return "?", False
+    if len(msg.data) != message.length:
+        return f"{message.name} ? {len(msg.data)} bytes, the DBC says {message.length}", True
+    values = decoded(message, msg)
+    parts = []
+    for signal in message.signals:
+        unit = f" {signal.unit}" if signal.unit else ""
+        parts.append(f"{signal.name}={_value_text(values[signal.name])}{unit}")
+    return f"{message.name} " + " ".join(parts), True
+
+
+@dataclass
+class DumpCount:
+    shown: int = 0
+    decoded: int = 0
+    unknown: Counter[int] = field(default_factory=Counter)
+
+    def line(self) -> str:
+        text = f"{self.shown} frames, {self.decoded} decoded"
+        if self.unknown:
+            ids = ", ".join(f"0x{i:03X} x{n}" for i, n in sorted(self.unknown.items()))
+            text += f", {sum(self.unknown.values())} unknown ({ids})"
+        return text
+
+
+def dump(
+    frames: Iterable[can.Message],
+    database: Database,
+    selection: FrameFilter,
+    raw: bool,
+    count: int | None,
+    out: TextIO,
+    tally: DumpCount | None = None,
+) -> DumpCount:
+    """Print the selected frames; stops after `count` of them or at the end of `frames`.
+    Counts into `tally` as it goes, so a caller that is interrupted still has the counts."""
+    tally = DumpCount() if tally is None else tally
+    for msg in frames:
+        if count is not None and tally.shown >= count:
+            break
+        if not selection.matches(msg):
+            continue
+        line = candump_text(msg, str(msg.channel) if msg.channel is not None else "can0")
+        text, known = describe(database, msg)
+        if known:
+            tally.decoded += 1
+        else:
+            tally.unknown[msg.arbitration_id] += 1
+        print(line if raw else f"{line}  {text}", file=out, flush=True)
+        tally.shown += 1
+        if count is not None and tally.shown >= count:
+            break
+    return tally
+
+
+def live_frames(bus: can.BusABC, idle_timeout: float | None) -> Iterable[can.Message]:
+    """Frames from a bus until `idle_timeout` seconds pass without one (None: forever)."""
+    from controllers.canbus import connection_closed
+
+    last = time.monotonic()
+    while True:
+        msg = bus.recv(0.2 if idle_timeout is None else min(0.2, idle_timeout))
+        now = time.monotonic()
+        if msg is not None:
+            last = now
+            yield msg
+            continue
+        if connection_closed(bus):
+            return
+        if idle_timeout is not None and now - last >= idle_timeout:
+            return
+
+
+def print_count(tally: DumpCount) -> None:
+    print(tally.line(), file=sys.stderr)

@@ -1,0 +1,725 @@
+"""Tests of the bus tools (`hil bus dump/record/replay/send/load/up`, hil.bustools).
+
+Logs are made here with the run's own CAN logger (hil.recording.CanLogger) from frames encoded
+by controllers.protocol, so they are softhil logs as `hil run` writes them. Live tests use the
+loopback hub on 127.0.0.1 with a free port; waits are receive timeouts, never sleeps.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+
+import can
+import pytest
+
+from controllers.protocol import (
+    CameraMarker,
+    ControllerState,
+    DriveCommand,
+    DriveStatus,
+    Heartbeat,
+    Protocol,
+    Sync,
+    frame_bits,
+)
+from hil.bus.loopback import LoopbackHub
+from hil.bustools.dump import dump, live_frames
+from hil.bustools.frames import FrameFilter, load_database, open_spec
+from hil.bustools.load import measure
+from hil.bustools.logs import LogError, read_log, write_log
+from hil.bustools.record import record, sigterm_interrupts
+from hil.bustools.replay import replay_lockstep, replay_timed
+from hil.bustools.send import encode_message, parse_cansend
+from hil.bustools.vcan import socketcan_available
+from hil.cli import main
+from hil.errors import BusError, HilError
+from hil.recording import CanLogger
+
+ROOT = Path(__file__).resolve().parents[1]
+TIMEOUT = 10.0
+CYCLES = 12
+DRIVES = 2
+PERIOD = 0.01
+
+
+def softhil_frames(cycles: int = CYCLES) -> list[tuple[can.Message, float, bool]]:
+    """(message, simulation time, received by the plant) in the order a run logs them."""
+    protocol = Protocol()
+    out: list[tuple[can.Message, float, bool]] = []
+    for c in range(cycles):
+        t = c * PERIOD
+        out.append((protocol.encode(Sync(c)), t, True))
+        if c % 10 == 0:
+            for n in range(1, DRIVES + 1):
+                out.append((protocol.encode(Heartbeat(n, 5)), t, False))
+        if c > 0:
+            for m in range(DRIVES + 1):
+                marker = CameraMarker(m, 0.01 * m, 0.06 * m, c - 1, 0.01)
+                out.append((protocol.encode(marker), t, False))
+        for n in range(1, DRIVES + 1):
+            status = DriveStatus(n, 0.025 + 1e-4 * c, 1000.0 * n, -500.0, 0, c)
+            out.append((protocol.encode(status), t, False))
+        for n in range(1, DRIVES + 1):
+            out.append((protocol.encode(DriveCommand(n, 0.03, True, c)), t, True))
+            out.append((protocol.encode(ControllerState(n, 1.5, 1.25, c)), t, True))
+    return out
+
+
+@pytest.fixture(scope="module")
+def run_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A softhil run log (candump .log, simulation time) with one foreign extended frame."""
+    path = tmp_path_factory.mktemp("run") / "can.log"
+    logger = CanLogger(path)
+    for msg, t, received in softhil_frames():
+        logger.log(msg, t, received)
+    foreign = can.Message(arbitration_id=0x18FF1234, is_extended_id=True, data=b"\x01\x02")
+    logger.log(foreign, CYCLES * PERIOD, True)
+    logger.log(can.Message(arbitration_id=0x123, is_extended_id=False, data=b"\xaa"), 0.125, False)
+    logger.close()
+    return path
+
+
+@pytest.fixture(autouse=True)
+def _guard_blocking_sockets() -> Iterator[None]:
+    previous = socket.getdefaulttimeout()
+    socket.setdefaulttimeout(TIMEOUT)
+    try:
+        yield
+    finally:
+        socket.setdefaulttimeout(previous)
+
+
+@pytest.fixture
+def hub() -> Iterator[LoopbackHub]:
+    with LoopbackHub() as h:
+        yield h
+
+
+@pytest.fixture
+def spec(hub: LoopbackHub) -> str:
+    return f"loopback:127.0.0.1:{hub.port}"
+
+
+@pytest.fixture
+def open_buses(spec: str) -> Iterator[list[can.BusABC]]:
+    buses: list[can.BusABC] = []
+    yield buses
+    for bus in buses:
+        bus.shutdown()
+
+
+def connect(spec: str, buses: list[can.BusABC]) -> can.BusABC:
+    bus = open_spec(spec)
+    buses.append(bus)
+    return bus
+
+
+def recv_n(bus: can.BusABC, n: int) -> list[can.Message]:
+    got = []
+    for _ in range(n):
+        msg = bus.recv(TIMEOUT)
+        assert msg is not None, f"timed out after {len(got)} of {n} frames"
+        got.append(msg)
+    return got
+
+
+def key(msg: can.Message) -> tuple[int, bool, bool, bytes]:
+    return (msg.arbitration_id, msg.is_extended_id, msg.is_remote_frame, bytes(msg.data))
+
+
+def one_error_line(capsys: pytest.CaptureFixture[str]) -> str:
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("hil: error: "), err
+    return lines[0]
+
+
+# ------------------------------------------------------------------------------ log formats
+
+# timestamp resolution of each format as python-can writes it [s]
+RESOLUTION = {".log": 1e-6, ".asc": 1e-6, ".blf": 1e-8, ".trc": 1e-6, ".csv": 1e-6, ".mf4": 1e-6}
+HAS_DIRECTION = {".log", ".asc", ".blf", ".trc", ".mf4"}
+
+
+@pytest.mark.parametrize("suffix", sorted(RESOLUTION))
+def test_every_format_round_trips_a_recorded_run(
+    run_log: Path, tmp_path: Path, suffix: str
+) -> None:
+    if suffix == ".mf4" and importlib.util.find_spec("asammdf") is None:
+        pytest.skip("asammdf is not installed (pip install 'softhil[mf4]')")
+    original = read_log(run_log)
+    path = tmp_path / f"copy{suffix}"
+    assert write_log(path, original) == len(original)
+    back = read_log(path)
+    assert [key(m) for m in back] == [key(m) for m in original]
+    if suffix in HAS_DIRECTION:
+        assert [m.is_rx for m in back] == [m.is_rx for m in original]
+    assert {m.is_rx for m in original} == {True, False}  # the check above means something
+    for got, sent in zip(back, original, strict=True):
+        assert got.timestamp == pytest.approx(sent.timestamp, abs=RESOLUTION[suffix])
+
+
+def test_logconvert_output_reads_back_the_same(run_log: Path, tmp_path: Path) -> None:
+    converted = tmp_path / "converted.asc"
+    done = subprocess.run(
+        [sys.executable, "-m", "can.logconvert", str(run_log), str(converted)],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    assert done.returncode == 0, done.stderr
+    original, back = read_log(run_log), read_log(converted)
+    assert [key(m) for m in back] == [key(m) for m in original]
+    assert [m.is_rx for m in back] == [m.is_rx for m in original]
+
+
+def _lines_with_garbage(path: Path, garbage: str, at: int) -> str:
+    lines = path.read_text().splitlines()
+    return "\n".join([*lines[: at - 1], garbage, *lines[at - 1 :]]) + "\n"
+
+
+def _bad_logs(run_log: Path, tmp: Path) -> list[tuple[Path, str]]:
+    messages = read_log(run_log)
+    for suffix in (".asc", ".blf", ".trc", ".csv"):
+        write_log(tmp / f"good{suffix}", messages)
+    blf = (tmp / "good.blf").read_bytes()
+    cases = {
+        "garbage.log": (_lines_with_garbage(run_log, "hello world", 4), "line 4"),
+        "badid.log": (_lines_with_garbage(run_log, "(0.1) can0 1G3#00 R", 2), "line 2"),
+        "long.log": (
+            _lines_with_garbage(run_log, "(0.1) can0 123#00112233445566778899 R", 3),
+            "line 3",
+        ),
+        "empty.log": ("", "empty log"),
+        "garbage.asc": (_lines_with_garbage(tmp / "good.asc", "garbage here", 9), "line 9"),
+        "garbage.trc": (_lines_with_garbage(tmp / "good.trc", "not a trc line", 25), "line 25"),
+        "garbage.csv": (_lines_with_garbage(tmp / "good.csv", "garbage", 5), "line 5"),
+        "truncated.blf": (blf[: len(blf) // 2], "truncated"),
+        "random.blf": (bytes(range(256)) * 8, "file header"),
+        "binary.log": (b"\xff\xfe\x00garbage", "line 1"),
+        "unknown.xyz": ("(0.0) can0 080#00 R\n", "unknown log format"),
+    }
+    out = []
+    for name, (content, where) in cases.items():
+        path = tmp / name
+        if isinstance(content, bytes):
+            path.write_bytes(content)
+        else:
+            path.write_text(content)
+        out.append((path, where))
+    return out
+
+
+def test_malformed_logs_are_one_line_naming_file_and_place(
+    run_log: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    for path, where in _bad_logs(run_log, tmp_path):
+        with pytest.raises(LogError, match=where):
+            read_log(path)
+        assert main(["bus", "dump", "--log", str(path)]) == 1
+        line = one_error_line(capsys)
+        assert str(path) in line and where in line, line
+        assert capsys.readouterr().out == ""
+
+
+def test_missing_log_and_truncated_mf4(tmp_path: Path, run_log: Path) -> None:
+    with pytest.raises(LogError, match="no such log file"):
+        read_log(tmp_path / "absent.log")
+    if importlib.util.find_spec("asammdf") is None:
+        return
+    write_log(tmp_path / "good.mf4", read_log(run_log))
+    data = (tmp_path / "good.mf4").read_bytes()
+    (tmp_path / "bad.mf4").write_bytes(data[: len(data) // 2])
+    with pytest.raises(LogError, match="bad.mf4"):
+        read_log(tmp_path / "bad.mf4")
+
+
+def test_failed_write_leaves_no_file(tmp_path: Path, run_log: Path) -> None:
+    def broken() -> Iterator[can.Message]:
+        yield from read_log(run_log)[:5]
+        raise LogError("source broke")
+
+    path = tmp_path / "out.blf"
+    with pytest.raises(LogError, match="source broke"):
+        write_log(path, broken())
+    assert not path.exists()
+    path.write_text("keep")
+    with pytest.raises(LogError, match="exists"):
+        write_log(path, read_log(run_log), overwrite=False)
+    assert path.read_text() == "keep"
+
+
+# ------------------------------------------------------------------------------ dump
+
+
+def test_dump_decodes_a_run_log_with_units_and_counts_unknown_ids(
+    run_log: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert main(["bus", "dump", "--log", str(run_log)]) == 0
+    captured = capsys.readouterr()
+    lines = captured.out.splitlines()
+    assert len(lines) == len(softhil_frames()) + 2
+    assert lines[0] == "(0.000000) can0 080#00 R  SYNC counter=0"
+    status = next(x for x in lines if " 182#" in x and "counter=3" in x)
+    assert "DriveStatus2 piston_position=0.0253 m p_a=2000 Pa p_b=-500 Pa fault=0" in status
+    assert status.startswith("(0.030000) can0 182#")
+    assert "ControllerState1 kappa_ref=1.5 1/m kappa_est=1.25 1/m counter=0" in captured.out
+    assert "18FF1234#0102 R  ?" in captured.out
+    assert captured.err.strip() == (
+        f"{len(lines)} frames, {len(lines) - 2} decoded, 2 unknown (0x123 x1, 0x18FF1234 x1)"
+    )
+
+
+def dumped_ids(capsys: pytest.CaptureFixture[str], run_log: Path, *args: str) -> set[int]:
+    assert main(["bus", "dump", "--log", str(run_log), "--raw", *args]) == 0
+    out = capsys.readouterr().out
+    return {int(line.split()[2].split("#")[0], 16) for line in out.splitlines()}
+
+
+def test_dump_filters_by_id_range_and_name(
+    run_log: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert dumped_ids(capsys, run_log, "--id", "0x181-0x201") == {0x181, 0x182, 0x201}
+    assert dumped_ids(capsys, run_log, "--id", "182") == {0x182}
+    assert dumped_ids(capsys, run_log, "--id", "0x080,0x702") == {0x080, 0x702}
+    assert dumped_ids(capsys, run_log, "--message", "DriveStatus*") == {0x181, 0x182}
+    assert dumped_ids(capsys, run_log, "--message", "SYNC", "--id", "0x18FF1234") == {
+        0x080,
+        0x18FF1234,
+    }
+    assert dumped_ids(capsys, run_log, "--id", "0x280-0x280") == {0x280}
+
+
+def test_dump_raw_is_a_candump_log_and_count_limits(
+    run_log: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert main(["bus", "dump", "--log", str(run_log), "--raw", "--count", "7"]) == 0
+    captured = capsys.readouterr()
+    copy = tmp_path / "copy.log"
+    copy.write_text(captured.out)
+    assert [key(m) for m in read_log(copy)] == [key(m) for m in read_log(run_log)[:7]]
+    assert captured.err.startswith("7 frames")
+
+
+@pytest.mark.parametrize(
+    "args",
+    [
+        ["--id", "0xZZ"],
+        ["--id", "0x18F-0x180"],
+        ["--message", "NoSuchMessage*"],
+        ["--count", "0"],
+    ],
+)
+def test_dump_bad_arguments_are_one_line(
+    run_log: Path, args: list[str], capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert main(["bus", "dump", "--log", str(run_log), *args]) == 1
+    one_error_line(capsys)
+
+
+def test_dump_of_a_live_bus(spec: str, open_buses: list[can.BusABC]) -> None:
+    listener = connect(spec, open_buses)
+    sender = connect(spec, open_buses)
+    for msg, _, _ in softhil_frames(2):
+        sender.send(msg)
+    out = _Lines()
+    database = load_database()
+    tally = dump(live_frames(listener, TIMEOUT), database, FrameFilter(), False, 5, out)
+    assert tally.shown == 5 and tally.decoded == 5
+    assert "SYNC counter=0" in out.lines[0]
+    assert "Heartbeat1 nmt_state=5" in out.lines[1]
+
+
+class _Lines:
+    def __init__(self) -> None:
+        self.lines: list[str] = []
+
+    def write(self, text: str) -> None:
+        self.lines.extend(t for t in text.splitlines() if t)
+
+    def flush(self) -> None:
+        pass
+
+
+# ------------------------------------------------------------------------------ send
+
+
+@pytest.mark.parametrize(
+    ("text", "frame_id", "extended", "data", "remote"),
+    [
+        ("080#05", 0x080, False, b"\x05", False),
+        ("7FF#0011223344556677", 0x7FF, False, bytes.fromhex("0011223344556677"), False),
+        ("18FF1234#01.02.03", 0x18FF1234, True, b"\x01\x02\x03", False),
+        ("1FFFFFFF#", 0x1FFFFFFF, True, b"", False),
+        ("123#R", 0x123, False, b"", True),
+        ("00000123#R8", 0x123, True, b"", True),
+    ],
+)
+def test_cansend_syntax(
+    text: str, frame_id: int, extended: bool, data: bytes, remote: bool
+) -> None:
+    msg = parse_cansend(text)
+    assert (msg.arbitration_id, msg.is_extended_id, bytes(msg.data), msg.is_remote_frame) == (
+        frame_id,
+        extended,
+        data,
+        remote,
+    )
+    if text.endswith("R8"):
+        assert msg.dlc == 8
+
+
+@pytest.mark.parametrize(
+    "text",
+    [
+        "800#00",
+        "20000000#00",
+        "12#00",
+        "1234#00",
+        "123#001122334455667788",
+        "123#0",
+        "123#GG",
+        "123##1",
+        "123#R9",
+        "123",
+    ],
+)
+def test_cansend_rejects_bad_frames(text: str) -> None:
+    with pytest.raises(HilError):
+        parse_cansend(text)
+
+
+def test_send_message_strict_range_is_one_line(capsys: pytest.CaptureFixture[str]) -> None:
+    argv = ["bus", "send", "loopback:127.0.0.1:9", "--message", "DriveCommand1"]
+    assert main([*argv, "piston_setpoint=0.2", "enable=1", "counter=3"]) == 1
+    line = one_error_line(capsys)
+    assert "DriveCommand1.piston_setpoint" in line and "[0, 0.13107] m" in line
+    assert main([*argv, "piston_setpoint=0.1", "enable=1"]) == 1
+    assert "missing counter" in one_error_line(capsys)
+    assert main([*argv, "speed=1"]) == 1
+    assert "no signal 'speed'" in one_error_line(capsys)
+    assert main(["bus", "send", "loopback:127.0.0.1:9", "800#01"]) == 1
+    one_error_line(capsys)
+    database = load_database()
+    msg = encode_message(
+        database, "DriveCommand1", ["piston_setpoint=0.13107", "enable=1", "counter=255"]
+    )
+    assert Protocol().decode(msg) == DriveCommand(1, 0.13107, True, 255)
+
+
+def test_send_over_the_hub(spec: str, open_buses: list[can.BusABC]) -> None:
+    listener = connect(spec, open_buses)
+    assert main(["bus", "send", spec, "18FF1234#01.02"]) == 0
+    assert main(["bus", "send", spec, "--message", "SYNC", "counter=7"]) == 0
+    first, second = recv_n(listener, 2)
+    assert key(first) == (0x18FF1234, True, False, b"\x01\x02")
+    assert Protocol().decode(second) == Sync(7)
+
+
+# ------------------------------------------------------------------------------ record
+
+
+def test_record_from_the_hub_in_every_format(
+    spec: str, open_buses: list[can.BusABC], tmp_path: Path, run_log: Path
+) -> None:
+    frames = [m for m, _, _ in softhil_frames(3)]
+    for suffix in (".log", ".blf", ".asc"):
+        recorder = connect(spec, open_buses)
+        sender = connect(spec, open_buses)
+        for msg in frames:
+            sender.send(msg)
+        path = tmp_path / f"rec{suffix}"
+        assert record(recorder, path, count=len(frames)) == len(frames)
+        assert [key(m) for m in read_log(path)] == [key(m) for m in frames]
+
+
+class _InterruptedBus(can.BusABC):
+    """A bus that delivers some frames, then Ctrl-C arrives."""
+
+    def __init__(self, frames: list[can.Message]) -> None:
+        self.frames = list(frames)
+        super().__init__(channel="test")
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        if not self.frames:
+            raise KeyboardInterrupt
+        return self.frames.pop(0), False
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        raise NotImplementedError
+
+
+def test_record_stops_on_ctrl_c_with_a_complete_file(tmp_path: Path) -> None:
+    frames = [m for m, _, _ in softhil_frames(4)]
+    path = tmp_path / "stopped.blf"
+    assert record(_InterruptedBus(frames), path) == len(frames)
+    assert [key(m) for m in read_log(path)] == [key(m) for m in frames]
+
+
+def test_sigterm_becomes_keyboard_interrupt() -> None:
+    with pytest.raises(KeyboardInterrupt), sigterm_interrupts():
+        os.kill(os.getpid(), signal.SIGTERM)
+        signal.sigtimedwait([], 0)  # let the handler run (no wait: zero timeout)
+    assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL
+
+
+def test_record_refuses_to_overwrite(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    path = tmp_path / "exists.log"
+    path.write_text("precious\n")
+    assert main(["bus", "record", str(path), "--bus", "loopback:127.0.0.1:9"]) == 1
+    assert "--overwrite" in one_error_line(capsys)
+    assert path.read_text() == "precious\n"
+    assert main(["bus", "record", str(tmp_path / "x.pcap")]) == 1
+    assert "unknown log format" in one_error_line(capsys)
+    assert not (tmp_path / "x.pcap").exists()
+
+
+# ------------------------------------------------------------------------------ replay
+
+
+class _FakeClock:
+    def __init__(self) -> None:
+        self.now = 100.0
+        self.sleeps: list[float] = []
+
+    def __call__(self) -> float:
+        return self.now
+
+    def sleep(self, seconds: float) -> None:
+        self.sleeps.append(seconds)
+        self.now += seconds
+
+
+class _SendOnly(can.BusABC):
+    def __init__(self) -> None:
+        self.sent: list[can.Message] = []
+        super().__init__(channel="test")
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        self.sent.append(msg)
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        return None, False
+
+
+@pytest.mark.parametrize("speed", [1.0, 2.0, 0.5])
+def test_timed_replay_scales_the_log_timing(run_log: Path, speed: float) -> None:
+    messages = read_log(run_log)
+    bus, clock = _SendOnly(), _FakeClock()
+    tally = replay_timed(bus, messages, "R", FrameFilter(), speed, clock, clock.sleep)
+    received = [m for m in messages if m.is_rx]
+    assert tally.sent == len(received)
+    assert [key(m) for m in bus.sent] == [key(m) for m in received]
+    assert sum(clock.sleeps) == pytest.approx(
+        (received[-1].timestamp - received[0].timestamp) / speed
+    )
+    assert clock.sleeps[0] == pytest.approx(PERIOD / speed)
+
+
+def test_replay_direction_and_filters(run_log: Path) -> None:
+    messages = read_log(run_log)
+    database = load_database()
+    bus, clock = _SendOnly(), _FakeClock()
+    replay_timed(bus, messages, "T", FrameFilter(), 1.0, clock, clock.sleep)
+    assert [key(m) for m in bus.sent] == [key(m) for m in messages if not m.is_rx]
+    bus = _SendOnly()
+    selection = FrameFilter.parse(["0x201-0x202"], ["SYNC"], database)
+    replay_timed(bus, messages, "all", selection, 1e9, clock, clock.sleep)
+    assert {m.arbitration_id for m in bus.sent} == {0x080, 0x201, 0x202}
+    assert len(bus.sent) == 3 * CYCLES
+
+
+def test_replay_over_the_hub_in_order(
+    spec: str, open_buses: list[can.BusABC], run_log: Path
+) -> None:
+    listener = connect(spec, open_buses)
+    assert main(["bus", "replay", str(run_log), "--bus", spec, "--speed", "1000"]) == 0
+    messages = read_log(run_log)
+    assert [key(m) for m in recv_n(listener, len(messages))] == [key(m) for m in messages]
+
+
+def _plant_responder(bus: can.BusABC, cycles: int, events: list[str]) -> None:
+    """Echo every SYNC(c) with the DriveStatus(c) of each drive; log what happens."""
+    protocol = Protocol()
+    for _ in range(cycles * (1 + 2 * DRIVES)):
+        msg = bus.recv(TIMEOUT)
+        if msg is None:
+            events.append("timeout")
+            return
+        frame = protocol.decode(msg)
+        events.append(f"got {type(frame).__name__} {frame.counter}")  # type: ignore[union-attr]
+        if isinstance(frame, Sync):
+            for n in (2, 1):  # the reverse of the log's order: acks are matched, not ordered
+                bus.send(protocol.encode(DriveStatus(n, 0.025, 0.0, 0.0, 0, frame.counter)))
+                events.append(f"sent DriveStatus {frame.counter}")
+
+
+def test_lockstep_replay_waits_for_the_echo_of_each_counter(
+    spec: str, open_buses: list[can.BusABC], run_log: Path
+) -> None:
+    replayer = connect(spec, open_buses)
+    responder = connect(spec, open_buses)
+    events: list[str] = []
+    thread = threading.Thread(target=_plant_responder, args=(responder, CYCLES, events))
+    thread.start()
+    try:
+        tally = replay_lockstep(
+            replayer, read_log(run_log), "R", FrameFilter(), load_database(), TIMEOUT
+        )
+    finally:
+        thread.join(TIMEOUT)
+    assert tally.acknowledged == CYCLES * DRIVES
+    assert tally.cycles == CYCLES
+    expected = []
+    for c in range(CYCLES):
+        expected += [f"got Sync {c}"] + [f"sent DriveStatus {c}"] * DRIVES
+        expected += [f"got DriveCommand {c}", f"got ControllerState {c}"] * DRIVES
+    assert events == expected
+
+
+def test_lockstep_replay_of_the_plant_side_waits_for_sync_and_commands(
+    spec: str, open_buses: list[can.BusABC], run_log: Path
+) -> None:
+    replayer = connect(spec, open_buses)
+    controller = connect(spec, open_buses)
+    protocol = Protocol()
+    statuses: list[int] = []
+
+    def run_controller() -> None:
+        for c in range(3):
+            controller.send(protocol.encode(Sync(c)))
+            got = 0
+            while got < DRIVES:
+                msg = controller.recv(TIMEOUT)
+                if msg is None:
+                    return
+                frame = protocol.decode(msg)
+                if isinstance(frame, DriveStatus):
+                    statuses.append(frame.counter)
+                    got += 1
+            for n in range(1, DRIVES + 1):
+                controller.send(protocol.encode(DriveCommand(n, 0.03, True, c)))
+                controller.send(protocol.encode(ControllerState(n, 1.5, 1.25, c)))
+
+    messages = [m for m in read_log(run_log) if m.arbitration_id != 0x123]
+    three_cycles = messages[
+        : next(i for i, m in enumerate(messages) if m.arbitration_id == 0x080 and m.data[0] == 3)
+    ]
+    thread = threading.Thread(target=run_controller)
+    thread.start()
+    try:
+        tally = replay_lockstep(
+            replayer, three_cycles, "T", FrameFilter(), load_database(), TIMEOUT
+        )
+    finally:
+        thread.join(TIMEOUT)
+    assert statuses == [0, 0, 1, 1, 2, 2]
+    assert tally.acknowledged == 3 * (1 + 2 * DRIVES)
+
+
+def test_lockstep_timeout_and_direction_are_one_line(
+    spec: str, run_log: Path, capsys: pytest.CaptureFixture[str], open_buses: list[can.BusABC]
+) -> None:
+    connect(spec, open_buses)  # a silent receiver
+    argv = ["bus", "replay", str(run_log), "--bus", spec, "--lockstep"]
+    assert main([*argv, "--direction", "R", "--timeout", "0.2"]) == 1
+    line = one_error_line(capsys)
+    assert "no DriveStatus1 (0x181) with counter 0 within 0.2 s (SYNC cycle 0" in line
+    assert main(argv) == 1
+    assert "--direction R" in one_error_line(capsys)
+    with pytest.raises(BusError):
+        replay_lockstep(_SendOnly(), read_log(run_log), "T", FrameFilter(), load_database(), 0)
+
+
+# ------------------------------------------------------------------------------ load, vcan
+
+
+def test_load_from_a_log_per_message(run_log: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    report = measure(read_log(run_log), load_database(), 500_000)
+    span = 0.125  # first frame at 0, the last (0x123) at 0.125 s
+    assert report.span == pytest.approx(span)
+    rows = {r.frame_id: r for r in report.rows}
+    assert rows[0x181].frames == CYCLES and rows[0x181].bits == CYCLES * frame_bits(8)
+    assert rows[0x18FF1234].bits == frame_bits(2) + 25
+    total = sum(r.bits for r in report.rows)
+    assert report.load == pytest.approx(total / span / 500_000)
+    assert main(["bus", "load", "--log", str(run_log), "--bitrate", "500000"]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith(f"bus load {100 * report.load:.1f} % at 500000 bit/s")
+    sync_row = next(x for x in out.splitlines() if x.startswith("SYNC "))
+    assert sync_row.split() == [
+        "SYNC",
+        "0x080",
+        str(CYCLES),
+        f"{CYCLES / span:.2f}",
+        f"{100 * CYCLES * frame_bits(1) / total:.1f}",
+    ]
+
+
+def test_load_bad_inputs(run_log: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["bus", "load", "--log", str(run_log), "--bitrate", "0"]) == 1
+    one_error_line(capsys)
+    assert main(["bus", "load", "default.toml", "--log", str(run_log)]) == 1
+    one_error_line(capsys)
+    assert main(["bus", "load"]) == 0  # the scenario's implied load is still there
+    assert "bus load" in capsys.readouterr().out
+
+
+def test_bus_up_without_socketcan_exits_2_with_the_hub_hint(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    if socketcan_available():
+        pytest.skip("this kernel has SocketCAN; `hil bus up` would create an interface")
+    for action in ("up", "down"):
+        assert main(["bus", action]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "no SocketCAN" in err[0] and "hil bus serve" in err[0]
+
+
+def test_each_seen_echo_satisfies_one_wait_only() -> None:
+    # After 256 cycles the counter repeats: a stale echo must not acknowledge a later cycle.
+    protocol = Protocol()
+    cycle = [protocol.encode(Sync(0)), protocol.encode(DriveStatus(1, 0.025, 0.0, 0.0, 0, 0))]
+    cycle[0].is_rx, cycle[1].is_rx = True, False
+    echo = protocol.encode(DriveStatus(1, 0.025, 0.0, 0.0, 0, 0))
+
+    class _EchoOnce(_SendOnly):
+        def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+            if len(self.sent) == 1 and not getattr(self, "echoed", False):
+                self.echoed = True
+                return echo, False
+            return None, False
+
+    bus = _EchoOnce()
+    database = load_database()
+    assert replay_lockstep(bus, cycle, "R", FrameFilter(), database, 1.0).acknowledged == 1
+    with pytest.raises(BusError, match="counter 0"):  # one echo, two cycles with counter 0
+        replay_lockstep(_EchoOnce(), cycle * 2, "R", FrameFilter(), database, 0.05)
+
+
+def test_dump_ends_on_ctrl_c_with_the_count_line(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import hil.bustools.dump
+    import hil.bustools.frames
+
+    def two_then_ctrl_c(bus: can.BusABC, idle_timeout: float | None) -> Iterator[can.Message]:
+        yield Protocol().encode(Sync(4))
+        yield can.Message(arbitration_id=0x555, is_extended_id=False, data=b"\x01")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(hil.bustools.frames, "open_spec", lambda text: _SendOnly())
+    monkeypatch.setattr(hil.bustools.dump, "live_frames", two_then_ctrl_c)
+    assert main(["bus", "dump"]) == 0
+    captured = capsys.readouterr()
+    assert len(captured.out.splitlines()) == 2
+    assert captured.err.strip() == "2 frames, 1 decoded, 1 unknown (0x555 x1)"
