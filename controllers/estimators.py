@@ -368,10 +368,13 @@ class SegmentKalmanEstimator(_LatencyFilter):
 
 
 class ArmUnscentedEstimator(_LatencyFilter):
-    """An unscented Kalman filter (filterpy, Merwe scaled sigma points: alpha 0.3, beta 2,
-    kappa 0) over the whole arm, state (theta_1..N, omega_1..N), measuring the visible segment-end
-    markers through the PCC forward kinematics; any subset of markers updates what it can. The
-    base marker carries no information on the state (the base is fixed) and is not used. The
+    """An unscented Kalman filter (filterpy, Merwe scaled sigma points: alpha 1, beta 2, kappa 0:
+    every covariance weight positive, so P stays positive definite for any number of segments;
+    a small alpha gives the central point a weight of about -1/alpha^2, which made P indefinite
+    on six segments) over the whole arm, state (theta_1..N, omega_1..N), measuring the visible
+    segment-end markers through the PCC forward kinematics; any subset of markers updates what
+    it can. The base marker carries no information on the state (the base is fixed) and is not
+    used. The
     dynamics are linear, so the prediction is the exact linear one; the unscented transform is
     used for the measurement. Each marker is gated on its own 2 x 2 block of the innovation
     covariance, and the accepted markers update together."""
@@ -389,7 +392,9 @@ class ArmUnscentedEstimator(_LatencyFilter):
     ) -> None:
         super().__init__(bends, base, camera, control_period, latency_compensation, torque_std)
         n = self.segments
-        self.points_fn = MerweScaledSigmaPoints(2 * n, alpha=0.3, beta=2.0, kappa=0.0)
+        self.points_fn = MerweScaledSigmaPoints(
+            2 * n, alpha=1.0, beta=2.0, kappa=0.0, sqrt_method=_robust_sqrt
+        )
         self.ukf = UnscentedKalmanFilter(
             dim_x=2 * n, dim_z=2 * n, dt=0.0, hx=None, fx=None, points=self.points_fn
         )
@@ -482,6 +487,16 @@ class ArmUnscentedEstimator(_LatencyFilter):
     def _read(self, x: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         n = self.segments
         return x[:n], x[n:], np.diag(P)[:n]
+
+
+def _robust_sqrt(P: np.ndarray) -> np.ndarray:
+    """Upper-triangular square root of a covariance (Cholesky); if rounding made it slightly
+    indefinite, the symmetric square root of its positive part instead."""
+    try:
+        return np.linalg.cholesky(P).T
+    except np.linalg.LinAlgError:
+        values, vectors = np.linalg.eigh(0.5 * (P + P.T))
+        return (vectors * np.sqrt(np.clip(values, 0.0, None))) @ vectors.T
 
 
 def make_estimator(

@@ -33,6 +33,7 @@ from cantools.database.can import Database, Message
 
 DBC_PATH = Path(str(files("controllers") / "softhil.dbc"))
 
+SYNC_ID = 0x080  # the SYNC message's id in the DBC (CANopen's); checked by the tests
 COUNTER_MODULO = 256
 WRAPPING_SIGNALS = ("counter", "frame_index")  # sequence numbers: encoded modulo their range
 

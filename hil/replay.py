@@ -32,10 +32,8 @@ import can
 
 from controllers.canbus import BusSpec, open_bus
 from controllers.node import ControllerConfig, ControllerNode
-from controllers.protocol import COUNTER_MODULO, FrameError, Protocol, Sync
+from controllers.protocol import COUNTER_MODULO, SYNC_ID, FrameError, Protocol, Sync
 from hil.errors import HilError
-
-SYNC_ID = 0x080
 
 
 class ReplayError(HilError):
@@ -138,15 +136,15 @@ def read_cycles(messages: Iterable[can.Message], protocol: Protocol, source: str
 
 
 def read_log(path: Path) -> list[can.Message]:
-    """The messages of a CAN log in any format python-can reads (by suffix)."""
-    if not path.is_file():
-        raise ReplayError(f"{path}: no such log file")
+    """The messages of a CAN log in any format python-can reads (by suffix); a malformed log is
+    one line naming the file and where."""
+    from hil.bustools.logs import LogError
+    from hil.bustools.logs import read_log as read
+
     try:
-        if path.suffix == ".asc":
-            return list(can.ASCReader(str(path), relative_timestamp=False))
-        return list(can.LogReader(str(path)))
-    except Exception as exc:  # python-can's readers raise what the format's parser raises
-        raise ReplayError(f"{path}: not a readable CAN log: {exc}") from None
+        return read(path)
+    except LogError as exc:
+        raise ReplayError(str(exc)) from None
 
 
 def config_beside(log: Path) -> ControllerConfig:

@@ -388,6 +388,14 @@ def _check(s: Scenario) -> None:
     robot.check(s)
     reach = robot.reach(s)
     base = getattr(s.robot, "base", (0.0, 0.0))
+    if max(abs(base[0]), abs(base[1])) + reach > marker_range:
+        raise _fail(
+            file,
+            "robot",
+            f"the arm can reach {reach:g} m from its base at "
+            f"({base[0]:g}, {base[1]:g}): beyond the camera's +-{marker_range:g} m "
+            "(the CameraMarker range in the DBC)",
+        )
     margin = 6.0 * s.camera.noise + (s.camera.outlier_distance if s.camera.outlier_rate else 0.0)
     if margin > 0.0 and max(abs(base[0]), abs(base[1])) + reach + margin > marker_range:
         raise _fail(
@@ -395,14 +403,6 @@ def _check(s: Scenario) -> None:
             "camera.noise",
             f"markers up to {reach:g} m from the base, plus 6 sigma of noise and the outlier "
             f"distance ({margin:g} m), leave the camera's +-{marker_range:g} m field of view "
-            "(the CameraMarker range in the DBC)",
-        )
-    if max(abs(base[0]), abs(base[1])) + reach > marker_range:
-        raise _fail(
-            file,
-            "robot",
-            f"the arm can reach {reach:g} m from its base at "
-            f"({base[0]:g}, {base[1]:g}): beyond the camera's +-{marker_range:g} m "
             "(the CameraMarker range in the DBC)",
         )
     ports = robot.ports(s)

@@ -48,6 +48,19 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
         action="store_true",
         help="allow a non-loopback --host (other machines can join the bus)",
     )
+    serve.add_argument(
+        "--max-clients",
+        type=int,
+        default=loopback.DEFAULT_MAX_CLIENTS,
+        help="connections served at once; more are refused",
+    )
+    serve.add_argument(
+        "--max-buffer",
+        default="64M",
+        metavar="BYTES",
+        help="outgoing bytes buffered for all clients together (e.g. 64M, 512K); a client that "
+        "stops reading beyond its equal share is disconnected",
+    )
     serve.set_defaults(handler=_serve)
     load = example_parser(
         sub,
@@ -182,7 +195,8 @@ def _add_filters(parser: argparse.ArgumentParser) -> None:
 
 def _serve(args: argparse.Namespace) -> int:
     extra = ["--allow-remote"] if args.allow_remote else []
-    return loopback.main(["--host", args.host, "--port", str(args.port), *extra])
+    limits = ["--max-clients", str(args.max_clients), "--max-buffer", str(args.max_buffer)]
+    return loopback.main(["--host", args.host, "--port", str(args.port), *limits, *extra])
 
 
 def _load(args: argparse.Namespace) -> int:
