@@ -59,7 +59,7 @@ def test_end_stops_hold_under_a_large_setpoint(drive_cylinder_fmu) -> None:
 
 
 def test_servo_holds_position_against_chamber_pressure(drive_cylinder_fmu) -> None:
-    # 40 kPa in front of the piston pushes it back with 11 N; integral action removes the offset
+    # 40 kPa in front of the piston pushes it back with 20 N; integral action removes the offset
     r = simulate(
         drive_cylinder_fmu,
         3.0,
@@ -69,7 +69,7 @@ def test_servo_holds_position_against_chamber_pressure(drive_cylinder_fmu) -> No
     assert abs(r["x"][-1] - 0.030) < 2e-5
     # the motor now carries the load: at rest the screw's friction holds any motor torque between
     # the back-driving r eta_b F and the driving r F / eta, so the current lies in that band
-    force = 40e3 * np.pi * 0.01905**2 / 4
+    force = 40e3 * np.pi * 0.0254**2 / 4
     r_screw, eta = 1e-3 / (2 * np.pi), 0.5
     band = (r_screw * force * (2 - 1 / eta) / 0.0382, r_screw * force / eta / 0.0382)
     assert band[0] - 1e-3 <= r["i_motor"][-1] <= band[1] + 1e-3
@@ -83,7 +83,7 @@ def test_disabled_servo_applies_no_voltage(drive_cylinder_fmu) -> None:
 
 
 def test_stall_fault_when_blocked_by_pressure(drive_cylinder_fmu) -> None:
-    # 250 kPa on 285 mm^2 is 71 N, more than the 50 N the motor can push: back-driven, it stalls
+    # 250 kPa on 507 mm^2 is 127 N, more than the 50 N the motor can push: it stalls
     r = simulate(drive_cylinder_fmu, 1.5, OUTPUTS, inputs=lambda t: {"x_ref": 0.04, "p_a": 250e3})
     assert int(r["fault"][-1]) & 4
     assert r["x"][-1] < MID + 1e-3

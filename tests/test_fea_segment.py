@@ -12,7 +12,7 @@ from hil.fmu.slave import FmuSlave
 from tests.helpers import simulate
 
 P_ATM = 101325.0
-A_BORE = math.pi * 0.01905**2 / 4
+A_BORE = math.pi * 0.0254**2 / 4
 G_A, K_BEND = 7.7e-7, 0.025
 VACUUM_FACTOR, P_COLLAPSE = 0.5, 1e4
 OUTPUTS = ["kappa", "theta", "theta_dot", "p_a", "p_b", "v_a", "v_b"]
@@ -60,15 +60,21 @@ def test_compliance_adds_volume_in_proportion_to_pressure(fea_segment_fmu) -> No
 
 
 @pytest.mark.parametrize("x_piston", [0.0, 0.05])
-def test_full_piston_travel_gives_the_operating_pressure_range(fea_segment_fmu, x_piston) -> None:
-    r = simulate(fea_segment_fmu, 2.0, OUTPUTS, None, lambda t: {"x_piston": x_piston})
-    differential = abs(r["p_a"][-1] - r["p_b"][-1])
-    assert 20e3 <= differential <= 55e3
+def test_full_stroke_pressure_sits_inside_the_calibrated_band(fea_segment_fmu, x_piston) -> None:
+    # PHYSICS.md section 2: "3 to 8 psi" [thesis]; at full stroke with the segment free to bend
+    # the pressurised channel is calibrated to about 5-7 psi (35-48 kPa gauge), clearly below the
+    # scenario's 60 kPa safety limit
+    r = simulate(fea_segment_fmu, 3.0, OUTPUTS, None, lambda t: {"x_piston": x_piston})
+    pressurised = r["p_a"][-1] if x_piston > 0.025 else r["p_b"][-1]
+    assert 35e3 <= pressurised <= 48e3
+    assert np.max(np.abs([r["p_a"], r["p_b"]])) < 50e3
+    # the drive pushes (p_a - p_b) A, within its ~50 N
+    assert abs(r["p_a"][-1] - r["p_b"][-1]) * A_BORE < 40.0
     # pushing the piston forward (towards stroke) compresses side a and bends positively
     assert np.sign(r["theta"][-1]) == (1 if x_piston > 0.025 else -1)
 
 
-@pytest.mark.parametrize("x_piston", [0.01, 0.035, 0.05])
+@pytest.mark.parametrize("x_piston", [0.01, 0.035, 0.04])
 def test_steady_bend_angle_balances_pressure_torque(fea_segment_fmu, x_piston) -> None:
     # overdamped (the arm lies on a table): the slow pole is near k/d = 4 1/s, so 5 s is steady
     r = simulate(fea_segment_fmu, 5.0, OUTPUTS, None, lambda t: {"x_piston": x_piston})
