@@ -90,6 +90,34 @@ static int gas_pressure(const Instance *inst, double V0, double sign, double the
     double g, lo = -p_atm;
     int iteration;
     if (!(m > 0.0) || !(theta_s > 0.0) || !isfinite(target)) return 0;
+    if (n == 1.0) {
+        /* isothermal: (p_atm + g) V(g) = m R T. Under pressure G = G_a and this is a quadratic
+         * in g (stable form of the + root); under vacuum Newton from that root */
+        const double mRT = m * V(inst, R_gas) * theta_s;
+        const double V1 = V0 + sign * V(inst, G_a) * theta, B = C * p_atm + V1;
+        const double c0 = p_atm * V1 - mRT, disc = B * B - 4.0 * C * c0;
+        if (V1 > 0.0 && disc >= 0.0) {
+            g = -2.0 * c0 / (B + sqrt(disc));
+            if (g >= 0.0) {
+                *gauge = g;
+                return 1;
+            }
+            for (iteration = 0; iteration < 30; iteration++) {
+                const double p = p_atm + g, vol = side_volume(inst, V0, sign, theta, g);
+                const double dG = V(inst, G_a) * (1.0 - V(inst, vacuum_factor)) /
+                                  V(inst, p_collapse) * exp(g / V(inst, p_collapse));
+                const double dF = vol + p * (C + sign * dG * theta);
+                double step;
+                if (!(p > 0.0) || !(vol > 0.0) || !(dF > 0.0)) break;
+                step = (p * vol - mRT) / dF;
+                g -= step;
+                if (fabs(step) <= 1e-9) {
+                    *gauge = g < 0.0 ? g : 0.0;
+                    return 1;
+                }
+            }
+        }
+    }
     /* start from the rigid solution at the channel's current sensitivity */
     {
         const double rigid = V0 + sign * V(inst, G_a) * theta;

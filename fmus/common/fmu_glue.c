@@ -447,7 +447,11 @@ fmi2Status fmi2GetDirectionalDerivative(fmi2Component c, const fmi2ValueReferenc
 /* phi_1..phi_3 of z (phi_k(z) = sum_j z^j / (j + k)!), by series near 0 where the closed forms
  * cancel, else closed form. */
 static void phi_functions(double z, double phi[3]) {
-    if (fabs(z) < 0.5) {
+    if (z == 0.0) {
+        phi[0] = 1.0;
+        phi[1] = 0.5;
+        phi[2] = 1.0 / 6.0;
+    } else if (fabs(z) < 0.5) {
         int k;
         for (k = 1; k <= 3; k++) {
             double term = 1.0, sum = 0.0, denominator = 1.0;
@@ -491,8 +495,8 @@ static int exponential_rk4(Instance *inst, double h) {
         double phi[3], phi_half[3];
         phi_functions(z, phi);
         phi_functions(0.5 * z, phi_half);
-        E[j] = exp(z);
-        E2[j] = exp(0.5 * z);
+        E[j] = z == 0.0 ? 1.0 : exp(z);
+        E2[j] = z == 0.0 ? 1.0 : exp(0.5 * z);
         p_half[j] = 0.5 * h * phi_half[0];
         f1[j] = h * (phi[0] - 3.0 * phi[1] + 4.0 * phi[2]);
         f2[j] = h * (phi[1] - 2.0 * phi[2]);
