@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
@@ -114,3 +116,24 @@ def test_non_finite_input_is_an_error(drive_cylinder_fmu) -> None:
             slave.set("x", 0.01)
         with pytest.raises(FmuError, match="parameter stroke is fixed after initialisation"):
             slave.set("stroke", 0.01)
+
+
+def test_substep_beyond_the_stated_stability_limit_is_rejected(drive_cylinder_fmu) -> None:
+    # a slipperier seal (smaller v_stiction) stiffens the mechanics: the limit moves below 1 ms
+    with pytest.raises(FmuError, match="beyond the stability limit") as info:
+        FmuSlave(drive_cylinder_fmu, "cyl", {"v_stiction": 1e-5, "substep": 5e-4})
+    assert "substep = 0.0005" in str(info.value)
+    # the electrical pole (R/L = 1e4 1/s) no longer limits: a stiffer one is integrated exactly
+    r = simulate(drive_cylinder_fmu, 0.5, OUTPUTS, {"L_motor": 1e-5}, lambda t: {"x_ref": 0.03})
+    assert np.all(np.isfinite(r["x"])) and abs(r["x"][-1] - 0.03) < 1e-4
+
+
+def test_servo_move_converges_with_the_substep(drive_cylinder_fmu) -> None:
+    # the default substep (set by the mechanics, the electrical pole exact) against a 4x finer
+    # reference over a closed-loop-like servo move with chamber load
+    def move(t: float) -> dict[str, float]:
+        return {"x_ref": 0.025 + 0.01 * math.sin(2 * math.pi * t), "p_a": 20e3, "p_b": -15e3}
+
+    coarse = simulate(drive_cylinder_fmu, 1.0, ["x"], None, move)
+    fine = simulate(drive_cylinder_fmu, 1.0, ["x"], {"substep": 1.25e-4 / 4}, move)
+    assert np.max(np.abs(coarse["x"] - fine["x"]) / np.abs(fine["x"])) < 1e-6

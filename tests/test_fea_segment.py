@@ -130,3 +130,77 @@ def test_piston_outside_the_stroke_is_an_error(fea_segment_fmu) -> None:
         slave.set("x_piston", 0.06)
         with pytest.raises(FmuError, match="x_piston = 0.06 is outside the stroke"):
             slave.do_step(0.0, 1e-3)
+
+
+def test_polytropic_pressure_relaxes_to_isothermal_with_the_wall_time_constant(
+    fea_segment_fmu,
+) -> None:
+    rigid = {"C_a": 0.0, "G_a": 0.0, "n_poly": 1.4, "tau_thermal": 0.5}
+    r = simulate(fea_segment_fmu, 5.0, OUTPUTS, rigid, lambda t: {"x_piston": 0.045})
+    v0 = A_BORE * 0.025 + 13e-6
+    v1 = r["v_a"][-1]
+    adiabatic = P_ATM * (v0 / v1) ** 1.4 - P_ATM
+    isothermal = P_ATM * v0 / v1 - P_ATM
+    # the sudden compression is adiabatic, the held stroke relaxes to isothermal
+    assert r["p_a"][1] == pytest.approx(adiabatic, rel=0.01)
+    assert r["p_a"][-1] == pytest.approx(isothermal, rel=1e-3)
+    # a rigid volume relaxes exponentially with tau_thermal
+    excess = (r["p_a"] - isothermal) / (adiabatic - isothermal)
+    assert excess[501] == pytest.approx(math.exp(-1.0), rel=0.02)
+
+
+def test_bending_inertia_is_that_of_a_uniform_pcc_segment(fea_segment_fmu) -> None:
+    # from rest, a torque step accelerates the bend through I = m L^2 / 20 against damping:
+    # omega(t) = tau / d (1 - exp(-d t / I)) while theta and the spring are still negligible
+    h, tau, d = 1e-4, 0.01, 6e-3
+    inertia = 0.03 * 0.06**2 / 20
+    r = simulate(
+        fea_segment_fmu,
+        2 * h,
+        OUTPUTS,
+        {"G_a": 0.0, "substep": 1e-5},
+        lambda t: {"tau_ext": tau},
+        step=h,
+    )
+    assert r["theta_dot"][1] == pytest.approx(tau / d * (1 - math.exp(-d * h / inertia)), rel=0.01)
+
+
+def test_vacuum_side_transmits_less_torque(fea_segment_fmu) -> None:
+    # at full stroke side b is under vacuum; its collapsing channel pulls less
+    full = simulate(
+        fea_segment_fmu, 3.0, OUTPUTS, {"vacuum_factor": 1.0}, lambda t: {"x_piston": 0.04}
+    )
+    collapsing = simulate(fea_segment_fmu, 3.0, OUTPUTS, None, lambda t: {"x_piston": 0.04})
+    assert collapsing["p_b"][-1] < -10e3
+    assert collapsing["theta"][-1] < full["theta"][-1] - 0.05
+    g = collapsing["p_b"][-1]
+    assert channel_torque(g) / (G_A * g) == pytest.approx(
+        0.5 + 0.5 * P_COLLAPSE / g * math.expm1(g / P_COLLAPSE), rel=1e-9
+    )
+    assert channel_torque(g) / (G_A * g) < 0.85
+
+
+def test_input_interpolated_to_the_end_of_the_stroke_is_accepted(fea_segment_fmu) -> None:
+    import fmpy
+
+    ramp = np.array([(0.0, 0.025), (0.3, 0.05)], dtype=[("time", float), ("x_piston", float)])
+    result = fmpy.simulate_fmu(
+        str(fea_segment_fmu.path),
+        stop_time=0.5,
+        output_interval=1e-3,
+        input=ramp,
+        output=["p_a", "theta"],
+    )
+    assert result["p_a"][-1] > 20e3
+    past = np.array([(0.0, 0.025), (0.3, 0.0501)], dtype=ramp.dtype)
+    with pytest.raises(Exception, match="failed"):
+        fmpy.simulate_fmu(
+            str(fea_segment_fmu.path), stop_time=0.5, output_interval=1e-3, input=past
+        )
+
+
+def test_substep_beyond_the_bending_stability_limit_is_rejected(fea_segment_fmu) -> None:
+    # a 100x lighter segment has a 100x faster bending pole
+    with pytest.raises(FmuError, match="beyond the stability limit") as info:
+        FmuSlave(fea_segment_fmu, "seg", {"mass": 3e-4})
+    assert "substep = 0.0001" in str(info.value)
