@@ -86,10 +86,9 @@ static double side_volume(const Instance *inst, double V0, double sign, double t
 static int gas_pressure(const Instance *inst, double V0, double sign, double theta, double m,
                         double theta_s, double *gauge) {
     const double p_atm = V(inst, p_atm), C = V(inst, C_a), n = V(inst, n_poly);
-    const double target = log(V(inst, R_gas) * theta_s) + n * log(m);
-    double g, lo = -p_atm;
+    double g, lo = -p_atm, target;
     int iteration;
-    if (!(m > 0.0) || !(theta_s > 0.0) || !isfinite(target)) return 0;
+    if (!(m > 0.0) || !(theta_s > 0.0)) return 0;
     if (n == 1.0) {
         /* isothermal: (p_atm + g) V(g) = m R T. Under pressure G = G_a and this is a quadratic
          * in g (stable form of the + root); under vacuum Newton from that root */
@@ -118,6 +117,8 @@ static int gas_pressure(const Instance *inst, double V0, double sign, double the
             }
         }
     }
+    target = log(V(inst, R_gas) * theta_s) + n * log(m);
+    if (!isfinite(target)) return 0;
     /* start from the rigid solution at the channel's current sensitivity */
     {
         const double rigid = V0 + sign * V(inst, G_a) * theta;
