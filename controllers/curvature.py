@@ -28,7 +28,7 @@ class SegmentModel:
     V_dead: float = 5e-6
     V_ch0: float = 8e-6
     C_a: float = 1e-10
-    bore: float = 0.01905
+    bore: float = 0.0254
     stroke: float = 0.05
     x_seal: float = 0.025
     p_atm: float = 101325.0

@@ -1,9 +1,20 @@
-/* DriveCylinder physics (PHYSICS.md section 1): an armature-controlled DC motor turns a lead
- * screw that pushes a double-acting piston with Coulomb + viscous seal friction against the
- * chamber pressures; hard end stops at 0 and stroke. The actuator's own firmware is a discrete PID
- * position servo with derivative on measurement, a filtered derivative and conditional-integration
- * anti-windup, sampled every servo_period. Continuous states are integrated with fixed RK4
- * substeps no longer than `substep`; the servo voltage is held between samples (ZOH). */
+/* DriveCylinder physics: an armature-controlled DC motor turns a lead screw that pushes a
+ * double-acting piston with Coulomb + viscous seal friction against the chamber pressures; hard
+ * end stops at 0 and stroke. The actuator's own firmware is a discrete PID position servo with
+ * derivative on measurement, a filtered derivative and conditional-integration anti-windup,
+ * sampled every servo_period; its voltage is held between samples (ZOH).
+ *
+ * Lead screw: with load force F (pressure + seal friction, positive against +x), the motor-side
+ * torque is r F / eta while the motor drives the load and r eta_b F while the load drives the
+ * motor, eta_b = 2 - 1/eta (lead screw). Both are one law, a screw friction force
+ * mu |F| sgn(v) with mu = 1/eta - 1, so the screw always dissipates and at eta <= 1/2
+ * (eta_b <= 0) it self-locks: the load cannot back-drive it. sgn is smoothed like the seal's
+ * Coulomb friction (tanh over v_stiction), which leaves a creep of order v_stiction.
+ *
+ * Integration: the common exponential RK4 integrates the stiff electrical pole -R/L exactly, so
+ * the substep is set by the mechanics (stated in mechanical_stability_limit). Energies are
+ * integrated with the states: E_electric = dE_stored + E_resistive + E_friction + E_screw + W_gas
+ * holds for Kt = Ke (SI motor constants). */
 #include <math.h>
 
 #include "glue.h"
@@ -12,8 +23,11 @@
 
 enum { FAULT_END_STOP = 1, FAULT_REF_CLAMPED = 2, FAULT_STALL = 4 };
 
+/* continuous states, in this order in State.y */
+enum { I, W, X, E_ELECTRIC, E_RESISTIVE, E_FRICTION, E_SCREW, W_GAS, N_STATES };
+
 typedef struct {
-    double i, w, x;     /* motor current [A], rotor speed [rad/s], piston position [m] */
+    double y[N_STATES]; /* i [A], w [rad/s], x [m], then the energies [J] */
     double integral;    /* servo integrator [V] */
     double d_filtered;  /* filtered derivative of the measured position [m/s] */
     double x_prev;      /* position at the previous servo sample [m] */
@@ -36,66 +50,92 @@ static double bore_area(const Instance *inst) {
     return 0.25 * PI * V(inst, bore) * V(inst, bore);
 }
 
+/* Screw friction coefficient mu = 1/eta - 1: F/eta forwards, (2 - 1/eta) F backwards. */
+static double screw_friction_coefficient(const Instance *inst) {
+    return 1.0 / V(inst, efficiency) - 1.0;
+}
+
 /* Seal friction force opposing the piston velocity v, smoothed Coulomb + viscous [N]. */
 static double seal_friction(const Instance *inst, double v) {
     return V(inst, F_coulomb) * tanh(v / V(inst, v_stiction)) + V(inst, c_viscous) * v;
 }
 
-/* Right-hand side of the motor/screw/piston equations for y = (i, w, x). */
-static void derivatives(const Instance *inst, const double y[3], double u, double dy[3]) {
-    const double r = screw_ratio(inst);
-    const double v = r * y[1];
-    const double load = (V(inst, p_a) - V(inst, p_b)) * bore_area(inst) + seal_friction(inst, v);
-    const double load_torque = r / V(inst, efficiency) * load;
-    dy[0] = (u - V(inst, R_motor) * y[0] - V(inst, Ke) * y[1]) / V(inst, L_motor);
-    dy[1] = (V(inst, Kt) * y[0] - V(inst, b_motor) * y[1] - load_torque) / V(inst, J);
-    dy[2] = v;
-    /* hard end stops: at a stop the screw cannot accelerate further into it */
-    if (y[2] <= 0.0 && y[1] <= 0.0) {
-        if (dy[1] < 0.0) dy[1] = 0.0;
-        if (dy[2] < 0.0) dy[2] = 0.0;
-    }
-    if (y[2] >= V(inst, stroke) && y[1] >= 0.0) {
-        if (dy[1] > 0.0) dy[1] = 0.0;
-        if (dy[2] > 0.0) dy[2] = 0.0;
-    }
+/* Lead screw friction force for a load F at piston velocity v [N], always dissipative. */
+static double screw_friction(const Instance *inst, double load, double v) {
+    return screw_friction_coefficient(inst) * fabs(load) * tanh(v / V(inst, v_stiction));
 }
 
-/* One RK4 substep of length dt, then an inelastic impact at an end stop. */
-static void rk4_substep(Instance *inst, State *s, double dt) {
-    double y[3] = {s->i, s->w, s->x}, k1[3], k2[3], k3[3], k4[3], t[3];
-    int j;
-    derivatives(inst, y, s->u, k1);
-    for (j = 0; j < 3; j++) t[j] = y[j] + 0.5 * dt * k1[j];
-    derivatives(inst, t, s->u, k2);
-    for (j = 0; j < 3; j++) t[j] = y[j] + 0.5 * dt * k2[j];
-    derivatives(inst, t, s->u, k3);
-    for (j = 0; j < 3; j++) t[j] = y[j] + dt * k3[j];
-    derivatives(inst, t, s->u, k4);
-    for (j = 0; j < 3; j++) y[j] += dt / 6.0 * (k1[j] + 2.0 * k2[j] + 2.0 * k3[j] + k4[j]);
-    if (y[2] <= 0.0) {
-        y[2] = 0.0;
-        if (y[1] < 0.0) y[1] = 0.0;
-    } else if (y[2] >= V(inst, stroke)) {
-        y[2] = V(inst, stroke);
-        if (y[1] > 0.0) y[1] = 0.0;
+static double stored_energy(const Instance *inst, const double y[]) {
+    return 0.5 * V(inst, L_motor) * y[I] * y[I] + 0.5 * V(inst, J) * y[W] * y[W];
+}
+
+int model_derivatives(const Instance *inst, const double y[], double dy[]) {
+    const State *s = (const State *)inst->state;
+    const double r = screw_ratio(inst);
+    const double v = r * y[W];
+    const double pressure_force = (V(inst, p_a) - V(inst, p_b)) * bore_area(inst);
+    const double seal = seal_friction(inst, v);
+    const double load = pressure_force + seal;
+    const double screw = screw_friction(inst, load, v);
+    dy[I] = (s->u - V(inst, R_motor) * y[I] - V(inst, Ke) * y[W]) / V(inst, L_motor);
+    dy[W] = (V(inst, Kt) * y[I] - V(inst, b_motor) * y[W] - r * (load + screw)) / V(inst, J);
+    dy[X] = v;
+    /* hard end stops: at a stop the screw cannot accelerate further into it */
+    if (y[X] <= 0.0 && y[W] <= 0.0) {
+        if (dy[W] < 0.0) dy[W] = 0.0;
+        if (dy[X] < 0.0) dy[X] = 0.0;
     }
-    s->i = y[0];
-    s->w = y[1];
-    s->x = y[2];
+    if (y[X] >= V(inst, stroke) && y[W] >= 0.0) {
+        if (dy[W] > 0.0) dy[W] = 0.0;
+        if (dy[X] > 0.0) dy[X] = 0.0;
+    }
+    dy[E_ELECTRIC] = s->u * y[I];
+    dy[E_RESISTIVE] = V(inst, R_motor) * y[I] * y[I];
+    dy[E_FRICTION] = seal * v + V(inst, b_motor) * y[W] * y[W];
+    dy[E_SCREW] = screw * v;
+    dy[W_GAS] = pressure_force * v;
+    return isfinite(dy[I]) && isfinite(dy[W]);
+}
+
+/* Inelastic impact at an end stop; the rotor's kinetic energy is lost to the stop. */
+void model_after_substep(Instance *inst, double dt) {
+    State *s = (State *)inst->state;
+    double *y = s->y;
+    const double kinetic = 0.5 * V(inst, J) * y[W] * y[W];
+    if (y[X] <= 0.0) {
+        y[X] = 0.0;
+        if (y[W] < 0.0) {
+            y[W] = 0.0;
+            y[E_FRICTION] += kinetic;
+        }
+    } else if (y[X] >= V(inst, stroke)) {
+        y[X] = V(inst, stroke);
+        if (y[W] > 0.0) {
+            y[W] = 0.0;
+            y[E_FRICTION] += kinetic;
+        }
+    }
+    s->to_sample -= dt;
+}
+
+double model_time_to_event(const Instance *inst) {
+    return ((const State *)inst->state)->to_sample;
 }
 
 /* One sample of the servo firmware: PID from x_ref to the held motor voltage. */
-static void servo_sample(Instance *inst, State *s) {
+void model_discrete_update(Instance *inst) {
+    State *s = (State *)inst->state;
     const double Ts = V(inst, servo_period);
     const double u_max = V(inst, u_max);
     const double ref = clamp(V(inst, x_ref), 0.0, V(inst, stroke));
-    const double error = ref - s->x;
+    const double x = s->y[X];
+    const double error = ref - x;
     double proposed, u_unsat;
+    s->to_sample += Ts;
     s->ref_clamped = ref != V(inst, x_ref);
     /* backward-Euler discretisation of s / (Tf s + 1) on the measurement: no derivative kick */
-    s->d_filtered = (V(inst, Tf) * s->d_filtered + (s->x - s->x_prev)) / (V(inst, Tf) + Ts);
-    s->x_prev = s->x;
+    s->d_filtered = (V(inst, Tf) * s->d_filtered + (x - s->x_prev)) / (V(inst, Tf) + Ts);
+    s->x_prev = x;
     if (V(inst, enable) == 0.0) {
         s->integral = 0.0;
         s->u = 0.0;
@@ -110,27 +150,59 @@ static void servo_sample(Instance *inst, State *s) {
     }
     /* stall: saturated and not advancing at 1 mm/s in the pushed direction (blocked or
      * back-driven by the chamber pressure) */
-    if (fabs(s->u) >= u_max && (s->u > 0.0 ? 1.0 : -1.0) * screw_ratio(inst) * s->w < 1e-3) {
+    if (fabs(s->u) >= u_max && (s->u > 0.0 ? 1.0 : -1.0) * screw_ratio(inst) * s->y[W] < 1e-3) {
         s->stalled_for += Ts;
     } else {
         s->stalled_for = 0.0;
     }
 }
 
-static void update_outputs(Instance *inst, const State *s) {
+fmi2Status model_step_start(Instance *inst) {
+    (void)inst;
+    return fmi2OK;
+}
+
+fmi2Status model_outputs(Instance *inst) {
+    const State *s = (const State *)inst->state;
+    const double *y = s->y;
     int fault = 0;
-    V(inst, x) = s->x;
-    V(inst, v) = screw_ratio(inst) * s->w;
-    V(inst, i_motor) = s->i;
+    V(inst, x) = y[X];
+    V(inst, v) = screw_ratio(inst) * y[W];
+    V(inst, i_motor) = y[I];
     V(inst, u_motor) = s->u;
-    if (s->x <= 0.0 || s->x >= V(inst, stroke)) fault |= FAULT_END_STOP;
+    if (y[X] <= 0.0 || y[X] >= V(inst, stroke)) fault |= FAULT_END_STOP;
     if (s->ref_clamped) fault |= FAULT_REF_CLAMPED;
     if (V(inst, stall_time) > 0.0 && s->stalled_for >= V(inst, stall_time)) fault |= FAULT_STALL;
     V(inst, fault) = fault;
+    V(inst, E_electric) = y[E_ELECTRIC];
+    V(inst, E_stored) = stored_energy(inst, y);
+    V(inst, E_resistive) = y[E_RESISTIVE];
+    V(inst, E_friction) = y[E_FRICTION];
+    V(inst, E_screw) = y[E_SCREW];
+    V(inst, W_gas) = y[W_GAS];
+    return fmi2OK;
 }
 
-fmi2Status model_initialize(Instance *inst) {
+/* The substep beyond which the explicit part of the exponential RK4 diverges [s]: 2.5 / |lambda|
+ * (RK4's stability region contains the left half-disc of radius 2.5), with lambda the fastest
+ * mechanical rate: rotor damping by back-EMF (Kt Ke / R), viscous and linearised Coulomb seal and
+ * screw friction (slope F / v_stiction at the largest load the motor can hold, its stall force
+ * Kt u_max / (R r)), reflected through the screw. The electrical pole -R/L is exact. */
+static double mechanical_stability_limit(const Instance *inst) {
+    const double r = screw_ratio(inst);
+    const double stall_force = V(inst, Kt) * V(inst, u_max) / (V(inst, R_motor) * r);
+    const double friction_slope =
+        V(inst, c_viscous) +
+        (V(inst, F_coulomb) + screw_friction_coefficient(inst) * stall_force) / V(inst, v_stiction);
+    const double rate = (V(inst, b_motor) + V(inst, Kt) * V(inst, Ke) / V(inst, R_motor) +
+                         r * r * friction_slope) /
+                        V(inst, J);
+    return 2.5 / rate;
+}
+
+fmi2Status model_initialize(Instance *inst, OdeSystem *ode) {
     State *s = (State *)inst->state;
+    int j;
     if (V(inst, x_start) > V(inst, stroke)) {
         log_message(inst, fmi2Error, "invalid parameter x_start = %g: outside the stroke [0, %g]",
                     V(inst, x_start), V(inst, stroke));
@@ -141,46 +213,26 @@ fmi2Status model_initialize(Instance *inst) {
                     V(inst, substep), V(inst, servo_period));
         return fmi2Error;
     }
-    s->i = 0.0;
-    s->w = 0.0;
-    s->x = V(inst, x_start);
-    s->x_prev = s->x;
+    ode->stability_limit = mechanical_stability_limit(inst);
+    if (V(inst, substep) > ode->stability_limit) {
+        log_message(inst, fmi2Error,
+                    "invalid parameter substep = %g: beyond the stability limit %g s of the "
+                    "mechanics (friction and back-EMF damping reflected through the screw)",
+                    V(inst, substep), ode->stability_limit);
+        return fmi2Error;
+    }
+    for (j = 0; j < N_STATES; j++) s->y[j] = 0.0;
+    s->y[X] = V(inst, x_start);
+    s->x_prev = s->y[X];
     s->integral = 0.0;
     s->d_filtered = 0.0;
     s->u = 0.0;
     s->to_sample = 0.0;
     s->stalled_for = 0.0;
     s->ref_clamped = 0;
-    update_outputs(inst, s);
-    return fmi2OK;
-}
-
-fmi2Status model_do_step(Instance *inst, double h) {
-    State *s = (State *)inst->state;
-    double remaining = h;
-    /* tolerance so that a step of exactly n servo periods ends on, not just before, a sample */
-    const double eps = 1e-12 * V(inst, servo_period);
-    while (remaining > eps) {
-        double dt;
-        if (s->to_sample <= eps) {
-            servo_sample(inst, s);
-            s->to_sample += V(inst, servo_period);
-        }
-        dt = remaining < s->to_sample ? remaining : s->to_sample;
-        if (dt > V(inst, substep)) {
-            /* equal substeps to the next event */
-            const double n = ceil(dt / V(inst, substep) - 1e-9);
-            dt = dt / n;
-        }
-        rk4_substep(inst, s, dt);
-        remaining -= dt;
-        s->to_sample -= dt;
-    }
-    if (!isfinite(s->x) || !isfinite(s->w) || !isfinite(s->i)) {
-        log_message(inst, fmi2Error, "state became non-finite at t = %g (check the parameters)",
-                    inst->time + h);
-        return fmi2Error;
-    }
-    update_outputs(inst, s);
-    return fmi2OK;
+    ode->n = N_STATES;
+    ode->y = s->y;
+    ode->lambda[I] = -V(inst, R_motor) / V(inst, L_motor);
+    ode->max_substep = V(inst, substep);
+    return model_outputs(inst);
 }

@@ -1,19 +1,50 @@
-/* FeaSegment physics (PHYSICS.md section 2): one bidirectional fluidic elastomer segment and the
- * two sealed gas circuits that drive it. Side i in {a, b} is cylinder chamber + tubing + channel:
- *   V_i = A s_i(x) + V_dead + V_ch0 + sign_i G_a theta + C_a g_i,  s_a = stroke - x, s_b = x,
- * with gauge pressure g_i from the gas law p V^n = p_atm (m / rho_atm)^n (n = 1: isothermal,
- * solved in closed form; n > 1: Newton). The bend angle obeys
- *   I theta'' + d theta' + k theta = G_a (g_a - g_b) + tau_ext,  I = m L^2 / 3,
- * clamped to |theta| <= theta_max. Gas masses are states so that a leak can drain them. */
+/* FeaSegment physics: one bidirectional fluidic elastomer segment and the two sealed gas circuits
+ * that drive it. Side i in {a, b} is cylinder chamber + tubing + channel of volume
+ *   V_i = A s_i(x) + V_dead + V_ch0 + sign_i G(g_i) theta + C_a g_i,  s_a = stroke - x, s_b = x,
+ * sign_a = +1, sign_b = -1, g_i the gauge pressure. The bend angle obeys
+ *   I theta'' + d theta' + k theta = H(g_a) - H(g_b) + tau_ext,   H(g) = integral_0^g G(s) ds,
+ * clamped to |theta| <= theta_max.
+ *
+ * Vacuum: a thin-walled channel below atmospheric pressure partially collapses and transmits less
+ * torque per pascal [estimate]. Its bend sensitivity is G(g) = G_a for g >= 0 and
+ * G_a (beta + (1 - beta) exp(g / p_collapse)) for g < 0, beta = vacuum_factor: it falls smoothly
+ * from G_a to beta G_a over a few p_collapse of vacuum. Energy consistency (virtual work): a
+ * channel whose dV/dtheta depends on its pressure stores membrane energy
+ *   Psi = C_a g^2 / 2 + sign theta (g G(g) - H(g)),
+ * and the torque that makes gas work, bending work and dPsi/dt balance exactly is sign H(g), which
+ * is G_a g under pressure and tends to beta G_a g under deep vacuum.
+ *
+ * Inertia: a uniform PCC segment of mass m bent by theta has lateral deflection
+ * y(s) = theta s^2 / (2 L) at small angles, so its kinetic energy is
+ * (1/2) (m/L) int_0^L (theta' s^2 / (2 L))^2 ds = (1/2) (m L^2 / 20) theta'^2: I = m L^2 / 20
+ * (m L^2 / 3 is a rigid rod pivoting about its base).
+ *
+ * Gas: ideal gas with polytropic exponent n and heat exchange with the walls at T_gas. The state
+ * per side is its mass m and the adiabatic invariant theta_s = T (V/m)^(n-1), so that
+ * p = R theta_s (m/V)^n; a fast move is polytropic, and the walls relax the temperature with time
+ * constant tau_thermal: d theta_s/dt = (T_gas (V/m)^(n-1) - theta_s) / tau_thermal. n = 1 is
+ * isothermal. A leak drains mass isentropically. A change of the input x_piston between steps is
+ * a sudden (isentropic) compression.
+ *
+ * Energy (outputs): W_piston + W_ext = dE_stored + E_dissipated exactly without a leak, with
+ * E_stored = sum_i (E_gas_i + Psi_i) + k theta^2 / 2 + I theta'^2 / 2, E_gas the gas's free
+ * energy relative to the atmosphere (-m R T ln V + p_atm V isothermal, p V / (n - 1) + p_atm V
+ * polytropic), E_dissipated = damping + heat to the walls + impacts at the limit. */
 #include <math.h>
 
 #include "glue.h"
 
 #define PI 3.14159265358979323846
 
+/* continuous states, in this order in State.y */
+enum { THETA, OMEGA, M_A, M_B, S_A, S_B, E_DAMP, E_HEAT, W_EXT, N_STATES };
+
 typedef struct {
-    double theta, omega; /* bend angle [rad] and rate [rad/s] */
-    double m_a, m_b;     /* gas mass of each circuit [kg] */
+    double y[N_STATES]; /* theta [rad], omega [rad/s], masses [kg], theta_s [K m^3(n-1)/kg^(n-1)],
+                           energies [J] */
+    double x;           /* piston position applied in this step [m] */
+    double W_piston;    /* work done by the piston on the gas [J] */
+    double E_impact;    /* kinetic energy lost at the mechanical limit [J] */
 } State;
 
 size_t model_state_size(void) { return sizeof(State); }
@@ -23,143 +54,290 @@ static double bore_area(const Instance *inst) {
 }
 
 static double bending_inertia(const Instance *inst) {
-    return V(inst, mass) * V(inst, length) * V(inst, length) / 3.0;
+    return V(inst, mass) * V(inst, length) * V(inst, length) / 20.0;
 }
 
-static double atmospheric_density(const Instance *inst) {
-    return V(inst, p_atm) / (V(inst, R_gas) * V(inst, T_gas));
+/* Bend sensitivity dV/dtheta of a channel at gauge pressure g [m^3/rad]. */
+static double bend_sensitivity(const Instance *inst, double g) {
+    const double beta = V(inst, vacuum_factor);
+    if (g >= 0.0) return V(inst, G_a);
+    return V(inst, G_a) * (beta + (1.0 - beta) * exp(g / V(inst, p_collapse)));
 }
 
-/* Gas volume of one side at zero gauge pressure (the compliance term is added by the solver). */
-static double rigid_volume(const Instance *inst, double swept_length, double sign, double theta) {
-    return bore_area(inst) * swept_length + V(inst, V_dead) + V(inst, V_ch0) +
-           sign * V(inst, G_a) * theta;
+/* H(g) = int_0^g G(s) ds: the torque of a channel per unit sign [N m]. */
+static double channel_torque(const Instance *inst, double g) {
+    const double beta = V(inst, vacuum_factor), pc = V(inst, p_collapse);
+    if (g >= 0.0) return V(inst, G_a) * g;
+    return V(inst, G_a) * (beta * g + (1.0 - beta) * pc * expm1(g / pc));
 }
 
-/* Gauge pressure of a circuit of gas mass m whose volume is V0 + C_a g: solves
- * (p_atm + g) (V0 + C g)^n = p_atm (m / rho_atm)^n for the root with p_atm + g > 0.
- * Returns 0 if no physical root exists (volume collapsed). */
-static int gas_pressure(const Instance *inst, double V0, double m, double *gauge) {
+/* Rigid part of a side's volume (without the bend and compliance terms) [m^3]. */
+static double base_volume(const Instance *inst, double swept_length) {
+    return bore_area(inst) * swept_length + V(inst, V_dead) + V(inst, V_ch0);
+}
+
+static double side_volume(const Instance *inst, double V0, double sign, double theta, double g) {
+    return V0 + sign * bend_sensitivity(inst, g) * theta + V(inst, C_a) * g;
+}
+
+/* Gauge pressure of a side of gas mass m and invariant theta_s whose volume is V(g): solves
+ * ln(p_atm + g) + n ln V(g) = ln(R theta_s m^n), increasing in g (checked at initialisation), by
+ * Newton steps kept inside p > 0, V > 0. Returns 0 if no physical root exists. */
+static int gas_pressure(const Instance *inst, double V0, double sign, double theta, double m,
+                        double theta_s, double *gauge) {
     const double p_atm = V(inst, p_atm), C = V(inst, C_a), n = V(inst, n_poly);
-    const double v_atm = m / atmospheric_density(inst); /* volume of the gas at p_atm */
-    double g;
+    double g, lo = -p_atm, target;
     int iteration;
-    if (!(V0 > 0.0) || !(m > 0.0)) return 0;
+    if (!(m > 0.0) || !(theta_s > 0.0)) return 0;
     if (n == 1.0) {
-        /* C g^2 + (C p_atm + V0) g + (p_atm V0 - p_atm v_atm) = 0, stable form of the + root */
-        const double B = C * p_atm + V0, c0 = p_atm * (V0 - v_atm);
-        const double disc = B * B - 4.0 * C * c0;
-        if (disc < 0.0) return 0;
-        *gauge = -2.0 * c0 / (B + sqrt(disc));
-        return 1;
+        /* isothermal: (p_atm + g) V(g) = m R T. Under pressure G = G_a and this is a quadratic
+         * in g (stable form of the + root); under vacuum Newton from that root */
+        const double mRT = m * V(inst, R_gas) * theta_s;
+        const double V1 = V0 + sign * V(inst, G_a) * theta, B = C * p_atm + V1;
+        const double c0 = p_atm * V1 - mRT, disc = B * B - 4.0 * C * c0;
+        if (V1 > 0.0 && disc >= 0.0) {
+            g = -2.0 * c0 / (B + sqrt(disc));
+            if (g >= 0.0) {
+                *gauge = g;
+                return 1;
+            }
+            for (iteration = 0; iteration < 30; iteration++) {
+                const double p = p_atm + g, vol = side_volume(inst, V0, sign, theta, g);
+                const double dG = V(inst, G_a) * (1.0 - V(inst, vacuum_factor)) /
+                                  V(inst, p_collapse) * exp(g / V(inst, p_collapse));
+                const double dF = vol + p * (C + sign * dG * theta);
+                double step;
+                if (!(p > 0.0) || !(vol > 0.0) || !(dF > 0.0)) break;
+                step = (p * vol - mRT) / dF;
+                g -= step;
+                if (fabs(step) <= 1e-9) {
+                    *gauge = g < 0.0 ? g : 0.0;
+                    return 1;
+                }
+            }
+        }
     }
-    /* Newton on f(g) = ln(p_atm + g) + n ln(V0 + C g) - n ln(v_atm) - ln(p_atm), monotone in g */
-    g = p_atm * pow(v_atm / V0, n) - p_atm; /* rigid solution as the starting point */
-    for (iteration = 0; iteration < 50; iteration++) {
-        const double p = p_atm + g, vol = V0 + C * g;
-        double f, df, step;
-        if (!(p > 0.0) || !(vol > 0.0)) return 0;
-        f = log(p) + n * log(vol) - n * log(v_atm) - log(p_atm);
-        df = 1.0 / p + n * C / vol;
-        step = f / df;
-        /* damped so that p stays positive */
-        if (step > 0.9 * p) step = 0.9 * p;
-        g -= step;
-        if (fabs(step) <= 1e-13 * p) break;
+    target = log(V(inst, R_gas) * theta_s) + n * log(m);
+    if (!isfinite(target)) return 0;
+    /* start from the rigid solution at the channel's current sensitivity */
+    {
+        const double rigid = V0 + sign * V(inst, G_a) * theta;
+        if (!(rigid > 0.0)) return 0;
+        g = exp(target - n * log(rigid)) - p_atm;
     }
-    *gauge = g;
-    return 1;
-}
-
-typedef struct {
-    double g_a, g_b; /* gauge pressures [Pa] */
-    double V_a, V_b; /* gas volumes including compliance [m^3] */
-} GasState;
-
-static int gas_state(const Instance *inst, double theta, double m_a, double m_b, GasState *gas) {
-    const double x = V(inst, x_piston), stroke = V(inst, stroke);
-    const double Va0 = rigid_volume(inst, stroke - x, +1.0, theta);
-    const double Vb0 = rigid_volume(inst, x, -1.0, theta);
-    if (!gas_pressure(inst, Va0, m_a, &gas->g_a) || !gas_pressure(inst, Vb0, m_b, &gas->g_b))
-        return 0;
-    gas->V_a = Va0 + V(inst, C_a) * gas->g_a;
-    gas->V_b = Vb0 + V(inst, C_a) * gas->g_b;
-    return 1;
-}
-
-/* Bending torque of the antagonistic chamber pair, torque = gauge pressure x dV/dtheta [N m]. */
-static double bending_torque(const Instance *inst, const GasState *gas) {
-    return V(inst, G_a) * (gas->g_a - gas->g_b);
-}
-
-/* Right-hand side for y = (theta, omega, m_a, m_b); returns 0 if the gas state is unphysical. */
-static int derivatives(const Instance *inst, const double y[4], double dy[4]) {
-    GasState gas;
-    const double limit = V(inst, theta_max);
-    if (!gas_state(inst, y[0], y[2], y[3], &gas)) return 0;
-    dy[0] = y[1];
-    dy[1] = (bending_torque(inst, &gas) + V(inst, tau_ext) - V(inst, k_bend) * y[0] -
-             V(inst, d_bend) * y[1]) /
-            bending_inertia(inst);
-    if ((y[0] >= limit && y[1] >= 0.0 && dy[1] > 0.0) ||
-        (y[0] <= -limit && y[1] <= 0.0 && dy[1] < 0.0)) {
-        dy[1] = 0.0; /* resting against the mechanical limit */
+    for (iteration = 0; iteration < 60; iteration++) {
+        const double p = p_atm + g, vol = side_volume(inst, V0, sign, theta, g);
+        const double dG = g < 0.0 ? (V(inst, G_a) * (1.0 - V(inst, vacuum_factor)) /
+                                     V(inst, p_collapse) * exp(g / V(inst, p_collapse)))
+                                  : 0.0;
+        double f, df, next;
+        if (!(p > 0.0) || !(vol > 0.0)) {
+            g = 0.5 * (g + lo); /* back into the domain */
+            continue;
+        }
+        f = log(p) + n * log(vol) - target;
+        if (f < 0.0 && g > lo) lo = g;
+        df = 1.0 / p + n * (C + sign * dG * theta) / vol;
+        if (!(df > 0.0)) return 0;
+        next = g - f / df;
+        if (!(next > lo)) next = 0.5 * (g + lo);
+        if (fabs(next - g) <= 1e-12 * p) {
+            *gauge = next;
+            return isfinite(next);
+        }
+        g = next;
     }
-    dy[2] = -V(inst, leak_conductance) * gas.g_a;
-    dy[3] = -V(inst, leak_conductance) * gas.g_b;
-    return 1;
-}
-
-static int rk4_substep(Instance *inst, State *s, double dt) {
-    double y[4] = {s->theta, s->omega, s->m_a, s->m_b}, k1[4], k2[4], k3[4], k4[4], t[4];
-    const double limit = V(inst, theta_max);
-    int j;
-    if (!derivatives(inst, y, k1)) return 0;
-    for (j = 0; j < 4; j++) t[j] = y[j] + 0.5 * dt * k1[j];
-    if (!derivatives(inst, t, k2)) return 0;
-    for (j = 0; j < 4; j++) t[j] = y[j] + 0.5 * dt * k2[j];
-    if (!derivatives(inst, t, k3)) return 0;
-    for (j = 0; j < 4; j++) t[j] = y[j] + dt * k3[j];
-    if (!derivatives(inst, t, k4)) return 0;
-    for (j = 0; j < 4; j++) y[j] += dt / 6.0 * (k1[j] + 2.0 * k2[j] + 2.0 * k3[j] + k4[j]);
-    if (y[0] > limit) {
-        y[0] = limit;
-        if (y[1] > 0.0) y[1] = 0.0;
-    } else if (y[0] < -limit) {
-        y[0] = -limit;
-        if (y[1] < 0.0) y[1] = 0.0;
-    }
-    s->theta = y[0];
-    s->omega = y[1];
-    s->m_a = y[2];
-    s->m_b = y[3];
-    return 1;
-}
-
-static int update_outputs(Instance *inst, const State *s) {
-    GasState gas;
-    if (!gas_state(inst, s->theta, s->m_a, s->m_b, &gas)) return 0;
-    V(inst, kappa) = s->theta / V(inst, length);
-    V(inst, theta) = s->theta;
-    V(inst, theta_dot) = s->omega;
-    V(inst, p_a) = gas.g_a;
-    V(inst, p_b) = gas.g_b;
-    V(inst, v_a) = gas.V_a;
-    V(inst, v_b) = gas.V_b;
-    return 1;
-}
-
-static int piston_inside_stroke(Instance *inst) {
-    const double x = V(inst, x_piston), stroke = V(inst, stroke);
-    if (x >= 0.0 && x <= stroke) return 1;
-    log_message(inst, fmi2Error, "input x_piston = %g is outside the stroke [0, %g]", x, stroke);
     return 0;
 }
 
-fmi2Status model_initialize(Instance *inst) {
+typedef struct {
+    double g[2]; /* gauge pressures of a and b [Pa] */
+    double V[2]; /* gas volumes [m^3] */
+} GasState;
+
+static const double SIGN[2] = {+1.0, -1.0};
+
+static double swept_length(const Instance *inst, double x, int side) {
+    return side == 0 ? V(inst, stroke) - x : x;
+}
+
+static int gas_state(const Instance *inst, double x, const double y[], GasState *gas) {
+    int side;
+    for (side = 0; side < 2; side++) {
+        const double V0 = base_volume(inst, swept_length(inst, x, side));
+        if (!gas_pressure(inst, V0, SIGN[side], y[THETA], y[M_A + side], y[S_A + side],
+                          &gas->g[side]))
+            return 0;
+        gas->V[side] = side_volume(inst, V0, SIGN[side], y[THETA], gas->g[side]);
+    }
+    return 1;
+}
+
+/* Bending torque of the antagonistic pair, by virtual work (see the header) [N m]. */
+static double bending_torque(const Instance *inst, const GasState *gas) {
+    return channel_torque(inst, gas->g[0]) - channel_torque(inst, gas->g[1]);
+}
+
+/* Heat flowing from the gas of one side to the walls [W] (zero when isothermal). */
+static double heat_to_walls(const Instance *inst, double m, double theta_s, double vol) {
+    const double n = V(inst, n_poly);
+    if (n == 1.0) return 0.0;
+    return m * V(inst, R_gas) / (n - 1.0) * (theta_s * pow(m / vol, n - 1.0) - V(inst, T_gas)) /
+           V(inst, tau_thermal);
+}
+
+int model_derivatives(const Instance *inst, const double y[], double dy[]) {
+    const State *s = (const State *)inst->state;
+    const double limit = V(inst, theta_max), n = V(inst, n_poly);
+    GasState gas;
+    int side;
+    if (!gas_state(inst, s->x, y, &gas)) return 0;
+    dy[THETA] = y[OMEGA];
+    dy[OMEGA] = (bending_torque(inst, &gas) + V(inst, tau_ext) - V(inst, k_bend) * y[THETA] -
+                 V(inst, d_bend) * y[OMEGA]) /
+                bending_inertia(inst);
+    if ((y[THETA] >= limit && y[OMEGA] >= 0.0 && dy[OMEGA] > 0.0) ||
+        (y[THETA] <= -limit && y[OMEGA] <= 0.0 && dy[OMEGA] < 0.0)) {
+        dy[OMEGA] = 0.0; /* resting against the mechanical limit */
+    }
+    dy[E_HEAT] = 0.0;
+    for (side = 0; side < 2; side++) {
+        const double m = y[M_A + side], ts = y[S_A + side];
+        dy[M_A + side] = -V(inst, leak_conductance) * gas.g[side];
+        dy[S_A + side] =
+            n == 1.0 ? 0.0
+                     : (V(inst, T_gas) * pow(gas.V[side] / m, n - 1.0) - ts) / V(inst, tau_thermal);
+        dy[E_HEAT] += heat_to_walls(inst, m, ts, gas.V[side]);
+    }
+    dy[E_DAMP] = V(inst, d_bend) * y[OMEGA] * y[OMEGA];
+    dy[W_EXT] = V(inst, tau_ext) * y[OMEGA];
+    return 1;
+}
+
+/* Energy stored in gas, membranes, bending spring and motion at piston position x [J]. */
+static int stored_energy(const Instance *inst, double x, const double y[], double *energy) {
+    const double n = V(inst, n_poly), p_atm = V(inst, p_atm);
+    GasState gas;
+    double total = 0.5 * V(inst, k_bend) * y[THETA] * y[THETA] +
+                   0.5 * bending_inertia(inst) * y[OMEGA] * y[OMEGA];
+    int side;
+    if (!gas_state(inst, x, y, &gas)) return 0;
+    for (side = 0; side < 2; side++) {
+        const double g = gas.g[side], vol = gas.V[side], m = y[M_A + side];
+        const double gas_energy =
+            n == 1.0 ? -m * V(inst, R_gas) * y[S_A + side] * log(vol) + p_atm * vol
+                     : (p_atm + g) * vol / (n - 1.0) + p_atm * vol;
+        const double membrane =
+            0.5 * V(inst, C_a) * g * g +
+            SIGN[side] * y[THETA] * (g * bend_sensitivity(inst, g) - channel_torque(inst, g));
+        total += gas_energy + membrane;
+    }
+    *energy = total;
+    return 1;
+}
+
+/* Inelastic stop at the mechanical limit. */
+void model_after_substep(Instance *inst, double dt) {
     State *s = (State *)inst->state;
-    const double rho_atm = atmospheric_density(inst), stroke = V(inst, stroke);
-    const double x_seal = V(inst, x_seal);
+    const double limit = V(inst, theta_max);
+    double *y = s->y;
+    (void)dt;
+    if (y[THETA] > limit || y[THETA] < -limit) {
+        y[THETA] = y[THETA] > limit ? limit : -limit;
+        if (y[OMEGA] * y[THETA] > 0.0) {
+            s->E_impact += 0.5 * bending_inertia(inst) * y[OMEGA] * y[OMEGA];
+            y[OMEGA] = 0.0;
+        }
+    }
+}
+
+double model_time_to_event(const Instance *inst) {
+    (void)inst;
+    return INFINITY;
+}
+
+void model_discrete_update(Instance *inst) { (void)inst; }
+
+/* x_piston within the stroke, tolerating rounding-sized excursions (an input interpolated to the
+ * end of the stroke may land one rounding error past it): up to PISTON_TOLERANCE x stroke it is
+ * clamped silently, beyond that it is an error. */
+#define PISTON_TOLERANCE 1e-9
+
+static int applied_piston_position(Instance *inst, double *x) {
+    const double raw = V(inst, x_piston), stroke = V(inst, stroke);
+    const double tolerance = PISTON_TOLERANCE * stroke;
+    if (raw < -tolerance || raw > stroke + tolerance) {
+        log_message(inst, fmi2Error,
+                    "input x_piston = %.10g is outside the stroke [0, %g] (tolerance %g m)", raw,
+                    stroke, tolerance);
+        return 0;
+    }
+    *x = raw < 0.0 ? 0.0 : (raw > stroke ? stroke : raw);
+    return 1;
+}
+
+/* A new piston position is a sudden isentropic compression: the work done on the gas is the
+ * change of the stored energy at fixed masses, invariants and bend. */
+fmi2Status model_step_start(Instance *inst) {
+    State *s = (State *)inst->state;
+    double x, before, after;
+    if (!applied_piston_position(inst, &x)) return fmi2Error;
+    if (x == s->x) return fmi2OK;
+    if (!stored_energy(inst, s->x, s->y, &before) || !stored_energy(inst, x, s->y, &after)) {
+        log_message(inst, fmi2Error, "no physical gas state at piston position %g m", x);
+        return fmi2Error;
+    }
+    s->W_piston += after - before;
+    s->x = x;
+    return fmi2OK;
+}
+
+fmi2Status model_outputs(Instance *inst) {
+    const State *s = (const State *)inst->state;
+    const double *y = s->y;
+    GasState gas;
+    double energy;
+    if (!gas_state(inst, s->x, y, &gas) || !stored_energy(inst, s->x, y, &energy)) {
+        log_message(inst, fmi2Error,
+                    "no physical gas state (bend angle %g rad, piston %g m): a volume collapsed",
+                    y[THETA], s->x);
+        return fmi2Error;
+    }
+    V(inst, kappa) = y[THETA] / V(inst, length);
+    V(inst, theta) = y[THETA];
+    V(inst, theta_dot) = y[OMEGA];
+    V(inst, p_a) = gas.g[0];
+    V(inst, p_b) = gas.g[1];
+    V(inst, v_a) = gas.V[0];
+    V(inst, v_b) = gas.V[1];
+    V(inst, E_stored) = energy;
+    V(inst, W_piston) = s->W_piston;
+    V(inst, W_ext) = y[W_EXT];
+    V(inst, E_dissipated) = y[E_DAMP] + y[E_HEAT] + s->E_impact;
+    return fmi2OK;
+}
+
+/* The substep beyond which RK4 diverges on the linearised bending mode [s]: 2.5 / |lambda|max
+ * (RK4's stability region contains the left half-disc of radius 2.5), with the poles of
+ * I s^2 + d s + k_max, k_max = k + gas stiffness n p_max G_a^2 (1 / V_a + 1 / V_b) bounded by the
+ * smallest volumes and the largest compression ratio. */
+static double bending_stability_limit(const Instance *inst) {
+    const double I = bending_inertia(inst), d = V(inst, d_bend), n = V(inst, n_poly);
+    const double V_min = V(inst, V_dead) + V(inst, V_ch0) - V(inst, G_a) * V(inst, theta_max);
+    const double V_max = base_volume(inst, V(inst, stroke)) + V(inst, G_a) * V(inst, theta_max);
+    const double p_max = V(inst, p_atm) * pow(V_max / V_min, n);
+    const double k = V(inst, k_bend) + 2.0 * n * p_max * V(inst, G_a) * V(inst, G_a) / V_min;
+    double rate = sqrt(k / I);
+    if (d * d >= 4.0 * k * I) rate = (d + sqrt(d * d - 4.0 * k * I)) / (2.0 * I);
+    if (n != 1.0 && 1.0 / V(inst, tau_thermal) > rate) rate = 1.0 / V(inst, tau_thermal);
+    return 2.5 / rate;
+}
+
+fmi2Status model_initialize(Instance *inst, OdeSystem *ode) {
+    State *s = (State *)inst->state;
+    const double stroke = V(inst, stroke), x_seal = V(inst, x_seal), n = V(inst, n_poly);
+    const double V_min = V(inst, V_dead) + V(inst, V_ch0) - V(inst, G_a) * V(inst, theta_max);
+    int side, j;
     if (x_seal > stroke) {
         log_message(inst, fmi2Error, "invalid parameter x_seal = %g: outside the stroke [0, %g]",
                     x_seal, stroke);
@@ -171,47 +349,49 @@ fmi2Status model_initialize(Instance *inst) {
         return fmi2Error;
     }
     /* smallest rigid volume of a side: piston at the end stop that empties it, fully bent */
-    if (!(V(inst, V_dead) + V(inst, V_ch0) - V(inst, G_a) * V(inst, theta_max) > 0.0)) {
+    if (!(V_min > 0.0)) {
         log_message(inst, fmi2Error,
                     "invalid parameters: a gas volume can reach zero (V_dead + V_ch0 - G_a "
                     "theta_max = %g m^3 must be positive)",
-                    V(inst, V_dead) + V(inst, V_ch0) - V(inst, G_a) * V(inst, theta_max));
+                    V_min);
         return fmi2Error;
     }
-    /* both circuits are sealed at atmospheric pressure with the piston at x_seal, unbent */
-    s->m_a = rho_atm * rigid_volume(inst, stroke - x_seal, 1.0, 0.0);
-    s->m_b = rho_atm * rigid_volume(inst, x_seal, -1.0, 0.0);
-    s->theta = V(inst, theta_start);
-    s->omega = 0.0;
-    if (!piston_inside_stroke(inst)) return fmi2Error;
-    if (!update_outputs(inst, s)) {
-        log_message(inst, fmi2Error, "no physical gas state at the start (volume collapsed)");
+    /* the pressure-volume relation stays monotone (one gas state per volume) up to 4 atm if the
+     * collapse does not shrink dV/dg below zero faster than the gas can follow */
+    if (4.0 * n * V(inst, p_atm) *
+            (V(inst, G_a) * (1.0 - V(inst, vacuum_factor)) * V(inst, theta_max) /
+                 V(inst, p_collapse) -
+             V(inst, C_a)) >=
+        V_min) {
+        log_message(inst, fmi2Error,
+                    "invalid parameters: p_collapse = %g Pa is too sharp for G_a, vacuum_factor "
+                    "and theta_max (the channel volume would not be monotone in pressure)",
+                    V(inst, p_collapse));
         return fmi2Error;
     }
-    return fmi2OK;
-}
-
-fmi2Status model_do_step(Instance *inst, double h) {
-    State *s = (State *)inst->state;
-    const int n = (int)ceil(h / V(inst, substep) - 1e-9);
-    const double dt = h / (n > 0 ? n : 1);
-    int j;
-    if (!piston_inside_stroke(inst)) return fmi2Error;
-    for (j = 0; j < (n > 0 ? n : 1); j++) {
-        if (!rk4_substep(inst, s, dt)) {
-            log_message(inst, fmi2Error,
-                        "gas volume collapsed at t = %g (bend angle %g rad, piston %g m)",
-                        inst->time + j * dt, s->theta, V(inst, x_piston));
-            return fmi2Error;
-        }
-    }
-    if (!isfinite(s->theta) || !isfinite(s->omega)) {
-        log_message(inst, fmi2Error, "state became non-finite at t = %g", inst->time + h);
+    ode->stability_limit = bending_stability_limit(inst);
+    if (V(inst, substep) > ode->stability_limit) {
+        log_message(inst, fmi2Error,
+                    "invalid parameter substep = %g: beyond the stability limit %g s of the "
+                    "bending mode (inertia, damping and gas stiffness)",
+                    V(inst, substep), ode->stability_limit);
         return fmi2Error;
     }
-    if (!update_outputs(inst, s)) {
-        log_message(inst, fmi2Error, "gas volume collapsed at t = %g", inst->time + h);
-        return fmi2Error;
+    for (j = 0; j < N_STATES; j++) s->y[j] = 0.0;
+    /* both circuits are sealed at atmospheric pressure and T_gas with the piston at x_seal,
+     * unbent */
+    for (side = 0; side < 2; side++) {
+        const double v_seal = base_volume(inst, swept_length(inst, x_seal, side));
+        const double m = V(inst, p_atm) * v_seal / (V(inst, R_gas) * V(inst, T_gas));
+        s->y[M_A + side] = m;
+        s->y[S_A + side] = V(inst, T_gas) * pow(v_seal / m, n - 1.0);
     }
-    return fmi2OK;
+    s->y[THETA] = V(inst, theta_start);
+    s->W_piston = 0.0;
+    s->E_impact = 0.0;
+    if (!applied_piston_position(inst, &s->x)) return fmi2Error;
+    ode->n = N_STATES;
+    ode->y = s->y;
+    ode->max_substep = V(inst, substep);
+    return model_outputs(inst);
 }

@@ -162,6 +162,7 @@ fmi2Status fmi2EnterInitializationMode(fmi2Component c) {
 /* Checks the parameters against their declared ranges and lets the model compute its initial
  * state and outputs from the parameters and inputs set so far. */
 static fmi2Status initialize_from_values(Instance *inst) {
+    fmi2Status status;
     size_t i;
     for (i = 0; i < N_VARIABLES; i++) {
         const VariableInfo *info = &VARIABLES[i];
@@ -174,7 +175,15 @@ static fmi2Status initialize_from_values(Instance *inst) {
         }
     }
     inst->init_outputs_stale = 0;
-    return model_initialize(inst);
+    memset(&inst->ode, 0, sizeof inst->ode);
+    status = model_initialize(inst, &inst->ode);
+    if (status == fmi2OK && (inst->ode.n > MAX_STATES || (inst->ode.n > 0 && !inst->ode.y) ||
+                             !(inst->ode.max_substep > 0.0))) {
+        log_message(inst, fmi2Error, "model_initialize: inconsistent ODE system (%zu states)",
+                    inst->ode.n);
+        return fmi2Error;
+    }
+    return status;
 }
 
 fmi2Status fmi2ExitInitializationMode(fmi2Component c) {
@@ -432,6 +441,108 @@ fmi2Status fmi2GetDirectionalDerivative(fmi2Component c, const fmi2ValueReferenc
     return fmi2Error;
 }
 
+
+/* ---------------------------------------------------------------- fixed-step solver */
+
+/* phi_1..phi_3 of z (phi_k(z) = sum_j z^j / (j + k)!), by series near 0 where the closed forms
+ * cancel, else closed form. */
+static void phi_functions(double z, double phi[3]) {
+    if (z == 0.0) {
+        phi[0] = 1.0;
+        phi[1] = 0.5;
+        phi[2] = 1.0 / 6.0;
+    } else if (fabs(z) < 0.5) {
+        int k;
+        for (k = 1; k <= 3; k++) {
+            double term = 1.0, sum = 0.0, denominator = 1.0;
+            int j;
+            for (j = 1; j <= k; j++) denominator *= j;
+            term = 1.0 / denominator;
+            for (j = 0; j < 25; j++) {
+                sum += term;
+                term *= z / (j + k + 1);
+            }
+            phi[k - 1] = sum;
+        }
+    } else {
+        const double e = exp(z);
+        phi[0] = (e - 1.0) / z;
+        phi[1] = (e - 1.0 - z) / (z * z);
+        phi[2] = (e - 1.0 - z - 0.5 * z * z) / (z * z * z);
+    }
+}
+
+/* N(y) = f(y) - lambda y, the part the exponential RK4 treats explicitly. */
+static int nonlinear_part(const Instance *inst, const double y[], double out[]) {
+    size_t j;
+    if (!model_derivatives(inst, y, out)) return 0;
+    for (j = 0; j < inst->ode.n; j++) out[j] -= inst->ode.lambda[j] * y[j];
+    return 1;
+}
+
+/* One substep of ETDRK4 (Cox and Matthews 2002, J. Comput. Phys. 176, 430) of length h; returns 0
+ * if a stage left the model's domain or became non-finite. */
+static int exponential_rk4(Instance *inst, double h) {
+    const OdeSystem *ode = &inst->ode;
+    double *y = ode->y;
+    double Nu[MAX_STATES], Na[MAX_STATES], Nb[MAX_STATES], Nc[MAX_STATES];
+    double a[MAX_STATES], b[MAX_STATES], c[MAX_STATES];
+    double E[MAX_STATES], E2[MAX_STATES], p_half[MAX_STATES], f1[MAX_STATES], f2[MAX_STATES],
+        f3[MAX_STATES];
+    size_t j;
+    for (j = 0; j < ode->n; j++) {
+        const double z = ode->lambda[j] * h;
+        double phi[3], phi_half[3];
+        phi_functions(z, phi);
+        phi_functions(0.5 * z, phi_half);
+        E[j] = z == 0.0 ? 1.0 : exp(z);
+        E2[j] = z == 0.0 ? 1.0 : exp(0.5 * z);
+        p_half[j] = 0.5 * h * phi_half[0];
+        f1[j] = h * (phi[0] - 3.0 * phi[1] + 4.0 * phi[2]);
+        f2[j] = h * (phi[1] - 2.0 * phi[2]);
+        f3[j] = h * (-phi[1] + 4.0 * phi[2]);
+    }
+    if (!nonlinear_part(inst, y, Nu)) return 0;
+    for (j = 0; j < ode->n; j++) a[j] = E2[j] * y[j] + p_half[j] * Nu[j];
+    if (!nonlinear_part(inst, a, Na)) return 0;
+    for (j = 0; j < ode->n; j++) b[j] = E2[j] * y[j] + p_half[j] * Na[j];
+    if (!nonlinear_part(inst, b, Nb)) return 0;
+    for (j = 0; j < ode->n; j++) c[j] = E2[j] * a[j] + p_half[j] * (2.0 * Nb[j] - Nu[j]);
+    if (!nonlinear_part(inst, c, Nc)) return 0;
+    for (j = 0; j < ode->n; j++) {
+        y[j] = E[j] * y[j] + f1[j] * Nu[j] + 2.0 * f2[j] * (Na[j] + Nb[j]) + f3[j] * Nc[j];
+        if (!isfinite(y[j])) return 0;
+    }
+    return 1;
+}
+
+/* Advances the model by h: discrete updates at their times, equal substeps no longer than
+ * max_substep between them. A substep that fails is reported as divergence, with the limit. */
+static fmi2Status solve_step(Instance *inst, double h) {
+    const double eps = 1e-12 * (h > inst->ode.max_substep ? h : inst->ode.max_substep);
+    double remaining = h, t = inst->time;
+    if (model_step_start(inst) != fmi2OK) return fmi2Error;
+    while (remaining > eps) {
+        double dt, n;
+        if (model_time_to_event(inst) <= eps) model_discrete_update(inst);
+        dt = model_time_to_event(inst);
+        if (!(dt < remaining)) dt = remaining;
+        n = ceil(dt / inst->ode.max_substep - 1e-9);
+        if (n > 1.0) dt /= n;
+        if (inst->ode.n > 0 && !exponential_rk4(inst, dt)) {
+            log_message(inst, fmi2Error,
+                        "the integrator diverged at t = %g (substep %g s, limit %g s): the state "
+                        "became non-finite or left the model's domain",
+                        t, dt, inst->ode.stability_limit);
+            return fmi2Error;
+        }
+        model_after_substep(inst, dt);
+        remaining -= dt;
+        t += dt;
+    }
+    return model_outputs(inst);
+}
+
 /* ---------------------------------------------------------------- co-simulation */
 
 fmi2Status fmi2SetRealInputDerivatives(fmi2Component c, const fmi2ValueReference vr[], size_t nvr,
@@ -469,7 +580,7 @@ fmi2Status fmi2DoStep(fmi2Component c, fmi2Real currentCommunicationPoint,
                     currentCommunicationPoint, inst->time);
         return fmi2Error;
     }
-    if (model_do_step(inst, communicationStepSize) != fmi2OK) {
+    if (solve_step(inst, communicationStepSize) != fmi2OK) {
         inst->phase = PHASE_ERROR;
         return fmi2Error;
     }

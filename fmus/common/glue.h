@@ -24,6 +24,17 @@ typedef struct {
 
 #include "model_variables.h" /* generated: MODEL_IDENTIFIER, MODEL_GUID, VR_*, N_VARIABLES */
 
+/* Continuous states of a model and how the fixed-step solver treats them (see below). */
+#define MAX_STATES 16
+
+typedef struct {
+    size_t n;                   /* number of continuous states, <= MAX_STATES */
+    double *y;                  /* the states, inside the model's state struct */
+    double lambda[MAX_STATES];  /* stiff diagonal rates [1/s] integrated exactly, 0 if none */
+    double max_substep;         /* largest substep [s], the model's `substep` parameter */
+    double stability_limit;     /* the substep beyond which the model states the solver diverges */
+} OdeSystem;
+
 typedef enum { PHASE_INSTANTIATED, PHASE_INIT, PHASE_STEP, PHASE_TERMINATED, PHASE_ERROR } Phase;
 
 typedef struct Instance {
@@ -35,6 +46,7 @@ typedef struct Instance {
     int init_outputs_stale; /* an input or parameter changed in initialisation mode */
     double v[N_VARIABLES];  /* every variable, indexed by value reference */
     void *state;           /* the model's private state, model_state_size() bytes */
+    OdeSystem ode;         /* the continuous states the solver integrates */
 } Instance;
 
 /* Value of variable `name` of instance `inst` (lvalue). */
@@ -44,11 +56,30 @@ typedef struct Instance {
 void log_message(Instance *inst, fmi2Status status, const char *fmt, ...);
 
 /* --- implemented by each model --- */
+/* The fixed-step solver (fmu_glue.c) integrates the model's continuous states y[0..n-1], which
+ * live in the model's state struct; a model supplies only its derivatives, its discrete updates
+ * (sampled firmware, input events) and its checks. The solver is the exponential RK4 of Cox and
+ * Matthews (2002): each state may declare a stiff linear rate lambda_j (dy_j/dt = lambda_j y_j +
+ * N_j(y)) that is integrated exactly over a substep; with every lambda_j = 0 it is the classical
+ * RK4. */
+
 size_t model_state_size(void);
-/* Checks parameters beyond their declared ranges, sets the initial state and the outputs.
- * Returns fmi2Error (after log_message) on an inconsistent parameter set. */
-fmi2Status model_initialize(Instance *inst);
-/* Advances the state by h seconds with the current inputs and updates the outputs. */
-fmi2Status model_do_step(Instance *inst, double h);
+/* Checks parameters beyond their declared ranges, sets the initial state, fills `ode` and sets the
+ * outputs. Returns fmi2Error (after log_message) on an inconsistent parameter set, including a
+ * substep beyond the model's stated stability limit. */
+fmi2Status model_initialize(Instance *inst, OdeSystem *ode);
+/* Discrete update at the start of a communication step (input events); fmi2Error after a message
+ * if an input is unusable. */
+fmi2Status model_step_start(Instance *inst);
+/* Time until the model's next discrete update inside a step (sampled firmware) [s], INFINITY if
+ * none; the solver ends a substep there and calls model_discrete_update. */
+double model_time_to_event(const Instance *inst);
+void model_discrete_update(Instance *inst);
+/* dy/dt at y. Returns 0 if y lies outside the model's domain (the integrator diverged). */
+int model_derivatives(const Instance *inst, const double y[], double dy[]);
+/* Projection after a substep of length dt (end stops, mechanical limits), event clocks. */
+void model_after_substep(Instance *inst, double dt);
+/* Sets the outputs from the state; fmi2Error after a message if the state is unphysical. */
+fmi2Status model_outputs(Instance *inst);
 
 #endif

@@ -9,8 +9,12 @@ inputs, then outputs), so C and XML cannot disagree.
 
 from __future__ import annotations
 
+import datetime
 import hashlib
+import importlib.metadata
 import math
+import os
+import subprocess
 import tomllib
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
@@ -19,6 +23,53 @@ from pathlib import Path
 from hil.errors import BuildError
 
 GENERATOR = "softhil"
+# A fixed date for sources outside a git checkout (the FMU zip's entries carry the same date).
+_FALLBACK_DATE = datetime.datetime(2020, 1, 1, tzinfo=datetime.UTC)
+
+
+def generator_version() -> str:
+    """The installed softhil version, or "unknown" when run from an uninstalled tree."""
+    try:
+        return importlib.metadata.version("softhil")
+    except importlib.metadata.PackageNotFoundError:
+        return "unknown"
+
+
+def generation_date(spec: ModelSpec) -> str:
+    """generationDateAndTime derived from the sources, never from the clock, so that a build is
+    byte-reproducible: $SOURCE_DATE_EPOCH if set (reproducible-builds.org), else the commit date
+    of the newest commit touching the model's folder or the shared glue, else a fixed date."""
+    epoch = os.environ.get("SOURCE_DATE_EPOCH")
+    when = _FALLBACK_DATE
+    if epoch and epoch.isdigit():
+        when = datetime.datetime.fromtimestamp(int(epoch), tz=datetime.UTC)
+    else:
+        root = spec.folder.parent
+        try:
+            result = subprocess.run(
+                [
+                    "git",
+                    "log",
+                    "-1",
+                    "--format=%ct",
+                    "--",
+                    str(spec.folder),
+                    str(root / "common"),
+                    str(root / "include"),
+                ],
+                cwd=spec.folder,
+                capture_output=True,
+                text=True,
+                timeout=30,
+                check=False,
+            )
+            stamp = result.stdout.strip()
+            if result.returncode == 0 and stamp.isdigit():
+                when = datetime.datetime.fromtimestamp(int(stamp), tz=datetime.UTC)
+        except (OSError, subprocess.SubprocessError):
+            pass
+    return when.strftime("%Y-%m-%dT%H:%M:%SZ")
+
 
 # SI units the models may use, as exponents of the base units (FMI 2.0 BaseUnit) and a factor.
 _UNITS: dict[str, dict[str, float]] = {
@@ -28,6 +79,8 @@ _UNITS: dict[str, dict[str, float]] = {
     "m2": {"m": 2},
     "m3": {"m": 3},
     "m3/Pa": {"kg": -1, "m": 4, "s": 2},
+    "m3/rad": {"m": 3, "rad": -1},
+    "J": {"kg": 1, "m": 2, "s": -2},
     "kg": {"kg": 1},
     "kg.m2": {"kg": 1, "m": 2},
     "s": {"s": 1},
@@ -64,7 +117,7 @@ _DISPLAY_UNITS: dict[str, list[tuple[str, float]]] = {
 
 CAUSALITIES = ("parameters", "inputs", "outputs")
 _TYPES = ("Real", "Integer", "Boolean")
-_VARIABLE_KEYS = {"type", "unit", "start", "min", "max", "description"}
+_VARIABLE_KEYS = {"type", "unit", "start", "min", "max", "description", "depends_on"}
 
 
 @dataclass(frozen=True)
@@ -80,6 +133,8 @@ class Variable:
     start: float | None = None
     min: float | None = None
     max: float | None = None
+    # inputs and parameters an output follows in initialisation mode (its initial dependencies)
+    depends_on: tuple[str, ...] = ()
 
     @property
     def variability(self) -> str:
@@ -125,6 +180,14 @@ def load_spec(folder: Path) -> ModelSpec:
     for group in CAUSALITIES:
         for var_name, decl in data.get(group, {}).items():
             variables.append(_variable(path, group, var_name, decl, len(variables)))
+    known = {v.name: v for v in variables}
+    for v in variables:
+        for dependency in v.depends_on:
+            if dependency not in known or known[dependency].causality == "output":
+                raise BuildError(
+                    f"{path}: outputs.{v.name}.depends_on: {dependency!r} is not an input or "
+                    "parameter"
+                )
     unknown = set(data) - {"model", *CAUSALITIES}
     if unknown:
         raise BuildError(f"{path}: unknown table(s) {sorted(unknown)}")
@@ -158,6 +221,11 @@ def _variable(path: Path, group: str, name: str, decl: object, vr: int) -> Varia
         raise BuildError(f"{path}: {key}.start is required for a {causality}")
     if causality == "output" and start is not None:
         raise BuildError(f"{path}: {key}: outputs are calculated and take no start value")
+    depends_on = decl.get("depends_on", [])
+    if causality != "output" and depends_on:
+        raise BuildError(f"{path}: {key}.depends_on is only for outputs")
+    if not isinstance(depends_on, list) or not all(isinstance(n, str) for n in depends_on):
+        raise BuildError(f"{path}: {key}.depends_on must be a list of variable names")
     return Variable(
         name=name,
         causality=causality,
@@ -168,6 +236,7 @@ def _variable(path: Path, group: str, name: str, decl: object, vr: int) -> Varia
         start=None if start is None else float(start),
         min=None if decl.get("min") is None else float(decl["min"]),
         max=None if decl.get("max") is None else float(decl["max"]),
+        depends_on=tuple(depends_on),
     )
 
 
@@ -226,7 +295,8 @@ def generate_model_description(
         modelName=spec.name,
         guid=model_guid,
         description=spec.description,
-        generationTool=GENERATOR,
+        generationTool=f"{GENERATOR} {generator_version()}",
+        generationDateAndTime=generation_date(spec),
         variableNamingConvention="flat",
         numberOfEventIndicators="0",
     )
@@ -276,13 +346,25 @@ def generate_model_description(
         if v.start is not None:
             type_attrs["start"] = _format_number(v.start, v.type)
         ET.SubElement(element, v.type, type_attrs)
+    # Outputs change only in fmi2DoStep (the glue recomputes them from the state there), so in
+    # step mode no output depends directly on an input: empty dependencies, no false algebraic
+    # loop for a master. In initialisation mode an output follows the parameters and the inputs
+    # its model.toml lists in depends_on.
     structure = ET.SubElement(root, "ModelStructure")
-    indices = [i + 1 for i, v in enumerate(spec.variables) if v.causality == "output"]
-    if indices:
+    index = {v.name: i + 1 for i, v in enumerate(spec.variables)}
+    outputs_list = [v for v in spec.variables if v.causality == "output"]
+    if outputs_list:
         outputs = ET.SubElement(structure, "Outputs")
         initial = ET.SubElement(structure, "InitialUnknowns")
-        for index in indices:
-            ET.SubElement(outputs, "Unknown", index=str(index))
-            ET.SubElement(initial, "Unknown", index=str(index))
+        parameters = [index[v.name] for v in spec.variables if v.causality == "parameter"]
+        for v in outputs_list:
+            ET.SubElement(outputs, "Unknown", index=str(index[v.name]), dependencies="")
+            known = sorted({*parameters, *(index[name] for name in v.depends_on)})
+            ET.SubElement(
+                initial,
+                "Unknown",
+                index=str(index[v.name]),
+                dependencies=" ".join(map(str, known)),
+            )
     ET.indent(root)
     return '<?xml version="1.0" encoding="UTF-8"?>\n' + ET.tostring(root, encoding="unicode") + "\n"
