@@ -17,6 +17,7 @@ no unseeded randomness), so runs are deterministic.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol
@@ -66,7 +67,10 @@ class Estimate:
 @dataclass(frozen=True)
 class BendModel:
     """What the controller knows of one segment's bending (PHYSICS.md section 2):
-    `inertia theta'' + d_bend theta' + k_bend theta = G_a (p_a - p_b)`, theta = kappa * length."""
+    `inertia theta'' + d_bend theta' + k_bend theta = G_a (h(p_a) - h(p_b))`, theta = kappa *
+    length, where h(g) = g under pressure and, under vacuum, the collapsing channel's
+    h(g) = beta g + (1 - beta) p_c (exp(g / p_c) - 1) (beta = vacuum_factor, p_c = p_collapse):
+    the FeaSegment FMU's torque law."""
 
     length: float  # [m]
     inertia: float  # [kg m^2]
@@ -74,6 +78,15 @@ class BendModel:
     d_bend: float  # [N m s/rad]
     G_a: float  # [m^3/rad]
     theta_max: float = 1.6  # [rad]
+    vacuum_factor: float = 1.0  # share of G_a left under deep vacuum (1: no collapse)
+    p_collapse: float = 1e4  # [Pa] vacuum over which the channel collapses
+
+    def effective_pressure(self, gauge: float) -> float:
+        """h(g) [Pa]: the pressure that, times G_a, is the channel's torque."""
+        if gauge >= 0.0:
+            return gauge
+        beta, pc = self.vacuum_factor, self.p_collapse
+        return beta * gauge + (1.0 - beta) * pc * math.expm1(gauge / pc)
 
 
 @dataclass(frozen=True)

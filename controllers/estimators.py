@@ -108,13 +108,16 @@ class BendDiscretiser:
 
 
 def _pressure_inputs(
-    drives: Mapping[int, DriveReading], previous: np.ndarray | None, segments: int
+    drives: Mapping[int, DriveReading], previous: np.ndarray | None, bends: Sequence[BendModel]
 ) -> np.ndarray:
-    """p_a - p_b per segment [Pa] from drives 1..N; a missing drive keeps its last value."""
-    u = np.zeros(segments) if previous is None else previous.copy()
-    for n in range(1, segments + 1):
+    """h(p_a) - h(p_b) per segment [Pa] (the torque per G_a, `BendModel.effective_pressure`)
+    from drives 1..N; a missing drive keeps its last value."""
+    u = np.zeros(len(bends)) if previous is None else previous.copy()
+    for n, bend in enumerate(bends, start=1):
         if n in drives:
-            u[n - 1] = drives[n].p_a - drives[n].p_b
+            u[n - 1] = bend.effective_pressure(drives[n].p_a) - bend.effective_pressure(
+                drives[n].p_b
+            )
     return u
 
 
@@ -226,7 +229,7 @@ class _LatencyFilter:
     def update(
         self, t: float, drives: Mapping[int, DriveReading], frames: Sequence[MarkerFrame]
     ) -> Estimate:
-        self._u = _pressure_inputs(drives, self._u, self.segments)
+        self._u = _pressure_inputs(drives, self._u, self.bends)
         if not self._nodes:
             x, P = self._initial()
         else:

@@ -470,6 +470,8 @@ class PlanarArm:
                     d_bend=p["d_bend"],
                     G_a=p["G_a"],
                     theta_max=p["theta_max"],
+                    vacuum_factor=p.get("vacuum_factor", 1.0),
+                    p_collapse=p.get("p_collapse", 1e4),
                 )
                 for p in segments
             ),
