@@ -9,12 +9,15 @@ from pathlib import Path
 
 import fmpy
 import pytest
+from fmpy.fmi1 import FMICallException
+from fmpy.fmi2 import FMU2Slave
 from fmpy.validation import validate_fmu
 
 import fmus
-from hil.errors import BuildError
+from hil.errors import BuildError, FmuError
 from hil.fmu import build as build_module
 from hil.fmu.build import build_fmu
+from hil.fmu.slave import FmuSlave
 from hil.fmu.spec import load_spec
 
 MODELS = ["DriveCylinder", "FeaSegment"]
@@ -162,3 +165,47 @@ def test_outputs_follow_start_values_in_initialisation_mode(
         fmu.terminate()
     finally:
         fmu.freeInstance()
+
+
+def fmpy_instance(name: str) -> FMU2Slave:
+    """A raw fmpy instance of a built FMU, initialised at t = 0 (no softhil wrapper)."""
+    built = build_fmu(name)
+    description = fmpy.read_model_description(str(built.path))
+    assert description.coSimulation is not None
+    instance = FMU2Slave(
+        guid=description.guid,
+        unzipDirectory=str(built.unzipdir),
+        modelIdentifier=description.coSimulation.modelIdentifier,
+        instanceName="glue-check",
+    )
+    instance.instantiate()
+    instance.setupExperiment(startTime=0.0)
+    instance.enterInitializationMode()
+    instance.exitInitializationMode()
+    return instance
+
+
+@pytest.mark.parametrize("name", MODELS)
+@pytest.mark.parametrize("wrong", [0.0, 2e-3, 0.5, 1e-3 - 1e-6, 1e-3 + 1e-6])
+def test_do_step_only_at_the_fmus_own_communication_point(name: str, wrong: float) -> None:
+    """The glue refuses a doStep whose currentCommunicationPoint is not where the FMU is (here
+    t = 1 ms after one step): repeating, skipping or drifting by 1 us is an fmi2Error, and the
+    refused call leaves the FMU where it was."""
+    instance = fmpy_instance(name)
+    try:
+        instance.doStep(currentCommunicationPoint=0.0, communicationStepSize=1e-3)
+        with pytest.raises(FMICallException) as info:
+            instance.doStep(currentCommunicationPoint=wrong, communicationStepSize=1e-3)
+        assert info.value.status == 3  # fmi2Error
+        instance.doStep(currentCommunicationPoint=1e-3, communicationStepSize=1e-3)
+        instance.doStep(currentCommunicationPoint=2e-3, communicationStepSize=1e-3)
+    finally:
+        instance.terminate()
+        instance.freeInstance()
+
+
+def test_do_step_error_names_both_communication_points() -> None:
+    with FmuSlave("DriveCylinder", "cylinder1") as slave:
+        slave.do_step(0.0, 1e-3)
+        with pytest.raises(FmuError, match="communication point 0.5 but the FMU is at 0.001"):
+            slave.do_step(0.5, 1e-3)
