@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import ctypes
 import re
 import shutil
 import zipfile
@@ -10,7 +11,14 @@ from pathlib import Path
 import fmpy
 import pytest
 from fmpy.fmi1 import FMICallException
-from fmpy.fmi2 import FMU2Slave
+from fmpy.fmi2 import (
+    FMU2Slave,
+    fmi2CallbackAllocateMemoryTYPE,
+    fmi2CallbackFreeMemoryTYPE,
+    fmi2CallbackFunctions,
+    fmi2CallbackLoggerTYPE,
+)
+from fmpy.logging import addLoggerProxy
 from fmpy.validation import validate_fmu
 
 import fmus
@@ -143,8 +151,6 @@ def test_outputs_follow_start_values_in_initialisation_mode(
 ) -> None:
     """FMI 2.0: initial unknowns can be read in initialisation mode (masters propagate start
     values through connections before exiting it)."""
-    from fmpy.fmi2 import FMU2Slave
-
     built = build_fmu(name)
     description = fmpy.read_model_description(str(built.path))
     refs = {v.name: v.valueReference for v in description.modelVariables}
@@ -167,22 +173,45 @@ def test_outputs_follow_start_values_in_initialisation_mode(
         fmu.freeInstance()
 
 
-def fmpy_instance(name: str) -> FMU2Slave:
-    """A raw fmpy instance of a built FMU, initialised at t = 0 (no softhil wrapper)."""
-    built = build_fmu(name)
-    description = fmpy.read_model_description(str(built.path))
-    assert description.coSimulation is not None
-    instance = FMU2Slave(
-        guid=description.guid,
-        unzipDirectory=str(built.unzipdir),
-        modelIdentifier=description.coSimulation.modelIdentifier,
-        instanceName="glue-check",
-    )
-    instance.instantiate()
-    instance.setupExperiment(startTime=0.0)
-    instance.enterInitializationMode()
-    instance.exitInitializationMode()
-    return instance
+class RawFmu:
+    """A raw fmpy instance of a built FMU, initialised at t = 0 (no softhil wrapper). Its
+    callbacks are set up as hil.fmu.slave does: fmpy's default logger is a ctypes callback for a
+    C varargs function and crashes the process when the FMU logs an error, so the logger sits
+    behind fmpy's varargs proxy, and memory comes from libc's calloc/free."""
+
+    def __init__(self, name: str) -> None:
+        built = build_fmu(name)
+        description = fmpy.read_model_description(str(built.path))
+        assert description.coSimulation is not None
+        self.messages: list[str] = []
+        self.fmu = FMU2Slave(
+            guid=description.guid,
+            unzipDirectory=str(built.unzipdir),
+            modelIdentifier=description.coSimulation.modelIdentifier,
+            instanceName="glue-check",
+        )
+        libc = ctypes.CDLL(None)
+        libc.calloc.restype = ctypes.c_void_p
+        libc.calloc.argtypes = [ctypes.c_size_t, ctypes.c_size_t]
+        libc.free.argtypes = [ctypes.c_void_p]
+
+        def logger(component, instance, status, category, message) -> None:
+            self.messages.append(message.decode("utf-8", "replace"))
+
+        # kept on self: the FMU calls them for as long as it lives
+        self.callbacks = fmi2CallbackFunctions()
+        self.callbacks.logger = fmi2CallbackLoggerTYPE(logger)
+        self.callbacks.allocateMemory = fmi2CallbackAllocateMemoryTYPE(libc.calloc)
+        self.callbacks.freeMemory = fmi2CallbackFreeMemoryTYPE(libc.free)
+        addLoggerProxy(ctypes.byref(self.callbacks))
+        self.fmu.instantiate(callbacks=self.callbacks)
+        self.fmu.setupExperiment(startTime=0.0)
+        self.fmu.enterInitializationMode()
+        self.fmu.exitInitializationMode()
+
+    def close(self) -> None:
+        self.fmu.terminate()
+        self.fmu.freeInstance()
 
 
 @pytest.mark.parametrize("name", MODELS)
@@ -191,17 +220,19 @@ def test_do_step_only_at_the_fmus_own_communication_point(name: str, wrong: floa
     """The glue refuses a doStep whose currentCommunicationPoint is not where the FMU is (here
     t = 1 ms after one step): repeating, skipping or drifting by 1 us is an fmi2Error, and the
     refused call leaves the FMU where it was."""
-    instance = fmpy_instance(name)
+    raw = RawFmu(name)
     try:
-        instance.doStep(currentCommunicationPoint=0.0, communicationStepSize=1e-3)
+        raw.fmu.doStep(currentCommunicationPoint=0.0, communicationStepSize=1e-3)
         with pytest.raises(FMICallException) as info:
-            instance.doStep(currentCommunicationPoint=wrong, communicationStepSize=1e-3)
+            raw.fmu.doStep(currentCommunicationPoint=wrong, communicationStepSize=1e-3)
         assert info.value.status == 3  # fmi2Error
-        instance.doStep(currentCommunicationPoint=1e-3, communicationStepSize=1e-3)
-        instance.doStep(currentCommunicationPoint=2e-3, communicationStepSize=1e-3)
+        assert raw.messages == [
+            f"fmi2DoStep: communication point {wrong:.12g} but the FMU is at 0.001"
+        ]
+        raw.fmu.doStep(currentCommunicationPoint=1e-3, communicationStepSize=1e-3)
+        raw.fmu.doStep(currentCommunicationPoint=2e-3, communicationStepSize=1e-3)
     finally:
-        instance.terminate()
-        instance.freeInstance()
+        raw.close()
 
 
 def test_do_step_error_names_both_communication_points() -> None:
