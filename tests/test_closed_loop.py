@@ -37,7 +37,7 @@ from controllers.protocol import (
 from hil.errors import BusError
 from hil.plant import Plant
 from hil.recording import CanLogger, SignalRecorder
-from hil.robots import build_rig
+from hil.robots import build_rig, robot_kind
 from hil.run import RunOptions, controller_config, run_scenario
 from hil.scenario import DEFAULT_SCENARIO, Scenario, load_scenario
 from hil.summary import read_signals
@@ -73,19 +73,41 @@ def test_default_scenario_tracks_curvature_steps(default_run) -> None:
     assert s["status"] == "completed"
     steps = s["segments"][0]["steps"]
     assert [st["level"] for st in steps] == [10.0, -10.0, 5.0, 0.0]
-    # Steady-state bound: after the 2 s holds the error is set by what the loop can resolve, not
-    # by the dynamics. The camera quantises markers to 20 um on the bus, which over a 60 mm
-    # chord is ~0.3 mrad of chord angle, 2 * 0.3e-3 / 0.06 ~ 0.01 1/m of curvature; the piston
-    # setpoint quantum (2 um) times the static gain (~850 1/m per m) adds 0.002 1/m. A bound of
-    # 0.05 1/m (0.5 % of the 10 1/m step) leaves room for the servo's friction hunting.
-    for hold in steps[:2]:
-        assert hold["steady_state_error"] < 0.05
-    assert s["max_overshoot"] < 0.15
-    assert all(st["settling_time"] < 1.0 for st in steps)
+    # Bounds of every hold, from the physics of the loop rather than from a past run.
+    # - Resolution floor, 0.03 1/m: the camera quantises markers to 20 um on the bus, which over
+    #   a 60 mm chord is ~0.3 mrad of chord angle, 2 * 0.3e-3 / 0.06 ~ 0.01 1/m of curvature;
+    #   the piston setpoint quantum (2 um) times the static gain K (~850 1/m per m) adds
+    #   0.002 1/m; the servo's stick-slip against 3 N of seal friction leaves the piston
+    #   ~20 um off its setpoint, another ~0.02 1/m.
+    # - What is left of the step when the steady-state window (the hold's last 20 %) opens: the
+    #   drive slews at its no-load speed v_max = u_max / Ke * lead / (2 pi) = 50 mm/s, taking
+    #   |step| / (K v_max) (0.24 s for 10 1/m); after that the 1 Hz loop removes the rest with
+    #   its time constant tau = 1 / (2 pi 1 Hz) = 0.16 s, leaving |step| exp(-(t - t_slew) / tau).
+    #   Negligible for the 2 s holds (< 0.02 1/m), ~0.07 1/m for the 1.5 s and 1 s holds.
+    # - Settling (5 % band): the slew plus 4 tau, and never more than 1 s.
+    # - Overshoot: the drive keeps slewing for the loop's delay after the error crosses zero
+    #   (one period of computation, one of sampling, the camera latency: 26 ms), so at most
+    #   K v_max * 26 ms ~ 1.1 1/m whatever the step; and at most 15 % of a small step.
+    scenario = load_scenario()
+    robot = robot_kind("planar_arm")
+    K = robot.segment_models(scenario)[0].static_gain()
+    cylinder = robot.parameters(scenario, "cylinder")[0]
+    v_max = cylinder["u_max"] / cylinder["Ke"] * cylinder["lead"] / (2 * np.pi)
+    assert v_max == pytest.approx(0.05, rel=0.01)
+    tau = 1.0 / (2 * np.pi * scenario.controller.crossover)
+    delay = 2 * scenario.timing.control_period + scenario.camera.latency
+    ends = [2.5, 4.5, 6.0, 7.0]  # each hold ends where the next begins (the sine at 7 s)
     signals = read_signals(default_run.out / "signals.csv")
     t, kappa = signals["time"], signals["kappa_1"]
-    assert abs(kappa[np.searchsorted(t, 2.49)] - 10.0) < 0.05
-    assert abs(kappa[np.searchsorted(t, 4.49)] + 10.0) < 0.05
+    for hold, end in zip(steps, ends, strict=True):
+        step, length = abs(hold["step"]), end - hold["start"]
+        slew = step / (K * v_max)
+        residual = step * np.exp(-(0.8 * length - slew) / tau)
+        assert hold["steady_state_error"] < 0.03 + residual, hold
+        assert abs(kappa[np.searchsorted(t, end - 0.01)] - hold["level"]) < 0.03 + residual
+        assert hold["settling_time"] < min(1.0, slew + 4 * tau), hold
+        assert hold["overshoot"] * step < K * v_max * delay, hold
+        assert hold["overshoot"] < 0.15, hold
     # the controller's estimate (from camera markers over CAN) follows the truth
     est = signals["kappa_est_1"][:-1]
     assert np.nanmax(np.abs(est - kappa[:-1])) < 1.5  # one camera latency of a fast move
@@ -168,6 +190,66 @@ def test_can_log_decodes_with_cantools_and_python_can(default_run) -> None:
     assert all(" :: " in line and "Unknown" not in line for line in decoded)
 
 
+# signals.csv column -> (DBC message kind, signal) for every recorded quantity on the bus
+ON_THE_BUS = {
+    "x_1": ("DriveStatus1", "piston_position"),
+    "p_a_1": ("DriveStatus1", "p_a"),
+    "p_b_1": ("DriveStatus1", "p_b"),
+    "fault_1": ("DriveStatus1", "fault"),
+    "kappa_ref_1": ("ControllerState1", "kappa_ref"),
+    "kappa_est_1": ("ControllerState1", "kappa_est"),
+}
+PLANT_RECEIVES = {"SYNC", "DriveCommand1", "ControllerState1"}  # R in the log, the rest T
+
+
+def test_can_log_decoded_by_cantools_agrees_with_signals_csv(default_run) -> None:
+    """Every DriveStatus and ControllerState frame, decoded independently of softhil with
+    cantools, carries what signals.csv recorded at the same SYNC, within the DBC's resolution;
+    the setpoint the drive applies from SYNC c is the DriveCommand answering SYNC c - 1."""
+    db = cantools.database.load_file(str(DBC_PATH))
+    signals = read_signals(default_run.out / "signals.csv")
+    rows = len(signals["time"])
+    decoded: dict[str, list[dict]] = {"DriveStatus1": [], "ControllerState1": []}
+    commands: list[dict] = []
+    cycle = -1
+    for m in can.LogReader(str(default_run.out / "can.log")):
+        message = db.get_message_by_frame_id(m.arbitration_id)
+        assert m.is_rx == (message.name in PLANT_RECEIVES), message.name
+        values = db.decode_message(m.arbitration_id, m.data, decode_choices=False)
+        if message.name == "SYNC":
+            cycle += 1
+            assert values["counter"] == cycle % 256
+        elif message.name in decoded:
+            assert values["counter"] == cycle % 256, (message.name, cycle)
+            decoded[message.name].append({"cycle": cycle, **values})
+        elif message.name == "DriveCommand1":
+            assert values["counter"] == cycle % 256
+            commands.append(values)
+    assert cycle + 1 == rows == 1001
+    assert [d["cycle"] for d in decoded["DriveStatus1"]] == list(range(rows))
+    assert [d["cycle"] for d in decoded["ControllerState1"]] == list(range(rows - 1))
+    for column, (name, signal_name) in ON_THE_BUS.items():
+        spec = db.get_message_by_name(name).get_signal_by_name(signal_name)
+        on_bus = np.array([d[signal_name] for d in decoded[name]], dtype=float)
+        recorded = signals[column][: len(on_bus)]
+        assert np.all(np.abs(on_bus - recorded) <= 0.5 * spec.scale * (1 + 1e-9)), column
+        assert np.ptp(recorded) > 0 or column == "fault_1", column  # the check is not vacuous
+    assert np.isnan(signals["kappa_ref_1"][-1])  # nothing is computed after the last SYNC
+    # the setpoint applied from SYNC c (no fault in this run) is the command of cycle c - 1
+    assert not np.any(signals["fault_1"])
+    spec = db.get_message_by_name("DriveCommand1").get_signal_by_name("piston_setpoint")
+    setpoints = np.array([c["piston_setpoint"] for c in commands])
+    assert np.all(np.abs(signals["x_ref_1"][1:] - setpoints) <= 0.5 * spec.scale * (1 + 1e-9))
+    # and the units sidecar gives each of these columns the unit the DBC gives its signal
+    with (default_run.out / "signals.units.csv").open() as f:
+        units = {row["signal"]: row["unit"] for row in csv.DictReader(f)}
+    assert units["time"] == "s"
+    for column, (name, signal_name) in ON_THE_BUS.items():
+        unit = db.get_message_by_name(name).get_signal_by_name(signal_name).unit
+        assert units[column] == (unit or ""), column  # cantools reads "" as None
+    assert units["x_ref_1"] == "m"
+
+
 def test_same_seed_gives_identical_files_and_separate_process_matches(
     default_run, tmp_path: Path
 ) -> None:
@@ -197,7 +279,7 @@ def test_realtime_mode_paces_sync_and_changes_nothing_else(tmp_path: Path) -> No
     report = paced.summary["controller"]
     assert report["realtime"] is True and not lockstep.summary["controller"]["realtime"]
     assert report["cycles"] == 30
-    assert report["max_lateness"] >= 0.0 and report["overruns"] >= 0
+    # the pacing itself is tested with a fake clock (test_controller.py), not against the wall
     assert (paced.out / "can.log").read_bytes() == (lockstep.out / "can.log").read_bytes()
 
 
@@ -210,10 +292,27 @@ def test_over_pressure_makes_the_drive_hold_and_send_emcy(tmp_path: Path) -> Non
     assert emcy and emcy[0].error_code == EMCY_OVER_PRESSURE
     assert emcy[0].pressure > 12000.0
     signals = read_signals(result.out / "signals.csv")
-    # the hold stops the piston short of what the controller asked for, so pressure stays
-    # near the limit instead of the ~25 kPa that kappa = 10 1/m needs
-    assert np.max(np.abs(signals["p_a_1"])) < 16000.0
-    assert np.any(signals["fault_1"].astype(int) & 16)
+    # The hold stops the piston short of what the controller asked for, so pressure stays at
+    # the limit instead of the ~25 kPa that kappa = 10 1/m needs. The guard acts at SYNC only:
+    # the pressure may rise for one control period past the limit before the SYNC that trips
+    # it, and for at most one more while the servo brakes the piston. At full speed (50 mm/s)
+    # with the stiffest side (piston at the end of its stroke, only the dead and channel volume
+    # left, the chamber wall's compliance in series) that is 2 T v_max A p / (V + p C_a).
+    limit = 12000.0
+    segment = robot_kind("planar_arm").segment_models(load_scenario(path))[0]
+    p_abs = segment.p_atm + limit
+    stiffest = p_abs / (segment.V_dead + segment.V_ch0 + p_abs * segment.C_a)  # [Pa/m^3]
+    overshoot = 2 * 0.01 * 0.05 * segment.bore_area * stiffest
+    assert overshoot == pytest.approx(1330.0, rel=0.01)  # 13.3 kPa in all
+    for side in ("p_a_1", "p_b_1"):
+        assert np.max(np.abs(signals[side])) < limit + overshoot, side
+    fault = signals["fault_1"].astype(int)
+    held = np.nonzero(fault & 16)[0]
+    assert held.size and held[0] == emcy[0].counter  # the status of the tripping SYNC shows it
+    # the hold is released once both sides are below 90 % of the limit
+    released = held[-1] + 1
+    assert released < len(fault) and not fault[released] & 16
+    assert max(abs(signals["p_a_1"][released]), abs(signals["p_b_1"][released])) < 0.9 * limit
     assert result.summary["frames"]["emcy"] == len(emcy)
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import ctypes
 import re
 import shutil
 import zipfile
@@ -9,12 +10,22 @@ from pathlib import Path
 
 import fmpy
 import pytest
+from fmpy.fmi1 import FMICallException
+from fmpy.fmi2 import (
+    FMU2Slave,
+    fmi2CallbackAllocateMemoryTYPE,
+    fmi2CallbackFreeMemoryTYPE,
+    fmi2CallbackFunctions,
+    fmi2CallbackLoggerTYPE,
+)
+from fmpy.logging import addLoggerProxy
 from fmpy.validation import validate_fmu
 
 import fmus
-from hil.errors import BuildError
+from hil.errors import BuildError, FmuError
 from hil.fmu import build as build_module
 from hil.fmu.build import build_fmu
+from hil.fmu.slave import FmuSlave
 from hil.fmu.spec import load_spec
 
 MODELS = ["DriveCylinder", "FeaSegment"]
@@ -140,8 +151,6 @@ def test_outputs_follow_start_values_in_initialisation_mode(
 ) -> None:
     """FMI 2.0: initial unknowns can be read in initialisation mode (masters propagate start
     values through connections before exiting it)."""
-    from fmpy.fmi2 import FMU2Slave
-
     built = build_fmu(name)
     description = fmpy.read_model_description(str(built.path))
     refs = {v.name: v.valueReference for v in description.modelVariables}
@@ -162,3 +171,72 @@ def test_outputs_follow_start_values_in_initialisation_mode(
         fmu.terminate()
     finally:
         fmu.freeInstance()
+
+
+class RawFmu:
+    """A raw fmpy instance of a built FMU, initialised at t = 0 (no softhil wrapper). Its
+    callbacks are set up as hil.fmu.slave does: fmpy's default logger is a ctypes callback for a
+    C varargs function and crashes the process when the FMU logs an error, so the logger sits
+    behind fmpy's varargs proxy, and memory comes from libc's calloc/free."""
+
+    def __init__(self, name: str) -> None:
+        built = build_fmu(name)
+        description = fmpy.read_model_description(str(built.path))
+        assert description.coSimulation is not None
+        self.messages: list[str] = []
+        self.fmu = FMU2Slave(
+            guid=description.guid,
+            unzipDirectory=str(built.unzipdir),
+            modelIdentifier=description.coSimulation.modelIdentifier,
+            instanceName="glue-check",
+        )
+        libc = ctypes.CDLL(None)
+        libc.calloc.restype = ctypes.c_void_p
+        libc.calloc.argtypes = [ctypes.c_size_t, ctypes.c_size_t]
+        libc.free.argtypes = [ctypes.c_void_p]
+
+        def logger(component, instance, status, category, message) -> None:
+            self.messages.append(message.decode("utf-8", "replace"))
+
+        # kept on self: the FMU calls them for as long as it lives
+        self.callbacks = fmi2CallbackFunctions()
+        self.callbacks.logger = fmi2CallbackLoggerTYPE(logger)
+        self.callbacks.allocateMemory = fmi2CallbackAllocateMemoryTYPE(libc.calloc)
+        self.callbacks.freeMemory = fmi2CallbackFreeMemoryTYPE(libc.free)
+        addLoggerProxy(ctypes.byref(self.callbacks))
+        self.fmu.instantiate(callbacks=self.callbacks)
+        self.fmu.setupExperiment(startTime=0.0)
+        self.fmu.enterInitializationMode()
+        self.fmu.exitInitializationMode()
+
+    def close(self) -> None:
+        self.fmu.terminate()
+        self.fmu.freeInstance()
+
+
+@pytest.mark.parametrize("name", MODELS)
+@pytest.mark.parametrize("wrong", [0.0, 2e-3, 0.5, 1e-3 - 1e-6, 1e-3 + 1e-6])
+def test_do_step_only_at_the_fmus_own_communication_point(name: str, wrong: float) -> None:
+    """The glue refuses a doStep whose currentCommunicationPoint is not where the FMU is (here
+    t = 1 ms after one step): repeating, skipping or drifting by 1 us is an fmi2Error, and the
+    refused call leaves the FMU where it was."""
+    raw = RawFmu(name)
+    try:
+        raw.fmu.doStep(currentCommunicationPoint=0.0, communicationStepSize=1e-3)
+        with pytest.raises(FMICallException) as info:
+            raw.fmu.doStep(currentCommunicationPoint=wrong, communicationStepSize=1e-3)
+        assert info.value.status == 3  # fmi2Error
+        assert raw.messages == [
+            f"fmi2DoStep: communication point {wrong:.12g} but the FMU is at 0.001"
+        ]
+        raw.fmu.doStep(currentCommunicationPoint=1e-3, communicationStepSize=1e-3)
+        raw.fmu.doStep(currentCommunicationPoint=2e-3, communicationStepSize=1e-3)
+    finally:
+        raw.close()
+
+
+def test_do_step_error_names_both_communication_points() -> None:
+    with FmuSlave("DriveCylinder", "cylinder1") as slave:
+        slave.do_step(0.0, 1e-3)
+        with pytest.raises(FmuError, match="communication point 0.5 but the FMU is at 0.001"):
+            slave.do_step(0.5, 1e-3)

@@ -1,16 +1,36 @@
-"""A non-editable install carries the FMU sources and builds FMUs from them."""
+"""A non-editable install carries the FMU sources and builds FMUs from them.
+
+The install builds from a copy of the project in tmp_path: setuptools writes `build/` and
+`*.egg-info` next to the sources it builds, and tests never write into the checkout.
+"""
 
 from __future__ import annotations
 
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+PROJECT = ("pyproject.toml", "README.md", "fmus", "hil", "controllers")  # what a build reads
+
+
+def copy_project(target: Path) -> Path:
+    target.mkdir()
+    ignore = shutil.ignore_patterns("__pycache__", "*.egg-info", "build", "*.so", "*.fmu")
+    for name in PROJECT:
+        source = ROOT / name
+        if source.is_dir():
+            shutil.copytree(source, target / name, ignore=ignore)
+        else:
+            shutil.copy2(source, target / name)
+    return target
 
 
 def test_non_editable_install_ships_fmu_sources_and_builds(tmp_path: Path) -> None:
+    before = sorted(p.name for p in ROOT.iterdir())
+    source = copy_project(tmp_path / "source")
     target = tmp_path / "site"
     subprocess.run(
         [
@@ -23,13 +43,17 @@ def test_non_editable_install_ships_fmu_sources_and_builds(tmp_path: Path) -> No
             "--no-build-isolation",
             "--target",
             str(target),
-            str(ROOT),
+            str(source),
         ],
         check=True,
         capture_output=True,
         text=True,
         timeout=240,
+        cwd=tmp_path,
     )
+    # the build happened in the copy, and left nothing in the checkout
+    assert sorted(p.name for p in ROOT.iterdir()) == before
+    assert (source / "build").is_dir() or any(source.glob("*.egg-info"))
     for relative in (
         "fmus/common/fmu_glue.c",
         "fmus/common/glue.h",

@@ -24,18 +24,23 @@ from controllers.protocol import (
     EMCY_FMU_FAULT,
     EMCY_OVER_PRESSURE,
     NMT_OPERATIONAL,
+    CameraFrame,
     CameraMarker,
+    CameraMarker3D,
     ControllerState,
     DriveCommand,
     DriveStatus,
     Emcy,
     Frame,
     FrameError,
+    GenericFrame,
     Heartbeat,
     Protocol,
     Sync,
     bus_load,
     frame_bits,
+    frame_key,
+    frame_signals,
 )
 from hil.fmu.build import model_folder
 from hil.fmu.spec import load_spec
@@ -476,3 +481,75 @@ def test_compiled_codec_equals_cantools_byte_for_byte(protocol: Protocol) -> Non
             want = message.decode(data, decode_choices=False)
             have = codec.decode(data)
             assert have == want and all(type(have[k]) is type(want[k]) for k in want)
+# Golden bytes: one frame of every kind in the DBC, encoded by hand from the DBC's layout
+# (little-endian, raw = value / scale, two's complement for signed signals). The values are
+# distinct in every byte, so a moved, resized, swapped or rescaled signal changes the bytes.
+GOLDEN: list[tuple[Frame, int, str]] = [
+    (Sync(0xA5), 0x080, "A5"),
+    # piston 0.0123 m = 6150 * 2e-6 (0x1806), p_a 1230 Pa = 123 (0x007B), p_b -4560 Pa =
+    # -456 (0xFE38), fault 0x12, counter 0xC7
+    (DriveStatus(3, 0.0123, 1230.0, -4560.0, 0x12, 0xC7), 0x183, "06187B0038FE12C7"),
+    # setpoint 0.0456 m = 22800 (0x5910), enable at bit 16, counter 0x3C
+    (DriveCommand(3, 0.0456, True, 0x3C), 0x203, "1059013C"),
+    # kappa_ref 12.345 1/m = 12345 (0x3039), kappa_est -6.789 = -6789 (0xE57B), counter 0x4D
+    (ControllerState(3, 12.345, -6.789, 0x4D), 0x383, "39307BE54D"),
+    # error code 0xFF01, register 0x81, pressure 12340 Pa = 1234 (0x04D2), counter 0x2A
+    (Emcy(3, EMCY_OVER_PRESSURE, 0x81, 12340.0, 0x2A), 0x083, "01FF81D2042A"),
+    (Heartbeat(3, NMT_OPERATIONAL), 0x703, "05"),
+    # marker 4, x 0.1234 m = 6170 (0x181A), y -0.0567 = -2835 (0xF4ED), frame 0x9B,
+    # exposure offset 0.006 s = 600 (0x0258)
+    (CameraMarker(4, 0.1234, -0.0567, 0x9B, 0.006), 0x284, "041A18EDF49B5802"),
+    # frame 0x11, x 0.01 m = 500 (0x01F4), y -0.02 = -1000 (0xFC18), z 0.3 = 15000 (0x3A98)
+    (CameraMarker3D(5, 0x11, 0.01, -0.02, 0.3), 0x295, "11F40118FC983A00"),
+    # frame 0x22, exposure offset 0.016 s = 1600 (0x0640), mask 0b1011, 3 markers
+    (CameraFrame(0x22, 0.016, 0b1011, 3), 0x27F, "2240060B00030000"),
+    # open 12.5 ms = 125 (0x007D), vent at bit 16, counter 0x33
+    (
+        GenericFrame("ValveCommand", 2, {"open_time": 0.0125, "vent": 1, "counter": 0x33}),
+        0x212,
+        "7D000133",
+    ),
+    # state 2, channel -2500 Pa = -250 (0xFF06), fault 0x10 at byte 3, counter 0x44 at byte 5
+    (
+        GenericFrame(
+            "ValveStatus", 2, {"state": 2, "p_channel": -2500.0, "fault": 0x10, "counter": 0x44}
+        ),
+        0x192,
+        "0206FF100044",
+    ),
+    # canister 4.5 MPa = 45000 * 100 (0xAFC8), supply 350 kPa = 35000 * 10 (0x88B8),
+    # gas left 32.1 g = 32100 * 1e-6 kg (0x7D64), counter 0x55
+    (
+        GenericFrame(
+            "CanisterStatus",
+            None,
+            {"p_canister": 4.5e6, "p_supply": 350e3, "gas_left": 0.0321, "counter": 0x55},
+        ),
+        0x1A0,
+        "C8AFB888647D0055",
+    ),
+]
+
+
+def test_golden_bytes_cover_every_kind_in_the_dbc(protocol: Protocol) -> None:
+    kinds = {message.name.rstrip("0123456789") for message in protocol.database.messages}
+    assert {frame_key(frame)[0] for frame, _, _ in GOLDEN} == kinds
+
+
+@pytest.mark.parametrize(
+    ("frame", "frame_id", "data"), GOLDEN, ids=[frame_key(f)[0] for f, _, _ in GOLDEN]
+)
+def test_golden_bytes_of_every_message_kind(
+    protocol: Protocol, frame: Frame, frame_id: int, data: str
+) -> None:
+    message = protocol.encode(frame)
+    assert (message.arbitration_id, bytes(message.data).hex().upper()) == (frame_id, data)
+    # and the bytes decode to the frame, every signal within half its scaling step
+    wire = can.Message(arbitration_id=frame_id, data=bytes.fromhex(data), is_extended_id=False)
+    back = protocol.decode(wire)
+    assert frame_key(back) == frame_key(frame)
+    declared = protocol.message(frame_id)
+    expected, got = frame_signals(frame), frame_signals(back)
+    assert set(got) == set(expected)
+    for name, value in expected.items():
+        assert close(got[name], value, declared.get_signal_by_name(name).scale), name

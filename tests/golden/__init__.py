@@ -1,0 +1,95 @@
+"""The golden CAN log and its replay harness.
+
+`default.log` is the CAN log of the default scenario cut to 2 s (the sine starts at the end),
+run in-process, exactly as the plant wrote it: SYNC, DriveCommand and ControllerState frames it
+received (R), everything it sent (T), stamped with the default start instant plus simulation
+time. `replay` feeds a fresh Plant only the received frames, in the logged order, on a python-can
+virtual bus, and returns the log the plant writes; the test requires it to equal the golden file
+byte for byte.
+
+The golden file changes only on purpose, never in a test run:
+
+    python -m tests.golden --regenerate    # then review the diff of tests/golden/default.log
+"""
+
+from __future__ import annotations
+
+import tempfile
+import uuid
+from pathlib import Path
+
+import can
+
+from controllers.canbus import BusSpec, open_bus
+from controllers.protocol import Protocol
+from hil.devices import HEARTBEAT_PERIOD
+from hil.plant import Plant
+from hil.recording import CanLogger, SignalRecorder
+from hil.robots import build_rig
+from hil.run import RunOptions, run_scenario
+from hil.scenario import DEFAULT_SCENARIO, Scenario, load_scenario, log_start
+
+GOLDEN_DIR = Path(__file__).resolve().parent
+DEFAULT_LOG = GOLDEN_DIR / "default.log"
+DURATION = 2.0  # [s] of the default scenario: the first step and most of its hold
+
+
+def write_scenario(folder: Path) -> Path:
+    """The default scenario cut to DURATION, written to folder/golden.toml."""
+    text = DEFAULT_SCENARIO.read_text()
+    for old, new in (
+        ("duration = 10.0", f"duration = {DURATION}"),
+        ("sine = { start = 7.0", f"sine = {{ start = {DURATION}"),
+    ):
+        if old not in text:
+            raise RuntimeError(f"the default scenario no longer has {old!r}: update tests/golden")
+        text = text.replace(old, new)
+    path = folder / "golden.toml"
+    path.write_text(text)
+    return path
+
+
+def run_default(folder: Path) -> Path:
+    """Run the shortened default scenario in-process into folder/run; its CAN log."""
+    scenario = load_scenario(write_scenario(folder))
+    result = run_scenario(scenario, RunOptions(out=folder / "run", inprocess=True, progress=False))
+    return result.out / scenario.recording.can_log
+
+
+def received_frames(log: Path) -> list[can.Message]:
+    """The frames the plant received (R lines), in the logged order."""
+    return [message for message in can.LogReader(str(log)) if message.is_rx]
+
+
+def replay(log: Path, scenario: Scenario, folder: Path) -> Path:
+    """Feed a fresh plant the received frames of `log`; the CAN log it writes (folder/can.log).
+
+    Every frame is queued on the virtual bus before the plant starts: the plant handles them in
+    order, so commands answer the SYNC before them as they did in the run, with no controller and
+    no waiting."""
+    channel = f"golden-{uuid.uuid4().hex[:8]}"
+    feeder, plant_bus = open_bus(BusSpec("virtual", channel)), open_bus(BusSpec("virtual", channel))
+    rig = build_rig(scenario)
+    signals = SignalRecorder(folder / "signals.csv", rig.signals)
+    out = folder / "can.log"
+    can_log = CanLogger(out, start=log_start(scenario))
+    heartbeat_every = max(1, round(HEARTBEAT_PERIOD / scenario.timing.control_period))
+    plant = Plant(scenario, plant_bus, rig, signals, can_log, Protocol(), heartbeat_every)
+    try:
+        for message in received_frames(log):
+            feeder.send(message)
+        plant.run(lambda: "the golden log has no more frames")
+    finally:
+        signals.close()
+        can_log.close()
+        rig.close()
+        feeder.shutdown()
+        plant_bus.shutdown()
+    return out
+
+
+def regenerate() -> Path:
+    """Rewrite default.log from a fresh in-process run."""
+    with tempfile.TemporaryDirectory() as tmp:
+        DEFAULT_LOG.write_bytes(run_default(Path(tmp)).read_bytes())
+    return DEFAULT_LOG
