@@ -411,9 +411,11 @@ def test_send_message_strict_range_is_one_line(capsys: pytest.CaptureFixture[str
     one_error_line(capsys)
     database = load_database()
     msg = encode_message(
-        database, "DriveCommand1", ["piston_setpoint=0.13107", "enable=1", "counter=255"]
+        database, "DriveCommand1", ["piston_setpoint=0.05", "enable=1", "counter=255"]
     )
-    assert Protocol().decode(msg) == DriveCommand(1, 0.13107, True, 255)
+    decoded = Protocol().decode(msg)
+    assert (decoded.node, decoded.enable, decoded.counter) == (1, True, 255)
+    assert decoded.piston_setpoint == pytest.approx(0.05, abs=2e-6)
 
 
 def test_send_over_the_hub(spec: str, open_buses: list[can.BusABC]) -> None:

@@ -16,7 +16,8 @@ import pytest
 from controllers import kinematics
 from controllers.canbus import DEFAULT_CHANNEL, DEFAULT_LOOPBACK_PORT, BusSpec
 from controllers.curvature import CurvaturePI, PiGains
-from controllers.estimation import Estimate, MarkerFrame
+from controllers.estimation import BendModel, Estimate, MarkerFrame
+from controllers.estimators import RawEstimator
 from controllers.node import (
     CameraAssembler,
     CameraTiming,
@@ -25,8 +26,7 @@ from controllers.node import (
     ControllerNode,
     RealtimeClock,
 )
-from controllers.planar_arm import NewestFrame
-from controllers.protocol import CameraMarker, DriveStatus, Frame, Protocol, Sync
+from controllers.protocol import CameraFrame, CameraMarker, DriveStatus, Frame, Protocol, Sync
 
 # ---------------------------------------------------------------------------- CameraTiming
 
@@ -68,8 +68,15 @@ def marker(m: int, frame: int, offset: float = 0.006) -> CameraMarker:
     return CameraMarker(m, 0.1 * m + 1e-3 * frame, -0.1 * m, frame % 256, offset)
 
 
+def header(frame: int, markers: int, offset: float = 0.006) -> CameraFrame:
+    """The picture's CameraFrame: it holds markers 0 .. markers - 1."""
+    return CameraFrame(frame % 256, offset, (1 << markers) - 1, markers)
+
+
 def test_a_frame_is_complete_only_with_every_marker_of_its_own_index() -> None:
     assembler = CameraAssembler(markers=3)
+    assembler.add(header(5, 3))
+    assembler.add(header(6, 3))
     assembler.add(marker(0, 5))
     assembler.add(marker(1, 5))
     assembler.add(marker(2, 6))  # the next frame's marker does not complete frame 5
@@ -85,6 +92,7 @@ def test_take_gives_the_frame_asked_for_with_its_exposure_time() -> None:
     for frame in (7, 8):
         for m in (1, 0):  # any arrival order
             assembler.add(marker(m, frame, offset=0.001 * frame))
+        assembler.add(header(frame, 2, offset=0.001 * frame))
     taken = assembler.take(7, sync_time=0.5)
     assert taken.exposure_time == pytest.approx(0.5 - 0.007)
     np.testing.assert_allclose(taken.points, [[0.007, 0.0], [0.107, -0.1]], atol=1e-15)
@@ -97,6 +105,7 @@ def test_take_gives_the_frame_asked_for_with_its_exposure_time() -> None:
 
 def test_frame_indices_wrap_modulo_256() -> None:
     assembler = CameraAssembler(markers=2)
+    assembler.add(header(256 + 3, 2))
     for m in range(2):
         assembler.add(marker(m, 256 + 3))  # on the wire: frame_index 3
     assert assembler.complete(259)
@@ -108,12 +117,13 @@ def test_frame_indices_wrap_modulo_256() -> None:
 
 def test_markers_beyond_the_robots_are_ignored() -> None:
     assembler = CameraAssembler(markers=2)
+    assembler.add(header(1, 2))
     assembler.add(marker(0, 1))
     assembler.add(marker(5, 1))
     assert not assembler.complete(1)
 
 
-# ---------------------------------------------------------------------------- NewestFrame
+# ---------------------------------------------------------------------------- raw estimator
 
 LENGTHS = (0.06, 0.05)
 BASE = (0.0, 0.0, np.pi / 2)
@@ -124,11 +134,12 @@ def frame_of(kappas, time: float) -> MarkerFrame:
 
 
 def test_the_raw_estimator_uses_the_newest_complete_frame() -> None:
-    estimator = NewestFrame(LENGTHS, BASE[2])
+    bends = [BendModel(L, 1e-6, 0.025, 6e-3, 7.7e-7) for L in LENGTHS]
+    estimator = RawEstimator(bends, BASE)
     older, newer = frame_of([5.0, -3.0], 0.001), frame_of([8.0, 2.0], 0.006)
     estimate = estimator.update(0.01, {}, [older, newer])
     np.testing.assert_allclose(estimate.kappa, [8.0, 2.0], atol=1e-9)
-    assert estimate.measured == 2
+    assert estimate.measured == 4  # segments inverted: two per complete frame
     # an incomplete newest frame does not count; the newest complete one does
     partial = MarkerFrame(0.016, newer.points.copy())
     partial.points[2] = np.nan
@@ -233,8 +244,8 @@ def test_bus_spec_text_form() -> None:
     [
         ("loopback:port", "port must be an integer"),
         ("loopback:host:x1", "port must be an integer"),
-        ("socketcan", "name the interface"),
-        ("socketcan:", "name the interface"),
+        ("sockcan:vcan0", "neither loopback, virtual, config nor a python-can interface"),
+        ("socketcan:vcan0,bitrate", "options are key=value"),
     ],
 )
 def test_bus_spec_errors_name_the_spec(text: str, message: str) -> None:
@@ -378,6 +389,7 @@ def rig_answer(timing: CameraTiming, stale_status: bool) -> Callable[[Frame], li
             offset = (c * timing.control_ticks - j * timing.period_ticks) * 1e-3
             for m in reversed(range(timing.markers)):
                 replies.append(CameraMarker(m, *camera_point(j, m), j, offset))
+            replies.append(CameraFrame(j, offset, (1 << timing.markers) - 1, timing.markers))
         if stale_status and c > 0:
             replies.append(DriveStatus(1, piston_at(c - 1), 0.0, 0.0, 0, c - 1))
         replies.append(DriveStatus(1, piston_at(c), 100.0 * c, -100.0 * c, 0, c))

@@ -39,6 +39,7 @@ from hil.devices import (
     DriveNode,
     SyncContext,
 )
+from hil.vision import Camera, CameraEffects
 
 NODE = 3
 X_SEAL = 0.025  # [m]
@@ -350,9 +351,8 @@ def marker_model(values) -> np.ndarray:
 
 
 def camera(period: int, latency: int, noise: float = 0.0, seed: int = 0) -> CameraNode:
-    return CameraNode(
-        ["kappa_1"], marker_model, period, latency, 1e-3, noise, np.random.default_rng(seed)
-    )
+    model = Camera(CameraEffects(noise=noise), np.random.default_rng(seed), period * 1e-3, 1e-3)
+    return CameraNode(["kappa_1"], marker_model, latency, model)
 
 
 def run_camera(
@@ -368,7 +368,8 @@ def run_camera(
         if tick % ticks_per_sync == 0:
             sent = node.act(SyncContext(tick // ticks_per_sync, tick, tick * 1e-3), {})
             assert all(phase == MEASUREMENT for phase, _ in sent)
-            delivered.append((tick, [frame for _, frame in sent]))
+            # the markers of each picture (its CameraFrame header is tested with the controller)
+            delivered.append((tick, [f for _, f in sent if isinstance(f, CameraMarker)]))
     return delivered
 
 

@@ -48,7 +48,7 @@ def test_golden_log_is_the_plants_view_of_the_bus() -> None:
     for m in messages:
         assert m.is_rx == (m.arbitration_id in RECEIVED_IDS), m
     sent = {m.arbitration_id for m in messages if not m.is_rx}
-    assert sent == {0x181, 0x280, 0x281, 0x701}
+    assert sent == {0x181, 0x27F, 0x280, 0x281, 0x701}
     lines = DEFAULT_LOG.read_text().splitlines()
     assert lines[0] == "(1433116800.000000) can0 080#00 R"
     assert all(
