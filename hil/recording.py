@@ -8,7 +8,8 @@ the plant sent and R for frames it received.
 
 Signals are one CSV row per SYNC, columns from the robot's signal specs; `signals.units.csv`
 beside it gives every column's unit and meaning (`pandas.read_csv` reads either in one call).
-Both the CSV and a candump log are flushed at every SYNC, so whatever stops a run leaves complete,
+Both the CSV and a candump log are written in whole records at every SYNC
+(`hil.results.RecordFile`), so whatever stops a run, a full disk included, leaves complete,
 readable files up to the last finished control period. Values are written with `repr`, so equal
 runs give byte-identical files.
 """
@@ -16,15 +17,16 @@ runs give byte-identical files.
 from __future__ import annotations
 
 import csv
+import io
 import math
 from collections.abc import Sequence
 from pathlib import Path
-from typing import TextIO
 
 import can
 
 from controllers.protocol import frame_bits
 from hil.errors import HilError
+from hil.results import RecordFile, WriteError, write_file
 from hil.robots import SignalSpec
 
 UNITS_SUFFIX = ".units.csv"
@@ -38,16 +40,17 @@ class SignalRecorder:
         self.specs = list(specs)
         self.columns = ["time"] + [s.column for s in self.specs]
         self._by_frame = {s.frame: s.column for s in self.specs if s.frame is not None}
-        units = path.with_name(path.stem + UNITS_SUFFIX)
-        with units.open("w", newline="") as f:
-            writer = csv.writer(f, lineterminator="\n")
-            writer.writerow(["signal", "unit", "description"])
-            writer.writerow(["time", "s", "simulation time of the SYNC"])
-            for s in self.specs:
-                writer.writerow([s.column, s.unit, s.description])
-        self._file: TextIO = path.open("w", newline="")
+        units = io.StringIO()
+        writer = csv.writer(units, lineterminator="\n")
+        writer.writerow(["signal", "unit", "description"])
+        writer.writerow(["time", "s", "simulation time of the SYNC"])
+        for s in self.specs:
+            writer.writerow([s.column, s.unit, s.description])
+        write_file(path.with_name(path.stem + UNITS_SUFFIX), units.getvalue())
+        self._file = RecordFile(path)
         self._writer = csv.writer(self._file, lineterminator="\n")
         self._writer.writerow(self.columns)
+        self._file.flush()
         self._row: dict[str, float] | None = None
         self.rows = 0
         self.table: list[list[float]] = []  # every row, for the MF4 copy and the summary
@@ -133,15 +136,21 @@ class CanLogger:
         self.start = start
         self.channel = channel
         try:
-            if path.suffix == ".asc":
-                self._writer: can.io.generic.MessageWriter = _AscWriter(path, start)
+            if path.suffix == ".log":
+                self._record: RecordFile | None = RecordFile(path)
+                self._writer: can.io.generic.MessageWriter = can.CanutilsLogWriter(self._record)
+            elif path.suffix == ".asc":
+                self._record = None
+                self._writer = _AscWriter(path, start)
             else:
+                self._record = None
                 self._writer = can.Logger(str(path))  # type: ignore[abstract]
+        except OSError as exc:
+            raise WriteError(f"{path}: cannot create: {exc.strerror or exc}") from None
         except ImportError as exc:
             raise HilError(f"{path.name}: this log format needs an extra package ({exc})") from None
         except ValueError as exc:
             raise HilError(f"{path.name}: {exc}") from None
-        self._flushable = path.suffix == ".log"
         self.sent = 0
         self.received = 0
         self.bits = 0
@@ -155,7 +164,10 @@ class CanLogger:
             is_rx=received,
             channel=self.channel,
         )
-        self._writer.on_message_received(stamped)
+        try:
+            self._writer.on_message_received(stamped)
+        except OSError as exc:
+            raise WriteError(f"{self.path}: cannot write: {exc.strerror or exc}") from None
         self.bits += frame_bits(len(message.data))
         if received:
             self.received += 1
@@ -165,8 +177,12 @@ class CanLogger:
     def flush(self) -> None:
         """Whole records on disk at every SYNC for the line formats; binary formats (BLF, MF4)
         are complete when closed."""
-        if self._flushable:
-            self._writer.file.flush()  # type: ignore[attr-defined]
+        if self._record is not None:
+            self._record.flush()
 
     def close(self) -> None:
-        self._writer.stop()
+        """Close the log; a log that already failed closes quietly (the failure was raised)."""
+        try:
+            self._writer.stop()
+        except OSError as exc:
+            raise WriteError(f"{self.path}: cannot write: {exc.strerror or exc}") from None

@@ -191,7 +191,9 @@ def test_camera_noise_is_seeded(tmp_path: Path) -> None:
 
 
 def test_realtime_mode_paces_sync_and_changes_nothing_else(tmp_path: Path) -> None:
-    path = shortened(tmp_path, 0.3)
+    # pacing, not the machine's load, is under test here: a late SYNC does not fail this run
+    relaxed = ('policy = "strict"', 'policy = "strict"\nmax_lateness = 3600.0\nmax_overruns = 1.0')
+    path = shortened(tmp_path, 0.3, relaxed)
     lockstep = run_inprocess(load_scenario(path), tmp_path / "lockstep")
     paced = run_inprocess(load_scenario(path), tmp_path / "realtime", realtime=True)
     report = paced.summary["controller"]
