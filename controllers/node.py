@@ -28,7 +28,7 @@ from typing import Any
 import can
 import numpy as np
 
-from controllers.canbus import connection_closed
+from controllers.canbus import connection_closed, failure_text
 from controllers.curvature import PiGains
 from controllers.estimation import (
     BendModel,
@@ -412,7 +412,13 @@ class ControllerNode:
                     )
                 self.report.status_missed += len(needed)
                 break
-            message = self.bus.recv(timeout=min(remaining, 0.5))
+            try:
+                message = self.bus.recv(timeout=min(remaining, 0.5))
+            except (can.CanError, OSError) as exc:
+                raise ControllerError(
+                    f"the bus failed while waiting for SYNC {cycle}'s status "
+                    f"({failure_text(exc)}): the plant and its hub are gone?"
+                ) from None
             if message is None:
                 if connection_closed(self.bus):
                     raise ControllerError(

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import can
 
-from controllers.canbus import connection_closed
+from controllers.canbus import connection_closed, failure_text
 from controllers.protocol import (
     COUNTER_MODULO,
     EMCY_COMMAND_TIMEOUT,
@@ -46,6 +46,7 @@ from hil.scenario import Scenario
 
 # frames only the plant sends: on its bus they come from an intruder (no bus echoes own frames)
 PLANT_FRAMES = (DriveStatus, CameraMarker, CameraMarker3D, CameraFrame, Emcy, Heartbeat)
+STARTUP_TIMEOUT = 60.0  # [s] wall clock for the controller's first SYNC
 EMCY_REASONS = {EMCY_OVER_PRESSURE: "over-pressure", EMCY_COMMAND_TIMEOUT: "command timeout"}
 
 
@@ -99,7 +100,13 @@ class Plant:
         final = self.scenario.cycles
         try:
             while self.cycle < final:
-                message = self.bus.recv(timeout=0.1)
+                try:
+                    message = self.bus.recv(timeout=0.1)
+                except (can.CanError, OSError) as exc:
+                    raise BusError(
+                        f"the bus failed at t = {self.sim_time:.3f} s (after SYNC {self.cycle}): "
+                        f"{failure_text(exc)}; is the loopback hub gone?"
+                    ) from None
                 if message is None:
                     if connection_closed(self.bus):
                         raise BusError(
@@ -111,9 +118,14 @@ class Plant:
                             f"{gone} at t = {self.sim_time:.3f} s (after SYNC {self.cycle}); "
                             "the plant stopped"
                         )
-                    if time.monotonic() - last_heard > self.scenario.controller.timeout:
+                    # a controller program still starting (imports on a loaded machine) gets
+                    # STARTUP_TIMEOUT for its first SYNC; after that the scenario's timeout
+                    limit = self.scenario.controller.timeout
+                    if self.cycle < 0:
+                        limit = max(limit, STARTUP_TIMEOUT)
+                    if time.monotonic() - last_heard > limit:
                         raise ProtocolError(
-                            f"no frame from the controller for {self.scenario.controller.timeout:g}"
+                            f"no frame from the controller for {limit:g}"
                             f" s at t = {self.sim_time:.3f} s (after SYNC {self.cycle})"
                         )
                     continue

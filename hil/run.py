@@ -15,6 +15,7 @@ import json
 import math
 import os
 import re
+import signal
 import subprocess
 import sys
 import threading
@@ -295,6 +296,7 @@ class _Peer:
     def stop(self) -> None:
         if self.process is not None and self.process.poll() is None:
             self.process.terminate()
+            self.process.send_signal(signal.SIGCONT)  # a stopped (frozen) process takes TERM
             try:
                 self.process.wait(timeout=5)
             except subprocess.TimeoutExpired:
