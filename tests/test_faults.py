@@ -476,3 +476,39 @@ def test_hub_killed_under_a_running_plant(tmp_path: Path) -> None:
     assert s["status"] == "failed" and s["error"]
     assert "Traceback" not in (out / "controller.log").read_text()
     readable(out)
+
+
+def test_fmu_error_mid_run(tmp_path: Path, capsys) -> None:
+    """A connection that drives the segment's piston input beyond its stroke once the piston
+    moves: the FMU answers fmi2Error mid-run."""
+    path = scenario_file(tmp_path, 2.0)
+    path.write_text(
+        path.read_text() + '\n[[connections]]\nfrom = "cylinder1.x"\nto = "segment1.x_piston"\n'
+        "gain = 3.0\noffset = -0.05\n"
+    )
+    out = tmp_path / "run"
+    code, lines = run_cli(capsys, str(path), "--inprocess", "--out", str(out))
+    assert code == 1 and len(lines) == 1 and "fmi2DoStep" in lines[0] and "x_piston" in lines[0]
+    s = summary(out)
+    assert s["status"] == "failed" and "outside the stroke" in s["error"]
+    assert readable(out) > 0
+
+
+def test_realtime_run_late_on_a_loaded_machine_fails(tmp_path: Path, capsys, monkeypatch) -> None:
+    """The real-time clock reads a machine so loaded that each cycle takes 3 periods."""
+    now = [0.0]
+
+    def monotonic() -> float:
+        now[0] += 0.03
+        return now[0]
+
+    monkeypatch.setattr(
+        "hil.run.RealtimeClock",
+        lambda period: RealtimeClock(period, sleep=lambda s: None, monotonic=monotonic),
+    )
+    out = tmp_path / "run"
+    code, lines = run_cli(capsys, str(scenario_file(tmp_path, 0.3)), "--inprocess", "--realtime", "--out", str(out))  # noqa: E501
+    assert code == 1 and len(lines) == 1 and "real-time run failed" in lines[0]
+    s = summary(out)
+    assert s["status"] == "failed" and "SYNCs were more than one control period" in s["error"]
+    assert s["controller"]["overruns"] > 0
