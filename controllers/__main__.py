@@ -84,9 +84,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"controller: error: {exc}", file=sys.stderr)
         return 1
     clock = RealtimeClock(config.control_period) if args.realtime else LockstepClock()
-    node = ControllerNode(config, bus, clock)
     try:
-        report = node.run()
+        report = ControllerNode(config, bus, clock).run()
     except (ControllerError, FrameError, OSError, can.CanError) as exc:
         print(f"controller: error: {_one_line(exc)}", file=sys.stderr)
         return 1

@@ -155,8 +155,13 @@ def disk_full(monkeypatch: pytest.MonkeyPatch, budget: int, only: str = "") -> I
 
 @pytest.mark.parametrize(
     "budget,only,where",
-    [(0, "", "start"), (10_000, "can.log", "mid-run"), (0, ".png", "end")],
-    ids=["start", "mid-run", "end"],
+    [
+        (0, "", "nothing"),
+        (0, "controller.json", "start"),
+        (10_000, "can.log", "mid-run"),
+        (0, ".png", "end"),
+    ],
+    ids=["nothing-writable", "start", "mid-run", "end"],
 )
 def test_disk_full(tmp_path: Path, capsys, monkeypatch, budget: int, only: str, where: str) -> None:
     out = tmp_path / "run"
@@ -166,10 +171,14 @@ def test_disk_full(tmp_path: Path, capsys, monkeypatch, budget: int, only: str, 
     assert "No space left on device" in lines[0]
     assert not [p for p in out.iterdir() if p.stat().st_size == 0 and p.name != "controller.log"]
     records = readable(out)
-    if where == "start":
+    if where == "nothing":
         assert not (out / "summary.json").exists()  # nothing could be written at all
         return
     s = summary(out)
+    if where == "start":
+        assert "controller.json" in lines[0] and not (out / "controller.json").exists()
+        assert s["status"] == "failed" and "controller.json" in s["error"]
+        return
     assert s["status"] == "failed" and "No space left on device" in s["error"]
     if where == "mid-run":
         assert records > 0 and (out / "can.log").stat().st_size <= 10_000

@@ -275,3 +275,14 @@ def test_fuzzed_scenarios_raise_only_hil_errors(tmp_path: Path) -> None:
         except Exception as exc:  # pragma: no cover - the failure this test exists to find
             pytest.fail(f"case {case}: {type(exc).__name__}: {exc}\n{path.read_bytes()!r}")
     assert errors > FUZZ_CASES // 2 and ok > 0
+
+
+def test_a_corrupt_packaged_dbc_is_one_line_from_the_cli(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    bad = tmp_path / "softhil.dbc"
+    bad.write_text("BO_ 0x80 SYNC")
+    monkeypatch.setattr(Protocol.__init__, "__defaults__", (bad,))
+    code = hil_main(["run", "--out", str(tmp_path / "out"), "--no-progress"])
+    line = one_line(capsys, code, "hil: error: ")
+    assert "not a readable DBC" in line

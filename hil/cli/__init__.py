@@ -14,6 +14,7 @@ import sys
 import threading
 from collections.abc import Callable, Sequence
 
+from controllers.protocol import FrameError
 from hil.cli import bus as bus_command
 from hil.cli import controller as controller_command
 from hil.cli import fmu as fmu_command
@@ -88,7 +89,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except Terminated:
         print("hil: terminated", file=sys.stderr)
         return EXIT_TERMINATED
-    except HilError as error:
+    except (HilError, FrameError) as error:  # FrameError: the DBC itself is unreadable
         if args.debug:
             raise
         print(f"hil: error: {error}", file=sys.stderr)
