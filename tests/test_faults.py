@@ -143,9 +143,11 @@ def disk_full(monkeypatch: pytest.MonkeyPatch, budget: int, only: str = "") -> I
 
     def write(fd: int, data: bytes) -> int:
         name = os.readlink(f"/proc/self/fd/{fd}")
-        if only in name:
-            if len(data) > left[0]:
+        if only in name and len(data) > left[0]:
+            if left[0] == 0:
                 raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+            data = data[: left[0]]  # a short write, as a filling disk gives; ENOSPC next
+        if only in name:
             left[0] -= len(data)
         return real(fd, data)
 
@@ -216,7 +218,7 @@ class Intruder:
 
 
 def foreign_command(counter: int) -> can.Message:
-    return Protocol().encode(DriveCommand(1, 0.045, True, (counter - 1) % 256))
+    return Protocol().encode(DriveCommand(1, 0.045, True, counter))
 
 
 @pytest.mark.parametrize("policy", ["hold", "strict"])
@@ -236,6 +238,8 @@ def test_injected_commands_on_the_virtual_bus(tmp_path: Path, capsys, policy: st
     if policy == "hold":
         assert code == 0
         assert s["intrusions"]["count"] > 0 and s["intrusions"]["first"]
+        # both ends saw it: the plant a second command per cycle, the controller its own id
+        assert s["plant"]["intrusions"] > 0 and s["controller"]["intrusions"] > 0
         assert any("intrusion" in w for w in s["warnings"])
     else:
         assert code == 1 and len(lines) == 1 and "intrusion" in lines[0]
