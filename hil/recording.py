@@ -21,6 +21,7 @@ import io
 import math
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TextIO, cast
 
 import can
 
@@ -138,7 +139,9 @@ class CanLogger:
         try:
             if path.suffix == ".log":
                 self._record: RecordFile | None = RecordFile(path)
-                self._writer: can.io.generic.MessageWriter = can.CanutilsLogWriter(self._record)
+                self._writer: can.io.generic.MessageWriter = can.CanutilsLogWriter(
+                    cast(TextIO, self._record)  # a text file that writes whole records
+                )
             elif path.suffix == ".asc":
                 self._record = None
                 self._writer = _AscWriter(path, start)
