@@ -7,10 +7,13 @@ experiment as the SYNC producer. Errors print one line and exit 1.
 from __future__ import annotations
 
 import argparse
+import json
 import signal
 import sys
 from collections.abc import Sequence
 from pathlib import Path
+
+import can
 
 from controllers.canbus import BusOpenError, BusSpec, open_bus
 from controllers.node import (
@@ -47,13 +50,32 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--report", type=Path, help="write the controller's report (JSON)")
 
 
+def _read_config(path: Path) -> ControllerConfig:
+    """The configuration file, or ValueError with one line naming what is wrong."""
+    if path.is_dir():
+        raise ValueError("is a folder, not a controller.json")
+    try:
+        text = path.read_bytes().decode("utf-8")
+    except FileNotFoundError:
+        raise ValueError("no such file") from None
+    except OSError as exc:
+        raise ValueError(f"cannot read: {exc.strerror or exc}") from None
+    except UnicodeDecodeError:
+        raise ValueError("not UTF-8 text (not a controller.json)") from None
+    if not text.strip():
+        raise ValueError("empty (not a controller.json)")
+    try:
+        return ControllerConfig.from_json(text)
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"not JSON: {exc}") from None
+    except (KeyError, TypeError, RecursionError, OverflowError) as exc:
+        raise ValueError(f"not a controller configuration ({type(exc).__name__}: {exc})") from None
+
+
 def run(args: argparse.Namespace) -> int:
     try:
-        config = ControllerConfig.from_json(args.config.read_text())
-    except KeyError as exc:
-        print(f"controller: error: {args.config}: missing key {exc}", file=sys.stderr)
-        return 1
-    except (OSError, ValueError, TypeError) as exc:
+        config = _read_config(args.config)
+    except ValueError as exc:
         print(f"controller: error: {args.config}: {exc}", file=sys.stderr)
         return 1
     try:
@@ -62,20 +84,34 @@ def run(args: argparse.Namespace) -> int:
         print(f"controller: error: {exc}", file=sys.stderr)
         return 1
     clock = RealtimeClock(config.control_period) if args.realtime else LockstepClock()
-    node = ControllerNode(config, bus, clock)
     try:
-        report = node.run()
-    except (ControllerError, FrameError, OSError) as exc:
-        print(f"controller: error: {exc}", file=sys.stderr)
+        report = ControllerNode(config, bus, clock).run()
+    except (ControllerError, FrameError, OSError, can.CanError) as exc:
+        print(f"controller: error: {_one_line(exc)}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         print("controller: interrupted", file=sys.stderr)
         return 130
     finally:
         bus.shutdown()
+    if report.intrusions:
+        print(
+            f"controller: warning: {report.intrusions} frame(s) from another node in this "
+            f"controller's or a drive's name; first: {report.first_intrusion}",
+            file=sys.stderr,
+        )
     if args.report:
-        write_report(report, args.report)
+        try:
+            write_report(report, args.report)
+        except OSError as exc:
+            print(f"controller: error: {args.report}: {exc.strerror or exc}", file=sys.stderr)
+            return 1
     return 0
+
+
+def _one_line(exc: BaseException) -> str:
+    text = " ".join(str(exc).split())
+    return text or type(exc).__name__
 
 
 def main(argv: Sequence[str] | None = None) -> int:

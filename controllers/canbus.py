@@ -100,8 +100,9 @@ def open_bus(spec: BusSpec, timeout: float = 2.0) -> can.BusABC:
         if spec.kind == "virtual":
             return can.Bus(interface="virtual", channel=spec.channel, receive_own_messages=False)
         if spec.kind == "loopback":
-            # the client logs a warning each time a TCP read ends inside a frame: not news
-            logging.getLogger("can.interfaces.socketcand.socketcand").setLevel(logging.ERROR)
+            # the client logs a warning each time a TCP read ends inside a frame (not news), and
+            # a traceback when the hub goes away (the caller reports that in one line)
+            logging.getLogger("can.interfaces.socketcand.socketcand").setLevel(logging.CRITICAL)
             _probe_hub(spec, timeout)
             return can.Bus(
                 interface="socketcand",
@@ -177,3 +178,10 @@ def connection_closed(bus: can.BusABC) -> bool:
             return not sock.recv(6).startswith(b"< hi >")
     except (OSError, ValueError):
         return True
+
+
+def failure_text(exc: BaseException) -> str:
+    """A bus failure in one line: python-can's socketcand client puts a whole traceback into
+    the text of its CanError; keep what precedes it."""
+    text = str(exc).split("Traceback", 1)[0]
+    return " ".join(text.split()) or type(exc).__name__

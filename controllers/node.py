@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import time
 import typing
 from collections.abc import Callable
@@ -27,7 +28,7 @@ from typing import Any
 import can
 import numpy as np
 
-from controllers.canbus import connection_closed
+from controllers.canbus import connection_closed, failure_text
 from controllers.curvature import PiGains
 from controllers.estimation import (
     BendModel,
@@ -41,6 +42,8 @@ from controllers.protocol import (
     COUNTER_MODULO,
     CameraFrame,
     CameraMarker,
+    ControllerState,
+    DriveCommand,
     DriveStatus,
     Emcy,
     FrameError,
@@ -51,6 +54,7 @@ from controllers.protocol import (
 from controllers.trajectories import CurvatureProfile, Sine
 
 POLICIES = ("strict", "hold")
+OWN_FRAMES = (Sync, DriveCommand, ControllerState)  # the frames only the controller sends
 ESTIMATORS = ("raw", "kf", "ukf")
 
 
@@ -124,7 +128,41 @@ class ControllerConfig:
                 raise ValueError(f"{name}: {len(getattr(config, name))} values for {n} segments")
         if config.control_period <= 0 or config.cycles < 0 or config.timeout <= 0:
             raise ValueError("control_period and timeout must be positive, cycles not negative")
+        _check_ranges(config)
         return config
+
+
+# The ranges `hil run` validates a scenario against (hil/scenario.py), for a config written by
+# hand: control period 1 us .. 1 s, at most 10 million cycles, a wait of at most an hour, and
+# gains within the DBC's piston range (0.1 m) per 0.01 1/m of curvature error.
+CONTROL_PERIOD_RANGE = (1e-6, 1.0)
+MAX_CYCLES = 10_000_000
+MAX_TIMEOUT = 3_600.0
+KP_MAX = 0.1 / 0.01
+
+
+def _check_ranges(config: ControllerConfig) -> None:
+    lo, hi = CONTROL_PERIOD_RANGE
+    if not lo <= config.control_period <= hi:
+        raise ValueError(f"control_period: {config.control_period:g} s is outside {lo:g}..{hi:g}")
+    if config.cycles > MAX_CYCLES:
+        raise ValueError(f"cycles: {config.cycles} is beyond {MAX_CYCLES}")
+    if config.timeout > MAX_TIMEOUT:
+        raise ValueError(f"timeout: {config.timeout:g} s is beyond {MAX_TIMEOUT:g} s")
+    if any(length <= 0 for length in config.lengths):
+        raise ValueError("lengths: must be positive")
+    for i, gains in enumerate(config.gains):
+        if not 0 <= gains.Kp <= KP_MAX:
+            raise ValueError(f"gains[{i}].Kp: {gains.Kp:g} is outside 0..{KP_MAX:g}")
+        if not 0 <= gains.Ki <= KP_MAX / config.control_period:
+            raise ValueError(
+                f"gains[{i}].Ki: {gains.Ki:g} is outside 0..{KP_MAX / config.control_period:g}"
+            )
+    timing = config.camera_timing
+    if min(timing.period_ticks, timing.control_ticks) < 1 or timing.latency_ticks < 0:
+        raise ValueError("camera_timing: period_ticks and control_ticks must be at least 1")
+    if timing.markers != config.segments + 1:
+        raise ValueError(f"camera_timing.markers: must be {config.segments + 1} (segments + 1)")
 
 
 def _from_data(cls: Any, data: Any, key: str) -> Any:
@@ -164,7 +202,13 @@ def _value(hint: Any, raw: Any, key: str) -> Any:
     if hint is float:
         if isinstance(raw, bool) or not isinstance(raw, int | float):
             raise ValueError(f"{key}: must be a number, got {raw!r}")
-        return float(raw)
+        try:
+            value = float(raw)
+        except OverflowError:
+            raise ValueError(f"{key}: must be finite, got {raw!r}") from None
+        if not math.isfinite(value):
+            raise ValueError(f"{key}: must be finite, got {raw!r}")
+        return value
     if hint is str:
         if not isinstance(raw, str):
             raise ValueError(f"{key}: must be a string, got {raw!r}")
@@ -204,6 +248,8 @@ class ControllerReport:
     overruns: int = 0
     frames_sent: int = 0
     frames_received: int = 0
+    intrusions: int = 0  # frames in the controller's (or a drive's) name that it did not send
+    first_intrusion: str = ""
 
 
 class LockstepClock:
@@ -348,6 +394,14 @@ class ControllerNode:
             self.report.overruns = sum(1 for late in lateness if late > T)
         return self.report
 
+    def _intrusion(self, what: str) -> None:
+        """Count a frame that its one legitimate sender did not send; strict stops."""
+        if self.config.policy == "strict":
+            raise ControllerError(f"intrusion on the bus: {what}")
+        self.report.intrusions += 1
+        if not self.report.first_intrusion:
+            self.report.first_intrusion = what
+
     def _collect(self, cycle: int, t: float) -> list[MarkerFrame]:
         """Receive until the cycle holds every status frame echoing it and every camera frame
         due by this SYNC; returns the camera frames completed, oldest first."""
@@ -376,7 +430,13 @@ class ControllerNode:
                     )
                 self.report.status_missed += len(needed)
                 break
-            message = self.bus.recv(timeout=min(remaining, 0.5))
+            try:
+                message = self.bus.recv(timeout=min(remaining, 0.5))
+            except (can.CanError, OSError) as exc:
+                raise ControllerError(
+                    f"the bus failed while waiting for SYNC {cycle}'s status "
+                    f"({failure_text(exc)}): the plant and its hub are gone?"
+                ) from None
             if message is None:
                 if connection_closed(self.bus):
                     raise ControllerError(
@@ -393,6 +453,12 @@ class ControllerNode:
                 self.report.unknown_frames += 1
                 continue
             if isinstance(frame, DriveStatus):
+                if frame.counter == counter and frame.node not in needed:
+                    self._intrusion(
+                        f"a second DriveStatus{frame.node} for SYNC {cycle}: another node "
+                        "sends in the drive's name"
+                    )
+                    continue
                 if frame.counter != counter or frame.node not in needed:
                     if config.policy == "strict":
                         raise ControllerError(
@@ -409,6 +475,12 @@ class ControllerNode:
                 self.report.emcy.append({"cycle": cycle, **asdict(frame)})
             elif isinstance(frame, Heartbeat):
                 continue
+            elif isinstance(frame, OWN_FRAMES):
+                # no bus echoes a sender's own frames: these come from another node
+                self._intrusion(
+                    f"{type(frame).__name__} 0x{message.arbitration_id:03X} at SYNC {cycle} from "
+                    "another node: only this controller sends it"
+                )
             elif config.policy == "strict":
                 raise ControllerError(
                     f"unexpected {type(frame).__name__} at SYNC {cycle}: is another controller "

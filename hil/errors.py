@@ -28,3 +28,8 @@ class BusError(HilError):
 
 class ProtocolError(BusError):
     """The lockstep protocol was violated: a missing, late or stale frame, or a dead peer."""
+
+
+class Terminated(BaseException):
+    """SIGTERM arrived (a CI runner or container stopping us): unwinds like KeyboardInterrupt,
+    closing files and writing summary.json, and exits 143."""

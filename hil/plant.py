@@ -19,11 +19,19 @@ from dataclasses import dataclass
 
 import can
 
-from controllers.canbus import connection_closed
+from controllers.canbus import connection_closed, failure_text
 from controllers.protocol import (
     COUNTER_MODULO,
+    EMCY_COMMAND_TIMEOUT,
+    EMCY_OVER_PRESSURE,
+    CameraFrame,
+    CameraMarker,
+    CameraMarker3D,
+    DriveStatus,
+    Emcy,
     Frame,
     FrameError,
+    Heartbeat,
     Protocol,
     Sync,
     frame_key,
@@ -36,6 +44,11 @@ from hil.recording import CanLogger, SignalRecorder
 from hil.robots import Rig
 from hil.scenario import Scenario
 
+# frames only the plant sends: on its bus they come from an intruder (no bus echoes own frames)
+PLANT_FRAMES = (DriveStatus, CameraMarker, CameraMarker3D, CameraFrame, Emcy, Heartbeat)
+STARTUP_TIMEOUT = 60.0  # [s] wall clock for the controller's first SYNC
+EMCY_REASONS = {EMCY_OVER_PRESSURE: "over-pressure", EMCY_COMMAND_TIMEOUT: "command timeout"}
+
 
 @dataclass
 class PlantStats:
@@ -44,6 +57,8 @@ class PlantStats:
     commands_stale: int = 0
     unknown_frames: int = 0
     emcy_sent: int = 0
+    intrusions: int = 0  # frames that another node sent in a legitimate sender's name
+    first_intrusion: str = ""
     wall_time: float = 0.0
 
 
@@ -74,6 +89,7 @@ class Plant:
         self.cycle = -1
         self.heartbeat_every = heartbeat_every
         self._progress: Callable[[int], None] | None = None
+        self._heard: set[tuple[int, int]] = set()  # (CAN id, counter) received this period
 
     def run(
         self, peer_alive: Callable[[], str | None], progress: Callable[[int], None] | None = None
@@ -85,7 +101,13 @@ class Plant:
         final = self.scenario.cycles
         try:
             while self.cycle < final:
-                message = self.bus.recv(timeout=0.1)
+                try:
+                    message = self.bus.recv(timeout=0.1)
+                except (can.CanError, OSError) as exc:
+                    raise BusError(
+                        f"the bus failed at t = {self.sim_time:.3f} s (after SYNC {self.cycle}): "
+                        f"{failure_text(exc)}; is the loopback hub gone?"
+                    ) from None
                 if message is None:
                     if connection_closed(self.bus):
                         raise BusError(
@@ -97,9 +119,14 @@ class Plant:
                             f"{gone} at t = {self.sim_time:.3f} s (after SYNC {self.cycle}); "
                             "the plant stopped"
                         )
-                    if time.monotonic() - last_heard > self.scenario.controller.timeout:
+                    # a controller program still starting (imports on a loaded machine) gets
+                    # STARTUP_TIMEOUT for its first SYNC; after that the scenario's timeout
+                    limit = self.scenario.controller.timeout
+                    if self.cycle < 0:
+                        limit = max(limit, STARTUP_TIMEOUT)
+                    if time.monotonic() - last_heard > limit:
                         raise ProtocolError(
-                            f"no frame from the controller for {self.scenario.controller.timeout:g}"
+                            f"no frame from the controller for {limit:g}"
                             f" s at t = {self.sim_time:.3f} s (after SYNC {self.cycle})"
                         )
                     continue
@@ -151,10 +178,13 @@ class Plant:
         if isinstance(frame, Sync):
             expected = (self.cycle + 1) % COUNTER_MODULO
             if frame.counter != expected:
-                raise ProtocolError(
+                self.can_log.log(message, self.sim_time, received=True)
+                self._intrusion(
                     f"SYNC counter {frame.counter} where {expected} was due "
                     f"(t = {self.sim_time:.3f} s): a SYNC was lost or another master is on the bus"
                 )
+                return
+            self._heard.clear()
             self.cycle += 1
             # t = c T from the integer cycle, rounded: files show 3.53, not 3.5300000000000002
             self.sim_time = round(self.cycle * self.scenario.timing.control_period, 9)
@@ -165,6 +195,23 @@ class Plant:
                 progress(self.cycle)
             return
         self.can_log.log(message, self.sim_time, received=True)
+        if isinstance(frame, PLANT_FRAMES):
+            self._intrusion(
+                f"{type(frame).__name__} 0x{message.arbitration_id:03X} from another node at "
+                f"t = {self.sim_time:.3f} s: only the plant sends it"
+            )
+            return
+        counter = getattr(frame, "counter", None)
+        if counter is not None:
+            heard = (message.arbitration_id, counter)
+            if heard in self._heard:
+                self._intrusion(
+                    f"a second {type(frame).__name__} 0x{message.arbitration_id:03X} with "
+                    f"counter {counter} at t = {self.sim_time:.3f} s: another node sends in "
+                    "the controller's name"
+                )
+                return
+            self._heard.add(heard)
         accepted = False
         for node in self.nodes:
             if node.accepts(frame):
@@ -180,6 +227,15 @@ class Plant:
                 f"0x{message.arbitration_id:03X} on the plant's bus"
             )
         self.stats.unknown_frames += 1
+
+    def _intrusion(self, what: str) -> None:
+        """A frame its one legitimate sender did not send: counted (the first one described);
+        under the strict policy the run stops."""
+        if self.scenario.controller.policy == "strict":
+            raise ProtocolError(f"intrusion on the bus: {what}")
+        self.stats.intrusions += 1
+        if not self.stats.first_intrusion:
+            self.stats.first_intrusion = what
 
     def _record_reported(self, frame: Frame) -> bool:
         """Record what the controller reports about itself (the rig's frame-sourced signals);
@@ -216,9 +272,28 @@ class Plant:
             self._send(frame)
         self._count()
         self.can_log.flush()
+        if self.scenario.controller.policy == "strict":
+            self._strict(outgoing)
 
     def _count(self) -> None:
         stats = self.stats
         stats.commands_missed = sum(getattr(n, "missed", 0) for n in self.nodes)
         stats.commands_stale = sum(getattr(n, "stale", 0) for n in self.nodes)
         stats.emcy_sent = sum(getattr(n, "emcy_sent", 0) for n in self.nodes)
+
+    def _strict(self, sent: list[tuple[int, Frame]]) -> None:
+        """Under the strict policy a missed or stale command, or an EMCY, ends the run."""
+        at = f"at SYNC {self.cycle} (t = {self.sim_time:.3f} s)"
+        for _, frame in sent:
+            if isinstance(frame, Emcy):
+                raise ProtocolError(
+                    f"EMCY 0x{frame.error_code:04X} ({EMCY_REASONS.get(frame.error_code, 'fault')})"
+                    f" from drive {frame.node} {at}; the strict policy stops the run"
+                )
+        stats = self.stats
+        if stats.commands_missed or stats.commands_stale:
+            what = "missed" if stats.commands_missed else "stale"
+            raise ProtocolError(
+                f"a drive command was {what} {at}: the controller did not command the last "
+                "period; the strict policy stops the run"
+            )

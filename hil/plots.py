@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
@@ -11,6 +12,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402 - after choosing the headless backend
 import numpy as np  # noqa: E402
 
+from hil.results import write_file  # noqa: E402
 from hil.robots import PlotSpec  # noqa: E402
 
 
@@ -35,7 +37,9 @@ def plot_run(signals: Mapping[str, np.ndarray], specs: Sequence[PlotSpec], out: 
         axes[-1][0].set_xlabel("time [s]")
         fig.tight_layout()
         path = out / f"{spec.name}.png"
-        fig.savefig(path, dpi=110)
+        image = io.BytesIO()
+        fig.savefig(image, format="png", dpi=110)
         plt.close(fig)
+        write_file(path, image.getvalue())  # whole or not at all, like every results file
         written.append(path)
     return written

@@ -8,62 +8,32 @@ the plant sent and R for frames it received.
 
 Signals are one CSV row per SYNC, columns from the robot's signal specs; `signals.units.csv`
 beside it gives every column's unit and meaning (`pandas.read_csv` reads either in one call).
-Both are written in whole records and flushed in blocks (at most every FLUSH_INTERVAL of wall
-time, and whenever a run stops), so whatever stops a run leaves complete, readable files up to
-the last flushed control period, without a system call per SYNC. Values are written with
-`repr`, so equal runs give byte-identical files.
+Both the CSV and a candump log are written in whole records (`hil.results.RecordFile`), in
+blocks at most FLUSH_INTERVAL of wall time apart and whenever a run stops, so whatever stops a
+run, a full disk included, leaves complete, readable files up to the last flushed control
+period, without a system call per SYNC. Values are written with `repr`, so equal
+runs give byte-identical files.
 """
 
 from __future__ import annotations
 
 import csv
+import io
 import math
 import time
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TextIO, cast
 
 import can
 
 from controllers.protocol import frame_bits
 from hil.errors import HilError
+from hil.results import RecordFile, WriteError, write_file
 from hil.robots import SignalSpec
 
 UNITS_SUFFIX = ".units.csv"
 FLUSH_INTERVAL = 0.25  # [s] of wall time between flushes of the recorders
-
-
-class BlockFile:
-    """A text file written in blocks of whole records: `write` collects, `flush` hands the
-    collected text to the OS in one write call, so the file never ends inside a record (a
-    killed process loses at most the block since the last flush, never half a line)."""
-
-    def __init__(self, path: Path) -> None:
-        self.name = str(path)
-        self._file = path.open("w", encoding="utf-8", newline="", buffering=1 << 20)
-        self._parts: list[str] = []
-
-    @property
-    def closed(self) -> bool:
-        return self._file.closed
-
-    def write(self, text: str) -> int:
-        self._parts.append(text)
-        return len(text)
-
-    def writelines(self, lines: Sequence[str]) -> None:
-        self._parts.extend(lines)
-
-    def flush(self) -> None:
-        if self._parts:
-            text = "".join(self._parts)
-            self._parts.clear()
-            self._file.write(text)
-        self._file.flush()
-
-    def close(self) -> None:
-        if not self._file.closed:
-            self.flush()
-            self._file.close()
 
 
 class SignalRecorder:
@@ -74,18 +44,19 @@ class SignalRecorder:
         self.specs = list(specs)
         self.columns = ["time"] + [s.column for s in self.specs]
         self._by_frame = {s.frame: s.column for s in self.specs if s.frame is not None}
-        units = path.with_name(path.stem + UNITS_SUFFIX)
-        with units.open("w", newline="") as f:
-            writer = csv.writer(f, lineterminator="\n")
-            writer.writerow(["signal", "unit", "description"])
-            writer.writerow(["time", "s", "simulation time of the SYNC"])
-            for s in self.specs:
-                writer.writerow([s.column, s.unit, s.description])
-        self._file = BlockFile(path)
+        units = io.StringIO()
+        writer = csv.writer(units, lineterminator="\n")
+        writer.writerow(["signal", "unit", "description"])
+        writer.writerow(["time", "s", "simulation time of the SYNC"])
+        for s in self.specs:
+            writer.writerow([s.column, s.unit, s.description])
+        write_file(path.with_name(path.stem + UNITS_SUFFIX), units.getvalue())
+        self._file = RecordFile(path)
+        self._flushed = time.monotonic()
         self._writer = csv.writer(self._file, lineterminator="\n")
         self._writer.writerow(self.columns)
+        self._file.flush()
         self._row: dict[str, float] | None = None
-        self._flushed = time.monotonic()
         self.rows = 0
         self.table: list[list[float]] = []  # every row, for the MF4 copy and the summary
 
@@ -112,7 +83,7 @@ class SignalRecorder:
         values = [self._row.get(c, math.nan) for c in self.columns]
         self._writer.writerow([_format(v) for v in values])
         now = time.monotonic()
-        if now - self._flushed > FLUSH_INTERVAL:
+        if now - self._flushed > FLUSH_INTERVAL:  # blocks of whole records, not a write a SYNC
             self._file.flush()
             self._flushed = now
         self.table.append(values)
@@ -173,17 +144,23 @@ class CanLogger:
         self.start = start
         self.channel = channel
         try:
-            if path.suffix == ".asc":
-                self._writer: can.io.generic.MessageWriter = _AscWriter(path, start)
-            elif path.suffix == ".log":
-                self._writer = can.CanutilsLogWriter(BlockFile(path))  # type: ignore[arg-type]
+            if path.suffix == ".log":
+                self._record: RecordFile | None = RecordFile(path)
+                self._writer: can.io.generic.MessageWriter = can.CanutilsLogWriter(
+                    cast(TextIO, self._record)  # a text file that writes whole records
+                )
+            elif path.suffix == ".asc":
+                self._record = None
+                self._writer = _AscWriter(path, start)
             else:
+                self._record = None
                 self._writer = can.Logger(str(path))  # type: ignore[abstract]
+        except OSError as exc:
+            raise WriteError(f"{path}: cannot create: {exc.strerror or exc}") from None
         except ImportError as exc:
             raise HilError(f"{path.name}: this log format needs an extra package ({exc})") from None
         except ValueError as exc:
             raise HilError(f"{path.name}: {exc}") from None
-        self._flushable = path.suffix == ".log"
         self._flushed = time.monotonic()
         self.sent = 0
         self.received = 0
@@ -198,7 +175,10 @@ class CanLogger:
             is_rx=received,
             channel=self.channel,
         )
-        self._writer.on_message_received(stamped)
+        try:
+            self._writer.on_message_received(stamped)
+        except OSError as exc:
+            raise WriteError(f"{self.path}: cannot write: {exc.strerror or exc}") from None
         self.bits += frame_bits(len(message.data))
         if received:
             self.received += 1
@@ -208,12 +188,14 @@ class CanLogger:
     def flush(self, force: bool = False) -> None:
         """Whole records on disk, in blocks (every FLUSH_INTERVAL of wall time, or now with
         `force`) for the line formats; binary formats (BLF, MF4) are complete when closed."""
-        if not self._flushable:
-            return
         now = time.monotonic()
-        if force or now - self._flushed > FLUSH_INTERVAL:
-            self._writer.file.flush()  # type: ignore[attr-defined]
+        if self._record is not None and (force or now - self._flushed > FLUSH_INTERVAL):
+            self._record.flush()
             self._flushed = now
 
     def close(self) -> None:
-        self._writer.stop()
+        """Close the log; a log that already failed closes quietly (the failure was raised)."""
+        try:
+            self._writer.stop()
+        except OSError as exc:
+            raise WriteError(f"{self.path}: cannot write: {exc.strerror or exc}") from None

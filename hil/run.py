@@ -10,10 +10,12 @@ run, the files written so far stay complete and `summary.json` says why.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
 import re
+import signal
 import subprocess
 import sys
 import threading
@@ -36,12 +38,13 @@ from controllers.protocol import Protocol
 from hil.bus.direct import direct_pair
 from hil.bus.loopback import LoopbackHub
 from hil.devices import HEARTBEAT_PERIOD
-from hil.errors import BusError, HilError
+from hil.errors import BusError, HilError, Terminated
 from hil.plant import Plant
 from hil.recording import CanLogger, SignalRecorder
+from hil.results import ResultsFolder, note, write_file
 from hil.robots import robot_kind
-from hil.scenario import Scenario, log_start
-from hil.summary import read_signals, summarise
+from hil.scenario import LOG_SUFFIXES, Scenario, log_start
+from hil.summary import read_signals, realtime_failure, summarise
 
 
 @dataclass(frozen=True)
@@ -54,6 +57,7 @@ class RunOptions:
     can_log: str | None = None  # file name overriding [recording] can_log (suffix: format)
     start: str | None = None  # overriding [recording] start: ISO 8601 or "now"
     mf4: bool | None = None  # overriding [recording] mf4
+    overwrite: bool = False  # replace the files an earlier run wrote in `out` (never others)
 
 
 @dataclass(frozen=True)
@@ -68,14 +72,11 @@ def controller_config(scenario: Scenario) -> ControllerConfig:
 
 
 def run_scenario(scenario: Scenario, options: RunOptions) -> RunResult:
-    """Run `scenario`; raises HilError after writing what it could if the run fails."""
-    out = options.out
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-        for stale in RESULT_FILES:
-            (out / stale).unlink(missing_ok=True)
-    except OSError as exc:
-        raise HilError(f"results folder {out}: {exc.strerror or exc}") from exc
+    """Run `scenario`; raises HilError after writing what it could if the run fails.
+
+    The results folder is taken with a lock and must be empty (or hold only an earlier run's
+    files, with `overwrite`); whatever stops the run, summary.json says why (status "failed",
+    "interrupted" or "terminated", and "error") if the disk lets it be written."""
     recording = scenario.recording
     recording = replace(
         recording,
@@ -84,16 +85,63 @@ def run_scenario(scenario: Scenario, options: RunOptions) -> RunResult:
         mf4=recording.mf4 if options.mf4 is None else options.mf4,
     )
     scenario = replace(scenario, recording=recording)
+    if options.can_log is not None and (
+        not re.fullmatch(r"[A-Za-z0-9_.-]+", options.can_log)
+        or Path(options.can_log).suffix not in LOG_SUFFIXES
+    ):
+        raise HilError(
+            f"--can-log: {options.can_log!r}: a file name (no folder) ending in one of "
+            f"{', '.join(LOG_SUFFIXES)}"
+        )
     try:
         start = log_start(scenario)
     except ValueError as exc:
         raise HilError(f"--start: {exc}") from None
+    scenario_text = _scenario_text(scenario)  # read before anything is written
+    planned = (*RESULT_FILES, recording.can_log)
+    keep = [Path(scenario.source)] if Path(scenario.source).is_file() else []
+    with ResultsFolder(options.out, planned, options.overwrite, keep) as folder:
+        for text in folder.notes:
+            note(text)
+        summary: dict[str, Any] = {
+            "scenario": scenario.name,
+            "seed": scenario.seed,
+            "status": "failed",
+        }
+        try:
+            return _run(scenario, options, folder, start, scenario_text, summary)
+        except BaseException as exc:
+            summary["status"], summary["error"] = _stopped(exc)
+            with contextlib.suppress(HilError):  # a full disk may refuse this one too
+                _write_summary(folder, summary)
+            raise
+
+
+def _stopped(exc: BaseException) -> tuple[str, str]:
+    """(status, error) of summary.json for what stopped a run."""
+    if isinstance(exc, KeyboardInterrupt):
+        return "interrupted", "interrupted (SIGINT)"
+    if isinstance(exc, Terminated):
+        return "terminated", "terminated (SIGTERM)"
+    return "failed", str(exc) or type(exc).__name__
+
+
+def _run(
+    scenario: Scenario,
+    options: RunOptions,
+    folder: ResultsFolder,
+    start: float,
+    scenario_text: str,
+    summary: dict[str, Any],
+) -> RunResult:
+    out = folder.out
+    recording = scenario.recording
     robot = robot_kind(scenario.robot.kind)
     config = robot.controller_config(scenario)
-    (out / "controller.json").write_text(config.to_json() + "\n")
-    (out / "scenario.toml").write_text(_scenario_text(scenario))
+    write_file(folder.claim("controller.json"), config.to_json() + "\n")
+    if not folder.kept("scenario.toml"):  # never the input scenario (a rerun in its folder)
+        write_file(folder.claim("scenario.toml"), scenario_text)
     protocol = Protocol()
-    summary: dict[str, Any] = {"scenario": scenario.name, "seed": scenario.seed, "status": "failed"}
     with ExitStack() as stack:
         rig = robot.build(scenario)
         stack.callback(rig.close)
@@ -106,9 +154,10 @@ def run_scenario(scenario: Scenario, options: RunOptions) -> RunResult:
             plant_spec, controller_spec = _bus_specs(scenario, options, stack)
             plant_bus = _open(plant_spec)
         stack.callback(plant_bus.shutdown)
-        signals = SignalRecorder(out / "signals.csv", rig.signals)
+        folder.claim("signals.units.csv")
+        signals = SignalRecorder(folder.claim("signals.csv"), rig.signals)
         stack.callback(signals.close)
-        can_log = CanLogger(out / recording.can_log, start=start)
+        can_log = CanLogger(folder.claim(recording.can_log), start=start)
         stack.callback(can_log.close)
         heartbeat_every = max(1, round(HEARTBEAT_PERIOD / scenario.timing.control_period))
         plant = Plant(scenario, plant_bus, rig, signals, can_log, protocol, heartbeat_every)
@@ -124,18 +173,16 @@ def run_scenario(scenario: Scenario, options: RunOptions) -> RunResult:
                 stats = plant.run_driven(node.run, progress)
                 report = asdict(node.report)
             else:
-                peer = _start_controller(config, controller_spec, options, out, stack)
+                peer = _start_controller(config, controller_spec, options, folder, stack)
                 stats = plant.run(peer.gone, progress)
                 report = peer.finish()
-        except BaseException as exc:
-            summary["error"] = "interrupted" if isinstance(exc, KeyboardInterrupt) else str(exc)
+        except BaseException:
             peer.stop()
-            _write_summary(out, summary)
             raise
         if recording.mf4:
             signals.close()
-            signals.write_mf4(out / "signals.mf4")
-    summary = summarise(scenario, out / "signals.csv", stats, can_log, report, protocol)
+            signals.write_mf4(folder.claim("signals.mf4"))
+    summary.update(summarise(scenario, out / "signals.csv", stats, can_log, report, protocol))
     summary["bus"] = str(plant_spec)
     summary["controller_process"] = (
         "this thread" if direct else "thread" if options.inprocess else "process"
@@ -144,11 +191,18 @@ def run_scenario(scenario: Scenario, options: RunOptions) -> RunResult:
     if recording.can_log.endswith((".log", ".blf", ".asc", ".trc")):
         from hil.estimation import estimation_report
 
+        folder.claim("estimation.png")
         summary["estimation"] = estimation_report(out)
-    _write_summary(out, summary)
     from hil.plots import plot_run
 
+    for spec in rig.plots:
+        folder.claim(f"{spec.name}.png")
     plot_run(read_signals(out / "signals.csv"), rig.plots, out)
+    failure = realtime_failure(scenario, summary["controller"])
+    if failure is not None:
+        summary["warnings"].append(failure)
+        raise HilError(failure)
+    _write_summary(folder, summary)
     return RunResult(out, summary)
 
 
@@ -183,10 +237,10 @@ def _scenario_text(scenario: Scenario) -> str:
     return header + (text if found else f"seed = {scenario.seed}\n" + text)
 
 
-def _write_summary(out: Path, summary: dict[str, Any]) -> None:
+def _write_summary(folder: ResultsFolder, summary: dict[str, Any]) -> None:
     """summary.json: strict JSON, a metric that does not exist (never settled, no step) is null."""
     text = json.dumps(_finite(summary), indent=2, sort_keys=True, allow_nan=False)
-    (out / "summary.json").write_text(text + "\n")
+    write_file(folder.claim("summary.json"), text + "\n")
 
 
 def _finite(value: Any) -> Any:
@@ -214,6 +268,8 @@ def _bus_specs(
         if options.bus and not options.bus.startswith("virtual"):
             raise HilError(f"--inprocess runs on the virtual bus, not {options.bus}")
         channel = f"softhil-{uuid.uuid4().hex[:8]}"  # a private channel per run
+        if options.bus and options.bus.startswith("virtual:"):
+            channel = options.bus.partition(":")[2]  # a channel named by the user
         spec = BusSpec("virtual", channel)
         return spec, spec
     if options.bus:
@@ -264,6 +320,7 @@ class _Peer:
     def stop(self) -> None:
         if self.process is not None and self.process.poll() is None:
             self.process.terminate()
+            self.process.send_signal(signal.SIGCONT)  # a stopped (frozen) process takes TERM
             try:
                 self.process.wait(timeout=5)
             except subprocess.TimeoutExpired:
@@ -299,7 +356,11 @@ def _clock(config: ControllerConfig, options: RunOptions) -> LockstepClock | Rea
 
 
 def _start_controller(
-    config: ControllerConfig, spec: BusSpec, options: RunOptions, out: Path, stack: ExitStack
+    config: ControllerConfig,
+    spec: BusSpec,
+    options: RunOptions,
+    folder: ResultsFolder,
+    stack: ExitStack,
 ) -> _Peer:
     peer = _Peer()
     if options.inprocess:
@@ -317,7 +378,9 @@ def _start_controller(
         peer.thread = threading.Thread(target=work, name="controller", daemon=True)
         peer.thread.start()
         return peer
-    peer.log = out / "controller.log"
+    out = folder.out
+    peer.log = folder.claim("controller.log")
+    folder.claim("controller_report.json")
     command = [
         sys.executable,
         "-m",
@@ -334,8 +397,8 @@ def _start_controller(
     log = stack.enter_context(peer.log.open("wb"))
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     peer.process = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, env=env)
-    (out / "controller.pid").write_text(f"{peer.process.pid}\n")
     stack.callback(peer.stop)
+    write_file(folder.claim("controller.pid"), f"{peer.process.pid}\n")
     return peer
 
 

@@ -68,6 +68,7 @@ class BusConfig:
     host: str = "127.0.0.1"
     port: int = 0  # 0: `hil run` serves its own hub on a free port
     bitrate: int = 1_000_000
+    allow_remote: bool = False  # a host beyond 127.0.0.1 (0.0.0.0, another machine) needs it
 
 
 @dataclass(frozen=True)
@@ -115,6 +116,10 @@ class ControllerSpec:
     timeout: float = 10.0  # wall-clock wait for a peer [s]
     estimator: str = "ukf"  # raw, kf or ukf (see README: ukf measures best on the default)
     latency_compensation: bool = True  # fuse camera frames at their exposure time
+    # real-time runs fail when a SYNC is later than max_lateness [s] (0: one control period), or
+    # when more than the fraction max_overruns of SYNCs is over one control period late
+    max_lateness: float = 0.0
+    max_overruns: float = 0.01
 
 
 @dataclass(frozen=True)
@@ -270,9 +275,17 @@ def _convert(hint: Any, raw: Any, file: str, key: str) -> Any:
     if hint is float:
         if isinstance(raw, bool) or not isinstance(raw, int | float):
             raise _fail(file, key, f"must be a number, got {raw!r}")
-        if not math.isfinite(raw):
+        try:
+            value = float(raw)
+        except OverflowError:
+            raise _fail(file, key, "must be finite, got a number too large") from None
+        if not math.isfinite(value):
             raise _fail(file, key, f"must be finite, got {raw!r}")
-        return float(raw)
+        return value
+    if hint is bool:
+        if not isinstance(raw, bool):
+            raise _fail(file, key, f"must be true or false, got {raw!r}")
+        return raw
     if hint is int:
         if isinstance(raw, bool) or not isinstance(raw, int):
             raise _fail(file, key, f"must be an integer, got {raw!r}")
@@ -322,6 +335,7 @@ def _check(s: Scenario) -> None:
         )
     if t.step <= 0 or t.control_period <= 0:
         raise _fail(file, "timing", "step and control_period must be positive")
+    _limits(s)
     _multiple(file, "timing.control_period", t.control_period, t.step, "timing.step")
     _multiple(file, "duration", s.duration, t.control_period, "timing.control_period")
     if s.camera.rate <= 0:
@@ -388,7 +402,16 @@ def _check(s: Scenario) -> None:
     robot.check(s)
     reach = robot.reach(s)
     base = getattr(s.robot, "base", (0.0, 0.0))
-    if max(abs(base[0]), abs(base[1])) + reach > marker_range:
+    seen = max(abs(base[0]), abs(base[1])) + reach
+    if seen <= marker_range < seen + CAMERA_SIGMAS * s.camera.noise:
+        raise _fail(
+            file,
+            "camera.noise",
+            f"{s.camera.noise:g} m: markers up to {seen:g} m from the origin plus "
+            f"{CAMERA_SIGMAS} sigma leave the camera's +-{marker_range:g} m (the CameraMarker "
+            "range in the DBC)",
+        )
+    if seen > marker_range:
         raise _fail(
             file,
             "robot",
@@ -428,6 +451,101 @@ def _check(s: Scenario) -> None:
 
 
 LOG_SUFFIXES = (".log", ".asc", ".blf", ".trc", ".csv", ".mf4")
+
+# Bounds of what a run can be asked for (issue 7): a macro step the FMUs' fixed substeps can
+# resolve and that does not spin (1 us .. 100 ms), a control period up to 1 s, at most a day of
+# simulated time and 10 million SYNCs, so that a typo cannot start a run that never ends.
+STEP_RANGE = (1e-6, 0.1)
+MAX_CONTROL_PERIOD = 1.0
+MAX_DURATION = 86_400.0
+MAX_CYCLES = 10_000_000
+MAX_TIMEOUT = 3_600.0
+# Gains: Kp [m per 1/m] beyond the DBC's whole piston range (0.1 m) per 0.01 1/m of curvature
+# error (the camera's resolution over CAN) would only chatter between the stroke's ends; Ki is
+# bounded so that one control period integrates at most that much.
+CURVATURE_RESOLUTION = 0.01
+CAMERA_SIGMAS = 6  # marker noise beyond 6 sigma is vanishingly rare (2e-9)
+LOOPBACK_HOSTS = ("127.0.0.1", "localhost", "::1")
+
+
+def _limits(s: Scenario) -> None:
+    """The ranges a scenario must keep: timing, duration, bus, gains, pressures, frequencies,
+    derived from the physics, the sample rates and the DBC."""
+    file, t = s.source, s.timing
+    lo, hi = STEP_RANGE
+    if not lo <= t.step <= hi:
+        raise _fail(file, "timing.step", f"{t.step:g} s is outside {lo:g}..{hi:g} s")
+    if t.control_period > MAX_CONTROL_PERIOD:
+        raise _fail(
+            file,
+            "timing.control_period",
+            f"{t.control_period:g} s is beyond {MAX_CONTROL_PERIOD:g} s",
+        )
+    if s.duration > MAX_DURATION:
+        raise _fail(file, "duration", f"{s.duration:g} s is beyond {MAX_DURATION:g} s (a day)")
+    if s.duration / t.control_period > MAX_CYCLES:
+        raise _fail(
+            file,
+            "duration",
+            f"{s.duration / t.control_period:.3g} control periods are beyond {MAX_CYCLES}",
+        )
+    channel = s.bus.channel
+    if not channel or any(c.isspace() or c in "<>" for c in channel):
+        raise _fail(file, "bus.channel", f"{channel!r}: no spaces or '<>', not empty")
+    if not s.bus.host or any(c.isspace() or c in "<>" for c in s.bus.host):
+        raise _fail(file, "bus.host", f"{s.bus.host!r}: not a host name")
+    if s.bus.host not in LOOPBACK_HOSTS and not s.bus.allow_remote:
+        raise _fail(
+            file,
+            "bus.host",
+            f"{s.bus.host!r}: softhil stays on 127.0.0.1 unless bus.allow_remote = true",
+        )
+    if not 0.0 < s.controller.timeout <= MAX_TIMEOUT:
+        raise _fail(file, "controller.timeout", f"must be in (0, {MAX_TIMEOUT:g}] s")
+    if not 0.0 <= s.controller.max_lateness <= MAX_TIMEOUT:
+        raise _fail(file, "controller.max_lateness", f"must be in 0..{MAX_TIMEOUT:g} s")
+    if not 0.0 <= s.controller.max_overruns <= 1.0:
+        raise _fail(file, "controller.max_overruns", "must be a fraction in 0..1")
+    if s.controller.crossover > 0.5 / t.control_period:
+        raise _fail(
+            file,
+            "controller.crossover",
+            f"{s.controller.crossover:g} Hz is beyond the control loop's Nyquist rate "
+            f"{0.5 / t.control_period:g} Hz",
+        )
+    protocol = Protocol()
+    piston = protocol.signal_range("DriveCommand1", "piston_setpoint")
+    kp_max = (piston[1] - piston[0]) / CURVATURE_RESOLUTION
+    bounds = {"kp": kp_max, "ki": kp_max / t.control_period}
+    for gain, bound in bounds.items():
+        value = getattr(s.controller, gain)
+        if value is not None and value > bound:
+            raise _fail(
+                file,
+                f"controller.{gain}",
+                f"{value:g} is beyond {bound:g} (the DBC's whole piston range per "
+                f"{CURVATURE_RESOLUTION:g} 1/m of curvature error)",
+            )
+    pressure = protocol.signal_range("DriveStatus1", "p_a")[1]
+    if s.safety.max_pressure > pressure:
+        raise _fail(
+            file,
+            "safety.max_pressure",
+            f"{s.safety.max_pressure:g} Pa is beyond the {pressure:g} Pa DriveStatus can carry "
+            "(the DBC's p_a range)",
+        )
+    if s.safety.command_timeout > MAX_TIMEOUT:
+        raise _fail(file, "safety.command_timeout", f"must be at most {MAX_TIMEOUT:g} s")
+    sine = s.task.sine
+    if sine is not None and s.camera.rate > 0:
+        nyquist = min(0.5 / t.control_period, 0.5 * s.camera.rate)
+        if sine.frequency >= nyquist:
+            raise _fail(
+                file,
+                "task.sine.frequency",
+                f"{sine.frequency:g} Hz is at or beyond the Nyquist rate {nyquist:g} Hz of the "
+                "control loop and camera",
+            )
 
 
 def log_start(s: Scenario) -> float:

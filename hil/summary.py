@@ -142,6 +142,19 @@ def summarise(
             f"{stats.emcy_sent} EMCY frame(s): a drive held its piston "
             "(over-pressure or command timeout), see the CAN log"
         )
+    missed = stats.commands_missed + int(controller_report.get("status_missed", 0))
+    stale = stats.commands_stale + int(controller_report.get("stale_frames", 0))
+    if missed or stale:
+        warnings.append(
+            f"{missed} missed and {stale} stale frame(s) held over (policy "
+            f"{scenario.controller.policy})"
+        )
+    intrusions = intrusions_of(stats, controller_report)
+    if intrusions["count"]:
+        warnings.append(
+            f"{intrusions['count']} frame(s) from a node that is not their sender (intrusions); "
+            f"first: {intrusions['first']}"
+        )
     if metrics.get("settling_time") is not None and math.isinf(metrics["settling_time"]):
         warnings.append("a step never settled within its hold (settling_time is null)")
     return {
@@ -160,12 +173,46 @@ def summarise(
         "frames": {
             "sent": can_log.sent,
             "received": can_log.received,
-            "missed": stats.commands_missed + int(controller_report.get("status_missed", 0)),
-            "stale": stats.commands_stale + int(controller_report.get("stale_frames", 0)),
+            "missed": missed,
+            "stale": stale,
             "unknown": stats.unknown_frames + int(controller_report.get("unknown_frames", 0)),
             "emcy": stats.emcy_sent,
         },
+        "intrusions": intrusions,
         "controller": controller_report,
         "plant": asdict(stats),
         "warnings": warnings,
     }
+
+
+def intrusions_of(stats: PlantStats, controller_report: Mapping[str, Any]) -> dict[str, Any]:
+    """Frames that came from a node other than their one legitimate sender, as the plant and
+    the controller each saw them: {"count": N, "first": "..."} (first: the plant's, if any)."""
+    count = stats.intrusions + int(controller_report.get("intrusions", 0))
+    first = stats.first_intrusion or str(controller_report.get("first_intrusion", ""))
+    return {"count": count, "first": first or None}
+
+
+def realtime_failure(scenario: Scenario, report: Mapping[str, Any]) -> str | None:
+    """Why a real-time run failed its timing (None if it did not, or was not real-time): more
+    than [controller] max_overruns (a fraction, 1 % by default) of its SYNCs over one control
+    period late, or a SYNC later than [controller] max_lateness (default one period)."""
+    if not report.get("realtime"):
+        return None
+    period = scenario.timing.control_period
+    limit = scenario.controller.max_lateness or period
+    syncs = int(report.get("cycles", 0)) + 1
+    overruns = int(report.get("overruns", 0))
+    late = float(report.get("max_lateness", 0.0))
+    allowed = scenario.controller.max_overruns
+    if overruns > allowed * syncs:
+        return (
+            f"real-time run failed: {overruns} of {syncs} SYNCs were more than one control period "
+            f"({1e3 * period:g} ms) late (controller.max_overruns = {100 * allowed:g} %)"
+        )
+    if late > limit:
+        return (
+            f"real-time run failed: a SYNC was {1e3 * late:.2f} ms late, beyond "
+            f"controller.max_lateness = {1e3 * limit:g} ms"
+        )
+    return None

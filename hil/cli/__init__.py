@@ -9,16 +9,19 @@ terminated (SIGTERM).
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
+import threading
 from collections.abc import Callable, Sequence
 
+from controllers.protocol import FrameError
 from hil.cli import bus as bus_command
 from hil.cli import controller as controller_command
 from hil.cli import estimate as estimate_command
 from hil.cli import fmu as fmu_command
 from hil.cli import replay as replay_command
 from hil.cli import run as run_command
-from hil.errors import HilError
+from hil.errors import HilError, Terminated
 
 SUBCOMMANDS = (
     run_command,
@@ -88,9 +91,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     if handler is None:
         parser.print_help()
         return EXIT_USAGE
+    main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _terminate) if main_thread else None
     try:
         return handler(args)
-    except HilError as error:
+    except Terminated:
+        print("hil: terminated", file=sys.stderr)
+        return EXIT_TERMINATED
+    except (HilError, FrameError) as error:  # FrameError: the DBC itself is unreadable
         if args.debug:
             raise
         print(f"hil: error: {error}", file=sys.stderr)
@@ -101,6 +109,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     except BrokenPipeError:  # `hil fmu list | head`
         sys.stderr.close()
         return 0
+    finally:
+        if main_thread:
+            signal.signal(signal.SIGTERM, previous)
+
+
+def _terminate(signum: int, frame: object) -> None:
+    """SIGTERM (CI runners, containers, `kill`): unwind like Ctrl-C, once; a second TERM during
+    the cleanup is ignored (KILL still ends the process)."""
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    raise Terminated
 
 
 def example_parser(

@@ -7,6 +7,7 @@ import math
 import sys
 from pathlib import Path
 
+from hil.errors import HilError
 from hil.run import RunOptions, run_scenario
 from hil.scenario import load_scenario
 
@@ -25,7 +26,17 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
         "  hil run --bus loopback:127.0.0.1:29536   join a hub started by `hil bus serve`\n",
     )
     parser.add_argument("scenario", nargs="?", type=Path, help="scenario TOML (default: built-in)")
-    parser.add_argument("--out", type=Path, help="results folder (default: runs/NAME-SEED)")
+    parser.add_argument(
+        "--out",
+        help="results folder, new or empty (default: runs/NAME-SEED); softhil never replaces "
+        "files it did not write",
+    )
+    parser.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="reuse a results folder: replace the files an earlier run wrote there (listed in "
+        "its .softhil-manifest), never other files or the input scenario",
+    )
     parser.add_argument("--bus", help="bus spec: loopback[:HOST:PORT], socketcan:IFACE, virtual")
     parser.add_argument(
         "--inprocess",
@@ -55,8 +66,10 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
 
 
 def _run(args: argparse.Namespace) -> int:
+    if args.out is not None and not args.out.strip():
+        raise HilError("--out: an empty folder name; name the results folder")
     scenario = load_scenario(args.scenario, seed=args.seed)
-    out = args.out or Path("runs") / f"{scenario.name}-{scenario.seed}"
+    out = Path(args.out) if args.out else Path("runs") / f"{scenario.name}-{scenario.seed}"
     result = run_scenario(
         scenario,
         RunOptions(
@@ -68,6 +81,7 @@ def _run(args: argparse.Namespace) -> int:
             can_log=args.can_log,
             start=args.start,
             mf4=args.mf4,
+            overwrite=args.overwrite,
         ),
     )
     s = result.summary

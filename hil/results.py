@@ -1,0 +1,281 @@
+"""The results folder of a run: softhil never deletes or overwrites a file it did not create.
+
+A run takes the folder with a lock file (`.softhil.lock`, created with O_EXCL, holding the pid of
+the run; a lock left by a dead process is taken over with a note) and lists every file it writes
+there in a manifest (`.softhil-manifest`, one name a line, written before the file itself), so a
+later `--overwrite` can tell softhil's files from the user's: it replaces only files a manifest
+names, never the input scenario, and refuses a folder whose foreign files a run would replace.
+An existing non-empty folder is refused without `--overwrite`.
+
+Every byte a run writes goes through `write_bytes` (one place to see, and for tests to fail with
+ENOSPC): line logs are written as whole records (`RecordFile`: on a failed write the file is cut
+back to its last complete record and closed), small files atomically (`write_file`: a temporary
+file renamed into place, so a full disk leaves no empty or half-written file behind).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import os
+import sys
+from collections.abc import Iterable
+from pathlib import Path
+
+from hil.errors import HilError
+
+LOCK = ".softhil.lock"
+MANIFEST = ".softhil-manifest"
+
+
+class WriteError(HilError):
+    """A results file could not be written (disk full, permissions): names the file and cause."""
+
+
+def write_bytes(fd: int, data: bytes) -> int:
+    """os.write; the one write of every results file (tests replace it to simulate ENOSPC)."""
+    return os.write(fd, data)
+
+
+def _write_all(path: Path, fd: int, data: bytes) -> None:
+    view = memoryview(data)
+    while view:
+        written = write_bytes(fd, bytes(view))
+        if written <= 0:  # pragma: no cover - os.write raises rather than returning 0
+            raise OSError(errno.EIO, "short write")
+        view = view[written:]
+
+
+def _cause(exc: OSError) -> str:
+    return exc.strerror or str(exc)
+
+
+def write_file(path: Path, data: bytes | str) -> None:
+    """Write a whole file atomically (temporary file, then rename); WriteError on failure, and
+    nothing of the new file is left behind."""
+    if isinstance(data, str):
+        data = data.encode("utf-8")
+    temporary = path.with_name(f".{path.name}.partial")
+    try:
+        fd = os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+        try:
+            _write_all(path, fd, data)
+        finally:
+            os.close(fd)
+        os.replace(temporary, path)
+    except OSError as exc:
+        with contextlib.suppress(OSError):
+            temporary.unlink()
+        raise WriteError(f"{path}: cannot write: {_cause(exc)}") from None
+
+
+class RecordFile:
+    """A text file written in whole records: `write(text)` appends complete lines or nothing.
+    After a failed write the file is cut back to its last complete record and closed; every
+    later call is a no-op, so cleanup code cannot fail twice."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        try:
+            self._fd: int | None = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+        except OSError as exc:
+            raise WriteError(f"{path}: cannot create: {_cause(exc)}") from None
+        self._good = 0
+        self._pending: list[str] = []
+        self.failed: str | None = None
+
+    @property
+    def closed(self) -> bool:
+        return self._fd is None
+
+    def write(self, text: str) -> int:
+        """Buffer text (what python-can's and csv's writers call); `flush` writes it."""
+        if self._fd is not None:
+            self._pending.append(text)
+        return len(text)
+
+    def flush(self) -> None:
+        """Write the buffered whole records; WriteError (once) if the disk refuses them."""
+        if self._fd is None or not self._pending:
+            return
+        text = "".join(self._pending)
+        self._pending.clear()
+        cut = text.rfind("\n") + 1  # only complete lines; a partial one waits
+        if cut < len(text):
+            self._pending.append(text[cut:])
+        data = text[:cut].encode("utf-8")
+        try:
+            _write_all(self.path, self._fd, data)
+        except OSError as exc:
+            self._fail(exc)
+        self._good += len(data)
+
+    def _fail(self, exc: OSError) -> None:
+        fd, self._fd = self._fd, None
+        self._pending.clear()
+        self.failed = f"{self.path}: cannot write: {_cause(exc)}"
+        if fd is not None:
+            with contextlib.suppress(OSError):
+                os.ftruncate(fd, self._good)  # back to the last complete record
+            with contextlib.suppress(OSError):
+                os.close(fd)
+        raise WriteError(self.failed) from None
+
+    def close(self) -> None:
+        """Flush what is complete and close; never raises after a failure was reported."""
+        if self._fd is None:
+            return
+        try:
+            self.flush()
+        finally:
+            if self._fd is not None:
+                fd, self._fd = self._fd, None
+                os.close(fd)
+
+
+class ResultsFolder:
+    """A run's hold on its results folder: the lock, the manifest, and the refusals.
+
+    `planned` are the names the run will write; `keep` are files never to be replaced (the
+    input scenario when it lies in the folder)."""
+
+    def __init__(
+        self, out: Path, planned: Iterable[str], overwrite: bool = False, keep: Iterable[Path] = ()
+    ) -> None:
+        self.out = out
+        self.planned = list(planned)
+        self.overwrite = overwrite
+        self.keep = {p.resolve() for p in keep}
+        self.written: list[str] = []
+        self._locked = False
+        self.notes: list[str] = []
+
+    def kept(self, name: str) -> bool:
+        """True if `name` in the folder is a file this run must leave alone (the input)."""
+        return (self.out / name).resolve() in self.keep
+
+    def __enter__(self) -> ResultsFolder:
+        out = self.out
+        if str(out) == "":
+            raise HilError("--out: an empty folder name; name the results folder")
+        try:
+            out.mkdir(parents=True, exist_ok=True)
+        except FileExistsError:
+            raise HilError(f"results folder {out}: exists and is not a folder") from None
+        except OSError as exc:
+            raise HilError(f"results folder {out}: {_cause(exc)}") from None
+        self._lock()
+        try:
+            self._clear()
+        except BaseException:
+            self.release()
+            raise
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.release()
+
+    def _lock(self) -> None:
+        lock = self.out / LOCK
+        for _ in range(3):
+            try:
+                fd = os.open(lock, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+            except FileExistsError:
+                pid = _lock_pid(lock)
+                if pid is not None and _alive(pid):
+                    raise HilError(
+                        f"results folder {self.out} is in use by another run (pid {pid}, "
+                        f"{lock.name}); choose another --out or wait for it"
+                    ) from None
+                with contextlib.suppress(FileNotFoundError):
+                    lock.unlink()
+                self.notes.append(
+                    f"took over the stale lock of a run that is gone (pid {pid}) in {self.out}"
+                )
+                continue
+            except OSError as exc:
+                raise HilError(f"results folder {self.out}: cannot lock: {_cause(exc)}") from None
+            try:
+                _write_all(lock, fd, f"{os.getpid()}\n".encode())
+            except OSError as exc:
+                os.close(fd)
+                with contextlib.suppress(OSError):
+                    lock.unlink()
+                raise WriteError(f"{lock}: cannot write: {_cause(exc)}") from None
+            os.close(fd)
+            self._locked = True
+            return
+        raise HilError(f"results folder {self.out}: cannot take its lock")  # pragma: no cover
+
+    def release(self) -> None:
+        if self._locked:
+            self._locked = False
+            with contextlib.suppress(OSError):
+                (self.out / LOCK).unlink()
+
+    def _clear(self) -> None:
+        """Refuse a folder holding anything but softhil's own files; with overwrite, remove the
+        files an earlier run listed in its manifest (never the input scenario)."""
+        present = sorted(p.name for p in self.out.iterdir() if p.name not in (LOCK, MANIFEST))
+        if not present:
+            return
+        if not self.overwrite:
+            raise HilError(
+                f"results folder {self.out} is not empty ({len(present)} entries, e.g. "
+                f"{present[0]!r}): choose another --out, or --overwrite to replace the files an "
+                "earlier run wrote there"
+            )
+        ours = set(self._manifest())
+        for name in self.planned:
+            if (self.out / name).exists() and name not in ours and not self.kept(name):
+                raise HilError(
+                    f"results folder {self.out}: {name} was not written by softhil (not in "
+                    f"{MANIFEST}); --overwrite replaces only softhil's own files"
+                )
+        for name in sorted(ours):
+            path = self.out / name
+            if "/" in name or name in (LOCK, MANIFEST) or self.kept(name):
+                continue
+            if path.is_file() and not path.is_symlink():
+                try:
+                    path.unlink()
+                except OSError as exc:
+                    raise HilError(f"{path}: cannot remove: {_cause(exc)}") from None
+        self.written = [n for n in self._manifest() if (self.out / n).exists()]
+
+    def _manifest(self) -> list[str]:
+        try:
+            text = (self.out / MANIFEST).read_text(encoding="utf-8", errors="replace")
+        except OSError:
+            return []
+        return [line for line in text.splitlines() if line and "/" not in line]
+
+    def claim(self, name: str) -> Path:
+        """The path of a file this run writes, listed in the manifest before it exists."""
+        if name not in self.written:
+            self.written.append(name)
+            write_file(self.out / MANIFEST, "".join(f"{n}\n" for n in self.written))
+        return self.out / name
+
+
+def _lock_pid(lock: Path) -> int | None:
+    try:
+        return int(lock.read_text().strip())
+    except (OSError, ValueError):
+        return None
+
+
+def _alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def note(text: str) -> None:
+    print(f"hil: note: {text}", file=sys.stderr)

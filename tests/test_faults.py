@@ -1,0 +1,527 @@
+"""The fault matrix (issue 7): every fault ends with the documented exit code, one line,
+summary.json stating the reason (when it can be written), and logs that python-can and
+cantools read up to their last record. Results folders never lose a user's file.
+
+Runs are short and in-process where the case allows; the cases that need processes (signals to
+`hil run`, a killed controller, a killed hub) wait for progress by polling the run's files, never
+by sleeping a fixed time."""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import errno
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import can
+import cantools.logreader
+import pytest
+
+import hil.results
+from controllers.node import ControllerNode, RealtimeClock
+from controllers.protocol import DriveCommand, Protocol, Sync
+from hil.cli import main as hil_main
+from hil.run import controller_config
+from hil.scenario import DEFAULT_SCENARIO, load_scenario
+from hil.summary import realtime_failure
+
+DEFAULT_TEXT = DEFAULT_SCENARIO.read_text()
+REPO = Path(__file__).resolve().parents[1]
+
+
+def scenario_file(tmp_path: Path, duration: float, *edits: tuple[str, str]) -> Path:
+    text = DEFAULT_TEXT.replace("duration = 10.0", f"duration = {duration}").replace(
+        "sine = { start = 7.0", f"sine = {{ start = {duration}"
+    )
+    for old, new in edits:
+        assert old in text, old
+        text = text.replace(old, new, 1)
+    path = tmp_path / "s.toml"
+    path.write_text(text)
+    return path
+
+
+HOLD = ('policy = "strict"', 'policy = "hold"')
+
+
+def readable(out: Path, can_log: str = "can.log") -> int:
+    """Every log in `out` reads to its last record; returns the CAN log's record count."""
+    log = out / can_log
+    lines = log.read_text().splitlines() if log.exists() else []
+    assert all(line.endswith((" R", " T")) for line in lines)
+    if lines:
+        assert len(list(can.LogReader(str(log)))) == len(lines)
+        parser = cantools.logreader.Parser()
+        assert all(parser.parse(line) is not None for line in lines)
+    signals = out / "signals.csv"
+    if signals.exists():
+        rows = list(csv.reader(signals.open()))
+        assert rows and all(len(r) == len(rows[0]) for r in rows)
+        assert signals.read_bytes().endswith(b"\n")
+    return len(lines)
+
+
+def summary(out: Path) -> dict:
+    return json.loads((out / "summary.json").read_text())
+
+
+def run_cli(capsys: pytest.CaptureFixture[str], *argv: str) -> tuple[int, list[str]]:
+    code = hil_main(["run", *argv, "--no-progress"])
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    return code, [line for line in err.splitlines() if not line.startswith("  warning")]
+
+
+# ------------------------------------------------------------------ results folders
+
+
+def test_out_never_touches_foreign_files(tmp_path: Path, capsys) -> None:
+    out = tmp_path / "mine"
+    out.mkdir()
+    scenario = scenario_file(out, 0.2)  # the user's scenario.toml-like file lives there
+    (out / "scenario.toml").write_text("# the user's own scenario\n")
+    (out / "summary.json").write_text('{"mine": true}\n')
+    (out / "notes.txt").write_bytes(b"\x00\x01 private")
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    for extra in ([], ["--overwrite"]):
+        code, lines = run_cli(capsys, str(scenario), "--inprocess", "--out", str(out), *extra)
+        assert code == 1 and len(lines) == 1
+        assert "not empty" in lines[0] or "not written by softhil" in lines[0]
+        assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+    assert not (out / hil.results.LOCK).exists()
+
+
+def test_rerun_into_its_own_folder_keeps_the_input_scenario(tmp_path: Path, capsys) -> None:
+    out = tmp_path / "run"
+    assert run_cli(capsys, str(scenario_file(tmp_path, 0.2)), "--inprocess", "--out", str(out))[0] == 0  # noqa: E501
+    recorded = out / "scenario.toml"
+    text = recorded.read_bytes()
+    (out / "my-notes.md").write_text("keep me\n")
+    code, lines = run_cli(capsys, str(recorded), "--inprocess", "--out", str(out))
+    assert code == 1 and "not empty" in lines[0]
+    code, _ = run_cli(capsys, str(recorded), "--inprocess", "--out", str(out), "--overwrite")
+    assert code == 0
+    assert recorded.read_bytes() == text
+    assert (out / "my-notes.md").read_text() == "keep me\n"
+    assert summary(out)["status"] == "completed"
+
+
+def test_second_run_into_a_locked_folder_is_refused_and_a_stale_lock_taken_over(
+    tmp_path: Path, capsys
+) -> None:
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / hil.results.LOCK).write_text(f"{os.getppid()}\n")  # a live process holds it
+    code, lines = run_cli(capsys, str(scenario_file(tmp_path, 0.2)), "--inprocess", "--out", str(out))  # noqa: E501
+    assert code == 1 and len(lines) == 1 and "in use by another run" in lines[0]
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    (out / hil.results.LOCK).write_text(f"{dead.pid}\n")
+    code, lines = run_cli(capsys, str(scenario_file(tmp_path, 0.2)), "--inprocess", "--out", str(out))  # noqa: E501
+    assert code == 0 and any("stale lock" in line for line in lines)
+    assert not (out / hil.results.LOCK).exists()
+
+
+# ------------------------------------------------------------------ disk full
+
+
+@contextlib.contextmanager
+def disk_full(monkeypatch: pytest.MonkeyPatch, budget: int, only: str = "") -> Iterator[None]:
+    """Every results write fails with ENOSPC once `budget` bytes are written (to files whose
+    name contains `only`)."""
+    left = [budget]
+    real = hil.results.write_bytes
+
+    def write(fd: int, data: bytes) -> int:
+        name = os.readlink(f"/proc/self/fd/{fd}")
+        if only in name and len(data) > left[0]:
+            if left[0] == 0:
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+            data = data[: left[0]]  # a short write, as a filling disk gives; ENOSPC next
+        if only in name:
+            left[0] -= len(data)
+        return real(fd, data)
+
+    monkeypatch.setattr(hil.results, "write_bytes", write)
+    yield
+
+
+@pytest.mark.parametrize(
+    "budget,only,where",
+    [
+        (0, "", "nothing"),
+        (0, "controller.json", "start"),
+        (10_000, "can.log", "mid-run"),
+        (0, ".png", "end"),
+    ],
+    ids=["nothing-writable", "start", "mid-run", "end"],
+)
+def test_disk_full(tmp_path: Path, capsys, monkeypatch, budget: int, only: str, where: str) -> None:
+    out = tmp_path / "run"
+    with disk_full(monkeypatch, budget, only):
+        code, lines = run_cli(capsys, str(scenario_file(tmp_path, 1.0)), "--inprocess", "--out", str(out))  # noqa: E501
+    assert code == 1 and len(lines) == 1, lines
+    assert "No space left on device" in lines[0]
+    assert not [p for p in out.iterdir() if p.stat().st_size == 0 and p.name != "controller.log"]
+    records = readable(out)
+    if where == "nothing":
+        assert not (out / "summary.json").exists()  # nothing could be written at all
+        return
+    s = summary(out)
+    if where == "start":
+        assert "controller.json" in lines[0] and not (out / "controller.json").exists()
+        assert s["status"] == "failed" and "controller.json" in s["error"]
+        return
+    assert s["status"] == "failed" and "No space left on device" in s["error"]
+    if where == "mid-run":
+        assert records > 0 and (out / "can.log").stat().st_size <= 10_000
+    else:
+        assert s["rms_tracking_error"] is not None  # the run itself was complete
+
+
+# ------------------------------------------------------------------ intruders
+
+
+class Intruder:
+    """A second node on the bus that sends a DriveCommand in the controller's name for every
+    SYNC it sees (correct counter, a far setpoint)."""
+
+    def __init__(self, bus: can.BusABC, make: Callable[[int], can.Message]) -> None:
+        self.bus, self.make, self.sent = bus, make, 0
+        self.stop = threading.Event()
+        self.protocol = Protocol()
+        self.thread = threading.Thread(target=self._run, daemon=True)
+        self.thread.start()
+
+    def _run(self) -> None:
+        while not self.stop.is_set():
+            message = self.bus.recv(timeout=0.05)
+            if message is not None and message.arbitration_id == 0x080:
+                counter = message.data[0]
+                with contextlib.suppress(can.CanError, OSError):
+                    self.bus.send(self.make(counter))
+                    self.sent += 1
+
+    def close(self) -> None:
+        self.stop.set()
+        self.thread.join(timeout=5)
+        self.bus.shutdown()
+
+
+def foreign_command(counter: int) -> can.Message:
+    return Protocol().encode(DriveCommand(1, 0.045, True, counter))
+
+
+@pytest.mark.parametrize("policy", ["hold", "strict"])
+def test_injected_commands_on_the_virtual_bus(tmp_path: Path, capsys, policy: str) -> None:
+    channel = f"intruded-{policy}"
+    intruder = Intruder(can.Bus(interface="virtual", channel=channel), foreign_command)
+    edits = [HOLD] if policy == "hold" else []
+    try:
+        code, lines = run_cli(
+            capsys, str(scenario_file(tmp_path, 1.0, *edits)), "--inprocess", "--bus",
+            f"virtual:{channel}", "--out", str(tmp_path / "run"),
+        )  # fmt: skip
+    finally:
+        intruder.close()
+    s = summary(tmp_path / "run")
+    readable(tmp_path / "run")
+    if policy == "hold":
+        assert code == 0
+        assert s["intrusions"]["count"] > 0 and s["intrusions"]["first"]
+        # both ends saw it: the plant a second command per cycle, the controller its own id
+        assert s["plant"]["intrusions"] > 0 and s["controller"]["intrusions"] > 0
+        assert any("intrusion" in w for w in s["warnings"])
+    else:
+        assert code == 1 and len(lines) == 1 and "intrusion" in lines[0]
+        assert s["status"] == "failed" and "intrusion" in s["error"]
+
+
+def test_duplicated_frames_are_counted(tmp_path: Path, capsys) -> None:
+    """A node that repeats every command and SYNC it hears (a duplicating gateway)."""
+    channel = "duplicated"
+    bus = can.Bus(interface="virtual", channel=channel)
+    stop = threading.Event()
+
+    def echo() -> None:
+        while not stop.is_set():
+            message = bus.recv(timeout=0.05)
+            if message is not None and message.arbitration_id in (0x080, 0x201):
+                with contextlib.suppress(can.CanError):
+                    bus.send(message)
+
+    thread = threading.Thread(target=echo, daemon=True)
+    thread.start()
+    try:
+        code, _ = run_cli(
+            capsys, str(scenario_file(tmp_path, 0.5, HOLD)), "--inprocess", "--bus",
+            f"virtual:{channel}", "--out", str(tmp_path / "run"),
+        )  # fmt: skip
+    finally:
+        stop.set()
+        thread.join(timeout=5)
+        bus.shutdown()
+    assert code == 0
+    assert summary(tmp_path / "run")["intrusions"]["count"] > 0
+    readable(tmp_path / "run")
+
+
+def free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+def wait_for(condition: Callable[[], bool], what: str, limit: float = 60.0) -> None:
+    """Poll `condition` (a run's files) until true; a generous limit only against hangs."""
+    deadline = time.monotonic() + limit
+    while not condition():
+        assert time.monotonic() < deadline, f"timed out waiting for {what}"
+        time.sleep(0.02)
+
+
+def rows(path: Path) -> int:
+    try:
+        return path.read_bytes().count(b"\n")
+    except OSError:
+        return 0
+
+
+def hil_process(*argv: str) -> subprocess.Popen[str]:
+    return subprocess.Popen(
+        [sys.executable, "-m", "hil", *argv],
+        cwd=REPO,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+
+
+def test_injected_commands_on_the_hub_from_a_second_client(tmp_path: Path) -> None:
+    port = free_port()
+    hub = hil_process("bus", "serve", "--port", str(port))
+    try:
+        wait_for(lambda: _listening(port), "the hub")
+        run = hil_process(
+            "run", str(scenario_file(tmp_path, 1.0, HOLD)), "--bus", f"loopback:127.0.0.1:{port}",
+            "--out", str(tmp_path / "run"), "--no-progress",
+        )  # fmt: skip
+        wait_for(lambda: rows(tmp_path / "run" / "signals.csv") > 2, "progress")
+        from controllers.canbus import BusSpec, open_bus
+
+        intruder = Intruder(open_bus(BusSpec.parse(f"loopback:{port}")), foreign_command)
+        try:
+            _, err = run.communicate(timeout=120)
+        finally:
+            intruder.close()
+    finally:
+        hub.terminate()
+        hub.wait(timeout=10)
+    assert run.returncode == 0, err
+    s = summary(tmp_path / "run")
+    assert s["intrusions"]["count"] > 0 and intruder.sent > 0
+    readable(tmp_path / "run")
+
+
+def _listening(port: int) -> bool:
+    with socket.socket() as sock:
+        return sock.connect_ex(("127.0.0.1", port)) == 0
+
+
+# ------------------------------------------------------------------ strict and hold
+
+
+def test_over_pressure_stops_a_strict_run_and_is_counted_under_hold(tmp_path: Path, capsys) -> None:  # noqa: E501
+    low = ("max_pressure = 60000.0", "max_pressure = 12000.0")
+    code, lines = run_cli(capsys, str(scenario_file(tmp_path, 1.0, low)), "--inprocess", "--out", str(tmp_path / "strict"))  # noqa: E501
+    assert code == 1 and len(lines) == 1 and "EMCY 0xFF01 (over-pressure)" in lines[0]
+    s = summary(tmp_path / "strict")
+    assert s["status"] == "failed" and "over-pressure" in s["error"]
+    readable(tmp_path / "strict")
+    code, _ = run_cli(capsys, str(scenario_file(tmp_path, 1.0, low, HOLD)), "--inprocess", "--out", str(tmp_path / "hold"))  # noqa: E501
+    assert code == 0
+    assert any("EMCY" in w for w in summary(tmp_path / "hold")["warnings"])
+
+
+class SilentAfter(ControllerNode):
+    """The real controller that stops commanding after `cycles_ok` cycles (SYNC goes on)."""
+
+    cycles_ok = 20
+
+    def _send(self, frame, sim_time: float) -> None:  # type: ignore[override]
+        if isinstance(frame, Sync) or frame.counter < self.cycles_ok:
+            super()._send(frame, sim_time)
+
+
+@pytest.mark.parametrize("policy", ["strict", "hold"])
+def test_a_controller_that_stops_commanding(tmp_path: Path, monkeypatch, capsys, policy) -> None:
+    monkeypatch.setattr("hil.run.ControllerNode", SilentAfter)
+    edits = [HOLD] if policy == "hold" else []
+    out = tmp_path / "run"
+    code, lines = run_cli(capsys, str(scenario_file(tmp_path, 1.0, *edits)), "--inprocess", "--out", str(out))  # noqa: E501
+    s = summary(out)
+    readable(out)
+    if policy == "strict":
+        assert code == 1 and len(lines) == 1 and "missed" in lines[0]
+        assert s["status"] == "failed" and "SYNC 21" in s["error"]
+    else:
+        assert code == 0 and s["frames"]["missed"] > 0 and s["frames"]["emcy"] == 1
+        assert any("missed" in w for w in s["warnings"])
+
+
+# ------------------------------------------------------------------ real time
+
+
+def test_realtime_overruns_fail_the_run() -> None:
+    """A controller whose cycles take 3 periods each (fake clock): every SYNC is late."""
+    scenario = load_scenario(scenario_file_static(0.1))
+    config = controller_config(scenario)
+    now = [0.0]
+
+    def monotonic() -> float:
+        now[0] += 0.03  # every reading of the clock is 3 periods later: a loaded machine
+        return now[0]
+
+    clock = RealtimeClock(config.control_period, sleep=lambda s: None, monotonic=monotonic)
+    lateness = [clock.wait_for(c) for c in range(11)]
+    assert all(late >= 0 for late in lateness) and max(lateness) > config.control_period
+    report = {"realtime": True, "cycles": 10, "max_lateness": max(lateness),
+              "overruns": sum(late > config.control_period for late in lateness)}  # fmt: skip
+    failure = realtime_failure(scenario, report)
+    assert failure is not None and "real-time run failed" in failure
+    assert realtime_failure(scenario, {**report, "overruns": 0, "max_lateness": 0.001}) is None
+    assert realtime_failure(scenario, {**report, "realtime": False}) is None
+
+
+def scenario_file_static(duration: float) -> Path:
+    import tempfile
+
+    folder = Path(tempfile.mkdtemp(prefix="softhil-rt-"))
+    return scenario_file(folder, duration)
+
+
+# ------------------------------------------------------------------ processes and signals
+
+
+@pytest.mark.parametrize(
+    "sig,code,line,status",
+    [
+        (signal.SIGINT, 130, "hil: interrupted", "interrupted"),
+        (signal.SIGTERM, 143, "hil: terminated", "terminated"),
+    ],
+    ids=["INT", "TERM"],
+)
+def test_hil_run_signalled(tmp_path: Path, sig, code: int, line: str, status: str) -> None:
+    out = tmp_path / "run"
+    run = hil_process("run", str(scenario_file(tmp_path, 10.0)), "--out", str(out), "--no-progress")  # noqa: E501
+    wait_for(lambda: rows(out / "signals.csv") > 2, "progress")
+    run.send_signal(sig)
+    _, err = run.communicate(timeout=60)
+    assert run.returncode == code, err
+    assert err.strip().splitlines() == [line]
+    s = summary(out)
+    assert s["status"] == status and s["error"]
+    assert not (out / "controller.pid").exists() and not (out / hil.results.LOCK).exists()
+    readable(out)
+
+
+@pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGTERM], ids=["KILL", "TERM"])
+def test_controller_killed(tmp_path: Path, sig) -> None:
+    out = tmp_path / "run"
+    run = hil_process("run", str(scenario_file(tmp_path, 10.0)), "--out", str(out), "--no-progress")  # noqa: E501
+    wait_for(lambda: rows(out / "signals.csv") > 2 and rows(out / "controller.pid") > 0, "progress")  # noqa: E501
+    os.kill(int((out / "controller.pid").read_text()), sig)
+    _, err = run.communicate(timeout=60)
+    assert run.returncode == 1
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and "the controller exited with code" in lines[0], err
+    s = summary(out)
+    assert s["status"] == "failed" and "controller exited" in s["error"]
+    readable(out)
+
+
+def test_controller_frozen_times_out(tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    short_wait = ('policy = "strict"', 'policy = "strict"\ntimeout = 0.5')
+    run = hil_process("run", str(scenario_file(tmp_path, 10.0, short_wait)), "--out", str(out), "--no-progress")  # noqa: E501
+    wait_for(lambda: rows(out / "signals.csv") > 2 and rows(out / "controller.pid") > 0, "progress")  # noqa: E501
+    pid = int((out / "controller.pid").read_text())
+    os.kill(pid, signal.SIGSTOP)
+    try:
+        _, err = run.communicate(timeout=60)
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(pid, signal.SIGCONT)
+    assert run.returncode == 1
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and "no frame from the controller for 0.5 s" in lines[0], err
+    assert summary(out)["status"] == "failed"
+    assert not (out / "controller.pid").exists()
+    readable(out)
+
+
+def test_hub_killed_under_a_running_plant(tmp_path: Path) -> None:
+    port = free_port()
+    hub = hil_process("bus", "serve", "--port", str(port))
+    wait_for(lambda: _listening(port), "the hub")
+    out = tmp_path / "run"
+    run = hil_process(
+        "run", str(scenario_file(tmp_path, 10.0)), "--bus", f"loopback:127.0.0.1:{port}",
+        "--out", str(out), "--no-progress",
+    )  # fmt: skip
+    wait_for(lambda: rows(out / "signals.csv") > 2, "progress")
+    hub.kill()
+    hub.wait(timeout=10)
+    _, err = run.communicate(timeout=60)
+    assert run.returncode == 1
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("hil: error: "), err
+    s = summary(out)
+    assert s["status"] == "failed" and s["error"]
+    assert "Traceback" not in (out / "controller.log").read_text()
+    readable(out)
+
+
+def test_fmu_error_mid_run(tmp_path: Path, capsys) -> None:
+    """A connection that drives the segment's piston input beyond its stroke once the piston
+    moves: the FMU answers fmi2Error mid-run."""
+    path = scenario_file(tmp_path, 2.0)
+    path.write_text(
+        path.read_text() + '\n[[connections]]\nfrom = "cylinder1.x"\nto = "segment1.x_piston"\n'
+        "gain = 3.0\noffset = -0.05\n"
+    )
+    out = tmp_path / "run"
+    code, lines = run_cli(capsys, str(path), "--inprocess", "--out", str(out))
+    assert code == 1 and len(lines) == 1 and "fmi2DoStep" in lines[0] and "x_piston" in lines[0]
+    s = summary(out)
+    assert s["status"] == "failed" and "outside the stroke" in s["error"]
+    assert readable(out) > 0
+
+
+def test_realtime_run_late_on_a_loaded_machine_fails(tmp_path: Path, capsys, monkeypatch) -> None:
+    """The real-time clock reads a machine so loaded that each cycle takes 3 periods."""
+    now = [0.0]
+
+    def monotonic() -> float:
+        now[0] += 0.03
+        return now[0]
+
+    monkeypatch.setattr(
+        "hil.run.RealtimeClock",
+        lambda period: RealtimeClock(period, sleep=lambda s: None, monotonic=monotonic),
+    )
+    out = tmp_path / "run"
+    code, lines = run_cli(capsys, str(scenario_file(tmp_path, 0.3)), "--inprocess", "--realtime", "--out", str(out))  # noqa: E501
+    assert code == 1 and len(lines) == 1 and "real-time run failed" in lines[0]
+    s = summary(out)
+    assert s["status"] == "failed" and "SYNCs were more than one control period" in s["error"]
+    assert s["controller"]["overruns"] > 0
