@@ -37,13 +37,26 @@ def write_bytes(fd: int, data: bytes) -> int:
     return os.write(fd, data)
 
 
+class _PartialWriteError(OSError):
+    """A write that stopped after `written` bytes of the block (a disk filling up)."""
+
+    def __init__(self, cause: OSError, written: int) -> None:
+        super().__init__(cause.errno, cause.strerror)
+        self.written = written
+
+
 def _write_all(path: Path, fd: int, data: bytes) -> None:
     view = memoryview(data)
+    done = 0
     while view:
-        written = write_bytes(fd, bytes(view))
+        try:
+            written = write_bytes(fd, bytes(view))
+        except OSError as exc:
+            raise _PartialWriteError(exc, done) from exc
         if written <= 0:  # pragma: no cover - os.write raises rather than returning 0
-            raise OSError(errno.EIO, "short write")
+            raise _PartialWriteError(OSError(errno.EIO, "short write"), done)
         view = view[written:]
+        done += written
 
 
 def _cause(exc: OSError) -> str:
@@ -106,6 +119,10 @@ class RecordFile:
         data = text[:cut].encode("utf-8")
         try:
             _write_all(self.path, self._fd, data)
+        except _PartialWriteError as exc:
+            # keep the whole records of the block that did reach the disk
+            self._good += data.rfind(b"\n", 0, exc.written) + 1
+            self._fail(exc)
         except OSError as exc:
             self._fail(exc)
         self._good += len(data)

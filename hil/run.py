@@ -192,7 +192,11 @@ def _run(
         from hil.estimation import estimation_report
 
         folder.claim("estimation.png")
-        summary["estimation"] = estimation_report(out)
+        try:
+            summary["estimation"] = estimation_report(out)
+        except HilError as exc:  # a log with intruders' frames: report it, keep the run
+            summary["estimation"] = {"error": str(exc)}
+            summary["warnings"].append(f"no estimation report: {exc}")
     from hil.plots import plot_run
 
     for spec in rig.plots:

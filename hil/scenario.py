@@ -403,14 +403,6 @@ def _check(s: Scenario) -> None:
     reach = robot.reach(s)
     base = getattr(s.robot, "base", (0.0, 0.0))
     seen = max(abs(base[0]), abs(base[1])) + reach
-    if seen <= marker_range < seen + CAMERA_SIGMAS * s.camera.noise:
-        raise _fail(
-            file,
-            "camera.noise",
-            f"{s.camera.noise:g} m: markers up to {seen:g} m from the origin plus "
-            f"{CAMERA_SIGMAS} sigma leave the camera's +-{marker_range:g} m (the CameraMarker "
-            "range in the DBC)",
-        )
     if seen > marker_range:
         raise _fail(
             file,
@@ -419,14 +411,16 @@ def _check(s: Scenario) -> None:
             f"({base[0]:g}, {base[1]:g}): beyond the camera's +-{marker_range:g} m "
             "(the CameraMarker range in the DBC)",
         )
-    margin = 6.0 * s.camera.noise + (s.camera.outlier_distance if s.camera.outlier_rate else 0.0)
-    if margin > 0.0 and max(abs(base[0]), abs(base[1])) + reach + margin > marker_range:
+    margin = CAMERA_SIGMAS * s.camera.noise + (
+        s.camera.outlier_distance if s.camera.outlier_rate else 0.0
+    )
+    if seen + margin > marker_range:
         raise _fail(
             file,
             "camera.noise",
-            f"markers up to {reach:g} m from the base, plus 6 sigma of noise and the outlier "
-            f"distance ({margin:g} m), leave the camera's +-{marker_range:g} m field of view "
-            "(the CameraMarker range in the DBC)",
+            f"{s.camera.noise:g} m: markers up to {seen:g} m from the origin, plus "
+            f"{CAMERA_SIGMAS} sigma of noise and the outlier distance ({margin:g} m), leave the "
+            f"camera's +-{marker_range:g} m field of view (the CameraMarker range in the DBC)",
         )
     ports = robot.ports(s)
     for i, c in enumerate(s.connections):

@@ -268,8 +268,11 @@ def test_can_log_decoded_by_cantools_agrees_with_signals_csv(default_run) -> Non
 def test_same_seed_gives_identical_files_and_separate_process_matches(
     default_run, tmp_path: Path
 ) -> None:
-    again = run_inprocess(load_scenario(), tmp_path / "again")
-    separate = run_scenario(load_scenario(), RunOptions(out=tmp_path / "separate", progress=False))
+    path = default_run.out.parent / "ideal-camera.toml"  # the scenario default_run ran
+    again = run_inprocess(load_scenario(path), tmp_path / "again")
+    separate = run_scenario(
+        load_scenario(path), RunOptions(out=tmp_path / "separate", progress=False)
+    )
     assert separate.summary["controller_process"] == "process"
     assert separate.summary["bus"].startswith("loopback:127.0.0.1:")
     for name in ("can.log", "signals.csv"):
@@ -279,7 +282,7 @@ def test_same_seed_gives_identical_files_and_separate_process_matches(
 
 
 def test_camera_noise_is_seeded(tmp_path: Path) -> None:
-    path = shortened(tmp_path, 1.0, ("noise = 0.0", "noise = 0.0005"))
+    path = shortened(tmp_path, 1.0)  # the default camera: 0.5 mm noise
     a = run_inprocess(load_scenario(path, seed=3), tmp_path / "a")
     b = run_inprocess(load_scenario(path, seed=3), tmp_path / "b")
     c = run_inprocess(load_scenario(path, seed=4), tmp_path / "c")

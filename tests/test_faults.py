@@ -497,7 +497,7 @@ def test_fmu_error_mid_run(tmp_path: Path, capsys) -> None:
     path = scenario_file(tmp_path, 2.0)
     path.write_text(
         path.read_text() + '\n[[connections]]\nfrom = "cylinder1.x"\nto = "segment1.x_piston"\n'
-        "gain = 3.0\noffset = -0.05\n"
+        "gain = 5.0\noffset = -0.1\n"
     )
     out = tmp_path / "run"
     code, lines = run_cli(capsys, str(path), "--inprocess", "--out", str(out))
