@@ -35,6 +35,10 @@ def test_fmu_check_passes_for_both_models() -> None:
         result = run_hil("fmu", "check", name)
         assert result.returncode == 0, result.stderr
         assert f"{name}: fmpy validation passed" in result.stdout
+    # every output with its unit, as the modelDescription declares it
+    lines = result.stdout.splitlines()
+    assert any(line.startswith("  p_a = ") and line.endswith(" Pa") for line in lines)
+    assert any(line.startswith("  kappa = ") and line.endswith(" 1/m") for line in lines)
 
 
 def test_fmu_check_unknown_model_is_one_line_error() -> None:

@@ -54,3 +54,20 @@ def test_golden_log_is_the_plants_view_of_the_bus() -> None:
     assert all(
         line.endswith(" T") == (line.split()[2][:3] not in {"080", "201", "381"}) for line in lines
     )
+
+
+@pytest.mark.parametrize("suffix", [".log", ".asc", ".blf"])
+def test_the_shipped_controller_replays_the_golden_logs(tmp_path: Path, suffix: str) -> None:
+    """CAN log replay as a regression test: today's controller, configured from the shipped
+    default scenario, must send exactly the recorded commands and states to the recorded plant
+    frames. A change of the controller (gains, estimator, PI law) fails here, naming the first
+    diverging cycle: regenerate the goldens on purpose if the change is intended."""
+    from hil.replay import replay as replay_controller
+    from hil.robots import robot_kind
+
+    scenario = load_scenario(write_scenario(tmp_path))
+    config = robot_kind(scenario.robot.kind).controller_config(scenario)
+    result = replay_controller(DEFAULT_LOG.with_suffix(suffix), config)
+    assert result.ok, f"{len(result.divergences)} divergences; first: {result.divergences[0]}"
+    assert result.cycles == round(DURATION / 0.01) + 1
+    assert result.frames_compared == 2 * round(DURATION / 0.01)

@@ -189,9 +189,19 @@ def _check(args: argparse.Namespace) -> int:
         f"{description.modelName}: simulated {args.stop_time:g} s in fmpy{moved}, "
         f"{len(result)} samples, outputs finite"
     )
+    units = {v.name: _unit_of(v) for v in description.modelVariables}
     for name in outputs:
-        print(f"  {name} = {float(result[name][-1]):.6g}")
+        unit = units.get(name, "")
+        print(f"  {name} = {float(result[name][-1]):.6g}{' ' + unit if unit else ''}")
     return 0
+
+
+def _unit_of(variable: object) -> str:
+    """A variable's unit as its modelDescription declares it ('' for dimensionless)."""
+    unit = getattr(variable, "unit", None) or getattr(
+        getattr(variable, "declaredType", None), "unit", None
+    )
+    return "" if unit in (None, "1") else str(unit)
 
 
 def _input_steps(description, stop_time: float):  # noqa: ANN001, ANN202 - fmpy types

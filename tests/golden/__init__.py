@@ -31,6 +31,8 @@ from hil.scenario import DEFAULT_SCENARIO, Scenario, load_scenario, log_start
 
 GOLDEN_DIR = Path(__file__).resolve().parent
 DEFAULT_LOG = GOLDEN_DIR / "default.log"
+# the same run in the other formats CAN tools exchange, for the controller replay tests
+FORMATS = (".log", ".asc", ".blf")
 DURATION = 2.0  # [s] of the default scenario: the first step and most of its hold
 
 
@@ -49,11 +51,19 @@ def write_scenario(folder: Path) -> Path:
     return path
 
 
-def run_default(folder: Path) -> Path:
+def run_default(folder: Path, can_log: str = "can.log") -> Path:
     """Run the shortened default scenario in-process into folder/run; its CAN log."""
     scenario = load_scenario(write_scenario(folder))
-    result = run_scenario(scenario, RunOptions(out=folder / "run", inprocess=True, progress=False))
-    return result.out / scenario.recording.can_log
+    result = run_scenario(
+        scenario,
+        RunOptions(
+            out=folder / f"run{Path(can_log).suffix}",
+            inprocess=True,
+            progress=False,
+            can_log=can_log,
+        ),
+    )
+    return result.out / can_log
 
 
 def received_frames(log: Path) -> list[can.Message]:
@@ -89,7 +99,9 @@ def replay(log: Path, scenario: Scenario, folder: Path) -> Path:
 
 
 def regenerate() -> Path:
-    """Rewrite default.log from a fresh in-process run."""
+    """Rewrite default.log, default.asc and default.blf from fresh in-process runs."""
     with tempfile.TemporaryDirectory() as tmp:
-        DEFAULT_LOG.write_bytes(run_default(Path(tmp)).read_bytes())
+        for suffix in FORMATS:
+            log = run_default(Path(tmp), f"can{suffix}")
+            DEFAULT_LOG.with_suffix(suffix).write_bytes(log.read_bytes())
     return DEFAULT_LOG
