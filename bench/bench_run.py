@@ -11,10 +11,11 @@ cylinder.p_a/p_b, a constant x_ref input), the same simulated time is stepped by
   fmpy          fmpy alone: the same FMI calls from a Python loop, no master
 reported as microseconds per FMU macro step, the ratio to the pure-C loop, and per layer the
 fitted cost slope in microseconds per segment per SYNC. The issue 8 target: the kernel within 1.5x
-of the pure-C loop. Then the closed loop on the default scenario (1 segment), as before:
-  hil run --inprocess             master + plant node + controller thread, virtual bus
+of the pure-C loop. Then the closed loop on the default task for 1, 2, 4 and 6 segments:
+  hil run --inprocess             plant and controller in one thread, direct bus
   hil run (separate process)      controller as a separate process over the loopback hub
-each with the kernel and with SOFTHIL_KERNEL=0.
+with the kernel (and, for 1 segment, with SOFTHIL_KERNEL=0), as real-time factors and ratios
+to the pure-C loop of the same segments.
 
 Run from the checkout: PYTHONPATH=. python bench/bench_run.py [--repeat 3] [--seconds 2]
 [--no-closed-loop] [--json out.json]
@@ -242,26 +243,31 @@ def main() -> int:
         )
     closed: dict[str, dict[str, float]] = {}
     if not args.no_closed_loop:
-        base = rows["1"]["pure C"]["wall_time"] / ticks  # per macro step, 1 segment
-        closed_ticks = round(scenario.duration / h)
-        print(f"closed loop, default scenario: {scenario.duration:g} s, 1 segment")
-        print(f"{'layer':44s} {'wall [s]':>9s} {'RTF':>7s} {'us/FMU step':>12s} {'x pure C':>9s}")
-        for inprocess in (True, False):
-            for kernel in (True, False):
-                name = "hil run --inprocess" if inprocess else "hil run (separate process)"
-                name += "" if kernel else " SOFTHIL_KERNEL=0"
-                wall = median(args.repeat, lambda i=inprocess, k=kernel: full_run(scenario, i, k))
-                ratio = wall / (base * closed_ticks)
-                closed[name] = {
-                    "wall_time": wall,
-                    "real_time_factor": scenario.duration / wall,
-                    "us_per_fmu_step": wall / (closed_ticks * 2) * 1e6,
-                    "ratio_to_pure_c": ratio,
-                }
-                print(
-                    f"{name:44s} {wall:9.3f} {scenario.duration / wall:7.1f} "
-                    f"{wall / (closed_ticks * 2) * 1e6:12.1f} {ratio:9.2f}"
-                )
+        duration = round(args.seconds / scenario.timing.control_period) * (
+            scenario.timing.control_period
+        )
+        print(f"closed loop, default task: {duration:g} s simulated; real-time factor (RTF)")
+        print(f"{'layer':44s} {'segments':>8s} {'wall [s]':>9s} {'RTF':>7s} {'x pure C':>9s}")
+        for n in SEGMENTS:
+            robot = replace(scenario.robot, segments=n)
+            task = replace(scenario.task, sine=replace(scenario.task.sine, start=duration))
+            arm = replace(scenario, robot=robot, duration=duration, task=task)
+            base = rows[str(n)]["pure C"]["wall_time"] / ticks  # per macro step, n segments
+            for inprocess in (True, False):
+                for kernel in (True, False) if n == 1 else (True,):
+                    name = "hil run --inprocess" if inprocess else "hil run (separate process)"
+                    name += "" if kernel else " SOFTHIL_KERNEL=0"
+                    wall = median(
+                        args.repeat, lambda i=inprocess, k=kernel, a=arm: full_run(a, i, k)
+                    )
+                    ratio = wall / (base * round(duration / h))
+                    closed[f"{name} / {n}"] = {
+                        "segments": n,
+                        "wall_time": wall,
+                        "real_time_factor": duration / wall,
+                        "ratio_to_pure_c": ratio,
+                    }
+                    print(f"{name:44s} {n:8d} {wall:9.3f} {duration / wall:7.1f} {ratio:9.2f}")
     if args.json:
         report = {"ticks": ticks, "segments": rows, "slopes": slopes, "closed_loop": closed}
         args.json.write_text(json.dumps(report, indent=2) + "\n")

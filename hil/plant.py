@@ -59,7 +59,8 @@ class PlantStats:
     emcy_sent: int = 0
     intrusions: int = 0  # frames that another node sent in a legitimate sender's name
     first_intrusion: str = ""
-    wall_time: float = 0.0
+    wall_time: float = 0.0  # from the first SYNC to the last: the loop itself
+    startup_time: float = 0.0  # from serving to the controller's first SYNC (its start-up)
 
 
 class Plant:
@@ -131,6 +132,10 @@ class Plant:
                         )
                     continue
                 last_heard = time.monotonic()
+                if self.cycle < 0 and not self.stats.startup_time:
+                    first = time.perf_counter()
+                    self.stats.startup_time = first - started
+                    started = first
                 self._handle(message, progress)
         finally:
             self.stats.wall_time = time.perf_counter() - started

@@ -164,7 +164,8 @@ def summarise(
         "duration": scenario.duration,
         **metrics,
         "real_time_factor": scenario.duration / stats.wall_time if stats.wall_time > 0 else None,
-        "wall_time": stats.wall_time,
+        "wall_time": stats.wall_time,  # the SYNC loop; the controller's start-up is apart
+        "startup_time": stats.startup_time,
         "bus_load": load,
         "bus_load_measured": can_log.bits / scenario.bus.bitrate / duration if duration else None,
         "bitrate": scenario.bus.bitrate,
