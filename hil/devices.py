@@ -35,6 +35,7 @@ from controllers.protocol import (
     Frame,
     Heartbeat,
 )
+from hil.master import Participant
 from hil.vision import Camera, Picture
 
 # send phases: the documented order of a SYNC's answer
@@ -60,17 +61,9 @@ class SyncContext:
         return self.cycle % COUNTER_MODULO
 
 
-class DeviceNode(Protocol):
+class DeviceNode(Participant, Protocol):
     """A bus node of the rig that is also a master participant."""
 
-    name: str
-    decimation: int
-
-    def input_names(self) -> list[str]: ...
-    def output_names(self) -> list[str]: ...
-    def set_inputs(self, values: Mapping[str, float]) -> None: ...
-    def step(self, time: float, step: float) -> None: ...
-    def get_outputs(self) -> dict[str, float]: ...
     def accepts(self, frame: Frame) -> bool: ...
     def receive(self, frame: Frame) -> None: ...
     def act(self, sync: SyncContext, inputs: Mapping[str, float]) -> list[tuple[int, Frame]]: ...
