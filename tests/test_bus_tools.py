@@ -725,3 +725,74 @@ def test_dump_ends_on_ctrl_c_with_the_count_line(
     captured = capsys.readouterr()
     assert len(captured.out.splitlines()) == 2
     assert captured.err.strip() == "2 frames, 1 decoded, 1 unknown (0x555 x1)"
+
+
+def test_dump_attached_to_a_run_on_an_external_hub_sees_every_frame(tmp_path: Path) -> None:
+    """`hil bus dump` on the hub a run uses decodes every frame of that run, and the run's
+    results are the same bytes as without it."""
+    import os
+    import select
+    import signal
+    import subprocess
+    import sys
+    import threading
+    import time
+
+    from controllers.canbus import BusSpec, open_bus
+    from hil.bus.loopback import LoopbackHub
+    from hil.run import RunOptions, run_scenario
+    from hil.scenario import DEFAULT_SCENARIO, load_scenario
+
+    text = DEFAULT_SCENARIO.read_text().replace("duration = 10.0", "duration = 0.5")
+    scenario_path = tmp_path / "short.toml"
+    scenario_path.write_text(text.replace("sine = { start = 7.0", "sine = { start = 0.5"))
+    scenario = load_scenario(scenario_path)
+    reference = run_scenario(scenario, RunOptions(out=tmp_path / "alone", progress=False))
+    hub = LoopbackHub("127.0.0.1").start()
+    try:
+        dump = subprocess.Popen(
+            [sys.executable, "-m", "hil", "bus", "dump", "--bus", f"loopback:{hub.port}", "--raw"],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            env={**os.environ, "PYTHONUNBUFFERED": "1"},
+        )
+        probe = open_bus(BusSpec.parse(f"loopback:{hub.port}"))
+        listening = threading.Event()
+
+        def knock() -> None:  # until the dump shows a probe frame, it may not be listening yet
+            while not listening.wait(0.1):
+                probe.send(can.Message(arbitration_id=0x7FF, data=b"\x01", is_extended_id=False))
+
+        knocker = threading.Thread(target=knock, daemon=True)
+        knocker.start()
+        try:
+            assert dump.stdout is not None
+            deadline = time.monotonic() + 60
+            while time.monotonic() < deadline:
+                ready, _, _ = select.select([dump.stdout], [], [], 1.0)
+                if ready and "7FF#01" in dump.stdout.readline():
+                    break
+            else:
+                raise AssertionError("hil bus dump never showed the probe frame")
+        finally:
+            listening.set()
+            knocker.join()
+            probe.shutdown()
+        watched = run_scenario(
+            scenario,
+            RunOptions(
+                out=tmp_path / "watched", bus=f"loopback:127.0.0.1:{hub.port}", progress=False
+            ),
+        )
+        dump.send_signal(signal.SIGINT)
+        out, _ = dump.communicate(timeout=30)
+    finally:
+        hub.stop()
+    for name in ("can.log", "signals.csv"):
+        assert (watched.out / name).read_bytes() == (reference.out / name).read_bytes(), name
+    seen = [line for line in out.splitlines() if "#" in line and "7FF#" not in line]
+    logged = (watched.out / "can.log").read_text().splitlines()
+    assert len(seen) == len(logged)
+    key = lambda line: line.split()[2]  # noqa: E731 - ID#DATA
+    assert sorted(map(key, seen)) == sorted(map(key, logged))

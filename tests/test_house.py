@@ -335,3 +335,35 @@ def test_camera_pictures_complete_by_their_header_whatever_the_order() -> None:
     assert [timing.frames_due(c) for c in range(4)] == [0, 1, 2, 3]
     slow = CameraTiming(period_ticks=20, latency_ticks=6, control_ticks=10, markers=3)
     assert [slow.frames_due(c) for c in range(5)] == [0, 1, 1, 2, 2]
+
+
+def test_each_segment_takes_its_own_cylinders_geometry(tmp_path: Path) -> None:
+    text = (
+        'name = "geometry"\nseed = 1\nduration = 0.1\n[robot]\nsegments = 2\n'
+        "[robot.cylinder.2]\nbore = 0.02\nstroke = 0.04\nx_start = 0.015\n"
+    )
+    rig = build_rig(load_scenario(write(tmp_path, text)))
+    try:
+        fmus = {p.name: p for p in rig.participants}
+        for n, (bore, stroke, x_seal) in ((1, (0.0254, 0.05, 0.025)), (2, (0.02, 0.04, 0.015))):
+            segment = fmus[f"segment{n}"].slave  # type: ignore[attr-defined]
+            got = tuple(segment.get(name) for name in ("bore", "stroke", "x_seal"))
+            assert got == pytest.approx((bore, stroke, x_seal)), n
+            assert rig.parameters[f"segment{n}"]["x_seal"] == pytest.approx(x_seal)
+    finally:
+        rig.close()
+
+
+def test_log_start_reads_offsets_and_naive_instants_as_utc(tmp_path: Path) -> None:
+    from dataclasses import replace
+
+    from hil.scenario import log_start
+
+    scenario = load_scenario()
+
+    def at(text: str) -> float:
+        return log_start(replace(scenario, recording=replace(scenario.recording, start=text)))
+
+    assert at("2015-06-01T00:00:00Z") == START
+    assert at("2015-06-01T02:00:00+02:00") == START
+    assert at("2015-06-01T00:00:00") == START

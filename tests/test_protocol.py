@@ -481,6 +481,8 @@ def test_compiled_codec_equals_cantools_byte_for_byte(protocol: Protocol) -> Non
             want = message.decode(data, decode_choices=False)
             have = codec.decode(data)
             assert have == want and all(type(have[k]) is type(want[k]) for k in want)
+
+
 # Golden bytes: one frame of every kind in the DBC, encoded by hand from the DBC's layout
 # (little-endian, raw = value / scale, two's complement for signed signals). The values are
 # distinct in every byte, so a moved, resized, swapped or rescaled signal changes the bytes.
@@ -553,3 +555,19 @@ def test_golden_bytes_of_every_message_kind(
     assert set(got) == set(expected)
     for name, value in expected.items():
         assert close(got[name], value, declared.get_signal_by_name(name).scale), name
+
+
+def test_exact_multiples_of_a_scale_encode_to_their_integer(protocol: Protocol) -> None:
+    """k * scale encodes to raw k exactly (cantools' exact-quotient path), for scales that are
+    not binary fractions: rounding after a float division would be off by one for some k."""
+    message = protocol.message_by_name("DriveCommand1")
+    codec = protocol._by_name["DriveCommand1"].codec
+    assert codec is not None
+    scale = message.get_signal_by_name("piston_setpoint").scale
+    for k in range(0, 50_001, 7):
+        value = k * scale
+        data = codec.encode({"piston_setpoint": value, "enable": 1, "counter": 0})
+        assert int.from_bytes(data[:2], "little") == k, k
+        assert data == message.encode(
+            {"piston_setpoint": value, "enable": 1, "counter": 0}, strict=True
+        )

@@ -144,3 +144,27 @@ def test_bad_logs_get_one_line(recorded: Path, tmp_path: Path) -> None:
         assert reason in str(error.value), (name, str(error.value))
         assert "\n" not in str(error.value)
         assert str(error.value).startswith(str(path)) or "different scenario" in str(error.value)
+
+
+def test_compare_checks_every_signal_of_every_frame() -> None:
+    """A difference in a frame's last signal only is found and named."""
+    from controllers.protocol import ControllerState, DriveCommand, Protocol
+    from hil.replay import Cycle, compare
+
+    protocol = Protocol()
+    recorded = [
+        protocol.encode(DriveCommand(1, 0.03, True, 5)),
+        protocol.encode(ControllerState(1, 4.0, 3.5, 5)),
+    ]
+    sent = [
+        protocol.encode(DriveCommand(1, 0.03, True, 5)),
+        protocol.encode(ControllerState(1, 4.0, 3.25, 5)),  # kappa_est differs, nothing else
+    ]
+    cycle = Cycle(5, 0.05, (), tuple(recorded))
+    result = compare([cycle], [sent], protocol)
+    assert [(d.message, d.signal) for d in result.divergences] == [
+        ("ControllerState1", "kappa_est")
+    ]
+    assert result.divergences[0].expected == pytest.approx(3.5)
+    assert result.divergences[0].actual == pytest.approx(3.25)
+    assert compare([cycle], [recorded], protocol).ok
