@@ -319,12 +319,7 @@ class Master:
             inputs = [self.inputs_of(p.name) for p in due]
             self._kernel_advance(k, k + 1)
             self.tick = k
-            for p, values in zip(due, inputs, strict=True):
-                if values:
-                    p.set_inputs(values)
-                p.step(k * self.step, p.decimation * self.step)
-            for p in due:
-                self._publish(p)
+            self._step_participants(k, due, inputs)
             self.tick = k + 1
 
     def _kernel_advance(self, k_begin: int, k_end: int) -> None:
@@ -338,6 +333,18 @@ class Master:
             self.values.update(zip(self._fast_keys, fresh, strict=True))
             self.tick = kernel.ticks_done
 
+    def _step_participants(
+        self, k: int, due: list[Participant], inputs: list[dict[str, float]]
+    ) -> None:
+        """Tick k of the participants due (Jacobi: `inputs` were read at the tick's start),
+        then their outputs published."""
+        for p, values in zip(due, inputs, strict=True):
+            if values:
+                p.set_inputs(values)
+            p.step(k * self.step, p.decimation * self.step)
+        for p in due:
+            self._publish(p)
+
     def _step_once(self) -> None:
         if self._kernel_synced:  # the kernel stepped last: hand its state back to Python
             self._kernel.store_last_inputs([p._last_inputs for p in self._fast])  # type: ignore[union-attr]
@@ -345,12 +352,7 @@ class Master:
         k = self.tick
         due = [p for p in self.participants.values() if k % p.decimation == 0]
         inputs = [self.inputs_of(p.name) for p in due]
-        for p, values in zip(due, inputs, strict=True):
-            if values:
-                p.set_inputs(values)
-            p.step(k * self.step, p.decimation * self.step)
-        for p in due:
-            self._publish(p)
+        self._step_participants(k, due, inputs)
         self.tick = k + 1
         for observer in self.observers:
             observer.observe(self.tick, self._view)
