@@ -7,6 +7,12 @@ and curvature k, starting at pose (x0, y0, th0), ends at
     th = th0 + k L,
 computed in the equivalent chord form (see `segment_end`), with the series limit of sin(u)/u for
 |k| < 1e-6. Markers sit on the base and on each segment's end.
+
+Along the arm, the pose at arc length s is that of a partial segment (the same chord form with
+the partial length), and the task-space Jacobians are closed forms: bending segment i by d kappa
+turns everything distal to it by L_i d kappa about the end of segment i, and moves that end by the
+derivative of its own chord. Both are exact to rounding for every curvature, including zero
+(series of sinc and its derivative below a small bend angle).
 """
 
 from __future__ import annotations
@@ -17,6 +23,11 @@ from collections.abc import Sequence
 import numpy as np
 
 SMALL_CURVATURE = 1e-6
+# below this half bend angle [rad] d sinc/dh takes its series: (h cos h - sin h) / h^2 loses
+# 3 eps / h^2 of relative accuracy to cancellation, the three-term series errs by h^7 / 45360
+SMALL_HALF_ANGLE = 1e-2
+# an arc length this fraction of the arm's length beyond an end or a joint is rounding
+ARC_TOLERANCE = 1e-12
 
 
 def segment_end(
@@ -79,3 +90,117 @@ def curvatures_from_markers(
         kappas[i] = 2.0 * half / length
         heading += kappas[i] * length
     return kappas
+
+
+def _segment_at(lengths: Sequence[float], s: float) -> tuple[int, float]:
+    """Index of the segment holding arc length `s` and the length of it up to `s` [m].
+
+    A point on a joint belongs to the proximal segment (its whole length), so s = 0 is the
+    zero-length start of segment 0 and s = sum(lengths) the whole last segment. Rounding-sized
+    excursions (ARC_TOLERANCE of the arm's length) snap to the nearest end or joint, so that an
+    s summed in another order still lands on the joint."""
+    total = math.fsum(lengths)
+    tolerance = ARC_TOLERANCE * total
+    if not -tolerance <= s <= total + tolerance:
+        raise ValueError(f"arc length s = {s!r} m is outside the arm [0, {total!r}]")
+    start = 0.0
+    for i, length in enumerate(lengths):
+        length = float(length)
+        if s <= start + length + tolerance or i == len(lengths) - 1:
+            partial = s - start
+            if abs(partial - length) <= tolerance or partial > length:
+                return i, length
+            return i, max(partial, 0.0)
+        start += length
+    raise ValueError(f"arc length s = {s!r} m: the arm has no segments")
+
+
+def pose_at(
+    kappas: Sequence[float], lengths: Sequence[float], base: tuple[float, float, float], s: float
+) -> tuple[float, float, float]:
+    """Pose (x [m], y [m], heading [rad]) of the backbone at arc length `s` [m] from the base.
+
+    Raises ValueError naming `s` when it lies outside [0, sum(lengths)]. At s = the end of
+    segment i it equals ``forward(...)[i + 1]`` exactly."""
+    if len(kappas) != len(lengths):
+        raise ValueError(f"{len(kappas)} curvatures for {len(lengths)} segment lengths")
+    index, partial = _segment_at(lengths, s)
+    start = forward(kappas[:index], lengths[:index], base)[-1]
+    if partial == lengths[index]:
+        # the whole segment: the same arithmetic as forward(), so joints match bit for bit
+        return segment_end(tuple(start), float(kappas[index]), float(lengths[index]))
+    return segment_end(tuple(start), float(kappas[index]), partial)
+
+
+def backbone(
+    kappas: Sequence[float],
+    lengths: Sequence[float],
+    base: tuple[float, float, float],
+    per_segment: int = 8,
+) -> np.ndarray:
+    """Poses sampled along the arm, shape (N per_segment + 1, 3): x [m], y [m], heading [rad].
+
+    Row 0 is the base, row i per_segment the end of segment i (equal to ``forward``); each
+    segment is sampled at equal arc-length steps L_i / per_segment."""
+    if per_segment < 1:
+        raise ValueError(f"per_segment = {per_segment} must be at least 1")
+    joints = forward(kappas, lengths, base)
+    rows = [joints[0]]
+    for i, (kappa, length) in enumerate(zip(kappas, lengths, strict=True)):
+        start = tuple(joints[i])
+        for j in range(1, per_segment):
+            rows.append(segment_end(start, float(kappa), float(length) * j / per_segment))
+        rows.append(joints[i + 1])
+    return np.array(rows, dtype=float)
+
+
+def _chord_derivative(heading: float, kappa: float, length: float) -> tuple[float, float]:
+    """d/d kappa of the chord (end minus start) of an arc of `length` starting at `heading`
+    [m^2]: with h = kappa L / 2 the chord is L sinc(h) e(heading + h), so its derivative is
+    (L^2 / 2) (sinc'(h) e + sinc(h) e_perp), e_perp the left normal."""
+    half = 0.5 * kappa * length
+    if abs(half) < SMALL_HALF_ANGLE:
+        h2 = half * half
+        sinc = 1.0 - h2 / 6.0 * (1.0 - h2 / 20.0)
+        dsinc = -half / 3.0 * (1.0 - h2 / 10.0 * (1.0 - h2 / 28.0))
+    else:
+        sinc = math.sin(half) / half
+        dsinc = (half * math.cos(half) - math.sin(half)) / (half * half)
+    direction = heading + half
+    c, s = math.cos(direction), math.sin(direction)
+    scale = 0.5 * length * length
+    return scale * (dsinc * c - sinc * s), scale * (dsinc * s + sinc * c)
+
+
+def point_jacobian(
+    kappas: Sequence[float], lengths: Sequence[float], base: tuple[float, float, float], s: float
+) -> np.ndarray:
+    """Jacobian of the pose at arc length `s` with respect to the curvatures, shape (3, N).
+
+    Rows d x, d y [m per 1/m] and d heading [rad per 1/m]. Column i (segment i before the
+    point's segment j): d heading = L_i, d position = the derivative of segment i's chord plus
+    L_i times the left normal of (point - end of segment i); column j: the same with the partial
+    length; distal columns are zero."""
+    if len(kappas) != len(lengths):
+        raise ValueError(f"{len(kappas)} curvatures for {len(lengths)} segment lengths")
+    index, partial = _segment_at(lengths, s)
+    joints = forward(kappas[: index + 1], lengths[: index + 1], base)
+    point = pose_at(kappas, lengths, base, s)
+    jacobian = np.zeros((3, len(kappas)))
+    for i in range(index + 1):
+        length = float(lengths[i]) if i < index else partial
+        end = joints[i + 1] if i < index else point
+        dx, dy = _chord_derivative(float(joints[i][2]), float(kappas[i]), length)
+        # the distal chain turns by L_i d kappa about this segment's end
+        jacobian[0, i] = dx - length * (point[1] - end[1])
+        jacobian[1, i] = dy + length * (point[0] - end[0])
+        jacobian[2, i] = length
+    return jacobian
+
+
+def tip_jacobian(
+    kappas: Sequence[float], lengths: Sequence[float], base: tuple[float, float, float]
+) -> np.ndarray:
+    """Jacobian of the tip pose (x, y, heading) with respect to the curvatures, shape (3, N):
+    rows in m per 1/m (position) and rad per 1/m (heading); see `point_jacobian`."""
+    return point_jacobian(kappas, lengths, base, math.fsum(lengths))
