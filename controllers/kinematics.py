@@ -172,20 +172,16 @@ def _chord_derivative(heading: float, kappa: float, length: float) -> tuple[floa
     return scale * (dsinc * c - sinc * s), scale * (dsinc * s + sinc * c)
 
 
-def point_jacobian(
-    kappas: Sequence[float], lengths: Sequence[float], base: tuple[float, float, float], s: float
+def _columns(
+    kappas: Sequence[float],
+    lengths: Sequence[float],
+    joints: np.ndarray,
+    point: Sequence[float],
+    index: int,
+    partial: float,
 ) -> np.ndarray:
-    """Jacobian of the pose at arc length `s` with respect to the curvatures, shape (3, N).
-
-    Rows d x, d y [m per 1/m] and d heading [rad per 1/m]. Column i (segment i before the
-    point's segment j): d heading = L_i, d position = the derivative of segment i's chord plus
-    L_i times the left normal of (point - end of segment i); column j: the same with the partial
-    length; distal columns are zero."""
-    if len(kappas) != len(lengths):
-        raise ValueError(f"{len(kappas)} curvatures for {len(lengths)} segment lengths")
-    index, partial = _segment_at(lengths, s)
-    joints = forward(kappas[: index + 1], lengths[: index + 1], base)
-    point = pose_at(kappas, lengths, base, s)
+    """Jacobian columns of `point`, on segment `index` at `partial` length, given the joint
+    poses up to that segment's start (see `point_jacobian`)."""
     jacobian = np.zeros((3, len(kappas)))
     for i in range(index + 1):
         length = float(lengths[i]) if i < index else partial
@@ -198,9 +194,101 @@ def point_jacobian(
     return jacobian
 
 
+def point_jacobian(
+    kappas: Sequence[float], lengths: Sequence[float], base: tuple[float, float, float], s: float
+) -> np.ndarray:
+    """Jacobian of the pose at arc length `s` with respect to the curvatures, shape (3, N).
+
+    Rows d x, d y [m per 1/m] and d heading [rad per 1/m]. Column i (segment i before the
+    point's segment j): d heading = L_i, d position = the derivative of segment i's chord plus
+    L_i times the left normal of (point - end of segment i); column j: the same with the partial
+    length; distal columns are zero."""
+    if len(kappas) != len(lengths):
+        raise ValueError(f"{len(kappas)} curvatures for {len(lengths)} segment lengths")
+    index, partial = _segment_at(lengths, s)
+    joints = forward(kappas[:index], lengths[:index], base)
+    point = segment_end(tuple(joints[-1]), float(kappas[index]), partial)
+    return _columns(kappas, lengths, joints, point, index, partial)
+
+
 def tip_jacobian(
     kappas: Sequence[float], lengths: Sequence[float], base: tuple[float, float, float]
 ) -> np.ndarray:
     """Jacobian of the tip pose (x, y, heading) with respect to the curvatures, shape (3, N):
     rows in m per 1/m (position) and rad per 1/m (heading); see `point_jacobian`."""
-    return point_jacobian(kappas, lengths, base, math.fsum(lengths))
+    return tip_derivatives(kappas, lengths, base)[1]
+
+
+# coefficients i^n / (n + 1)! of the power series of g(a) = (exp(i a) - 1) / (i a)
+_SERIES = tuple(1j**n / math.factorial(n + 1) for n in range(18))
+SERIES_ANGLE = 0.5  # [rad] below it g'' takes its series (the closed form loses eps / a^2)
+
+
+def _arc_curvature(angle: float) -> complex:
+    """g''(a) for g(a) = (exp(i a) - 1) / (i a), the chord of a unit-length arc of bend angle a
+    as a complex number relative to its start heading.
+
+    From i a g = exp(i a) - 1: g' = (exp(i a) - g) / a and g'' = (i exp(i a) - 2 g') / a, which
+    cancel at small angles, where the power series g = sum (i a)^n / (n + 1)! is used instead
+    (below 0.5 rad its 18 terms are exact to rounding)."""
+    if abs(angle) < SERIES_ANGLE:
+        d2g, power = 0j, 1.0  # power = angle^(n - 2)
+        for n in range(2, len(_SERIES)):
+            d2g += n * (n - 1) * _SERIES[n] * power
+            power *= angle
+        return d2g
+    turn = complex(math.cos(angle), math.sin(angle))
+    g = (turn - 1.0) / (1j * angle)
+    dg = (turn - g) / angle
+    return (1j * turn - 2.0 * dg) / angle
+
+
+def tip_derivatives(
+    kappas: Sequence[float], lengths: Sequence[float], base: tuple[float, float, float]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Tip pose, its Jacobian and its position Hessian with respect to the curvatures, from one
+    pass along the arm.
+
+    Returns
+    -------
+    tip, jacobian, hessian
+        Tip pose (x [m], y [m], heading [rad]); Jacobian, shape (3, N), as `tip_jacobian`;
+        Hessian of the tip position, shape (2, N, N) [m per (1/m)^2] (the heading is linear in
+        the curvatures).
+
+    Notes
+    -----
+    In bend angles theta_i = kappa_i L_i, with the tip p as a complex number and J_k its column
+    k: d2p / d theta_j d theta_k = i J_k for j < k (bending j turns the distal bend's effect by
+    90 degrees), and L_j g''(theta_j) exp(i phi_j) - (p - p_{j+1}) on the diagonal (phi_j the
+    start heading of segment j, g as in `_arc_curvature`); in curvatures, times L_j L_k.
+    """
+    if len(kappas) != len(lengths):
+        raise ValueError(f"{len(kappas)} curvatures for {len(lengths)} segment lengths")
+    n = len(lengths)
+    joints = forward(kappas, lengths, base)
+    tip = joints[-1]
+    if n == 0:
+        return tip, np.zeros((3, 0)), np.zeros((2, 0, 0))
+    jacobian = _columns(kappas, lengths, joints, tip, n - 1, float(lengths[-1]))
+    lengths_ = np.asarray(lengths, dtype=float)
+    # columns of the bend-angle Jacobian as complex numbers
+    columns = (jacobian[0] + 1j * jacobian[1]) / lengths_
+    point = complex(tip[0], tip[1])
+    hessian = np.empty((n, n), dtype=complex)
+    for j in range(n):
+        start = complex(math.cos(joints[j][2]), math.sin(joints[j][2]))
+        end = complex(joints[j + 1][0], joints[j + 1][1])
+        curvature = _arc_curvature(float(kappas[j]) * float(lengths[j]))
+        hessian[j, j] = lengths_[j] * curvature * start - (point - end)
+        hessian[j, j + 1 :] = hessian[j + 1 :, j] = 1j * columns[j + 1 :]
+    hessian *= np.outer(lengths_, lengths_)
+    return tip, jacobian, np.stack((hessian.real, hessian.imag))
+
+
+def tip_hessian(
+    kappas: Sequence[float], lengths: Sequence[float], base: tuple[float, float, float]
+) -> np.ndarray:
+    """Second derivatives of the tip position with respect to the curvatures, shape (2, N, N)
+    [m per (1/m)^2]; see `tip_derivatives`."""
+    return tip_derivatives(kappas, lengths, base)[2]
