@@ -9,12 +9,20 @@ and the bending equation (inertia negligible against damping, I/d ~ 6 ms) a pole
     kappa / x_piston = K / (tau s + 1),  K = S G_a A / (L (k + S G_a^2)),
     tau = d / (k + S G_a^2),  S = sum over both sides of p_atm / (V_seal,i + p_atm C_a).
 The PI zero cancels the lag (Ki = Kp / tau) and Kp sets the crossover: Kp = wc tau / K.
+
+Beyond the linearisation, `SegmentModel.equilibrium_curvature` solves the segment's nonlinear
+static balance (isothermal gas in both sealed circuits, the vacuum collapse of the expanded side,
+the channel compliance, the mechanical limit) exactly as the FeaSegment FMU's steady state, and
+`reachable_curvature` evaluates it at the ends of the stroke: the curvature bounds of the arm's
+task-space IK. Sign: the piston towards `stroke` compresses side a and bends positively.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+
+from scipy.optimize import brentq
 
 
 @dataclass(frozen=True)
@@ -32,10 +40,85 @@ class SegmentModel:
     stroke: float = 0.05
     x_seal: float = 0.025
     p_atm: float = 101325.0
+    vacuum_factor: float = 0.5
+    p_collapse: float = 1e4
+    theta_max: float = 1.6
 
     @property
     def bore_area(self) -> float:
         return math.pi * self.bore**2 / 4.0
+
+    def bend_sensitivity(self, gauge: float) -> float:
+        """dV/dtheta of a channel at gauge pressure `gauge` [Pa]: G_a under pressure, collapsing
+        towards vacuum_factor G_a under vacuum [m^3/rad]."""
+        if gauge >= 0.0:
+            return self.G_a
+        beta = self.vacuum_factor
+        return self.G_a * (beta + (1.0 - beta) * math.exp(gauge / self.p_collapse))
+
+    def channel_torque(self, gauge: float) -> float:
+        """H(g), the integral of the bend sensitivity from 0 to `gauge` [Pa]: a channel's
+        torque [N m]."""
+        if gauge >= 0.0:
+            return self.G_a * gauge
+        beta, pc = self.vacuum_factor, self.p_collapse
+        return self.G_a * (beta * gauge + (1.0 - beta) * pc * math.expm1(gauge / pc))
+
+    def _rigid_volume(self, swept: float) -> float:
+        return self.bore_area * swept + self.V_dead + self.V_ch0
+
+    def side_pressure(self, x_piston: float, theta: float, side: int) -> float:
+        """Isothermal gauge pressure [Pa] of side 0 (a: swept stroke - x, bends positive) or 1
+        (b: swept x) at piston position `x_piston` [m] and bend angle `theta` [rad].
+
+        The side was sealed at p_atm, unbent, with the piston at x_seal, so
+        (p_atm + g) V(g) = p_atm V_seal with V(g) = V_rigid + sign G(g) theta + C_a g, which is
+        increasing in g (the FMU checks it at initialisation); solved by bisection."""
+        sign = 1.0 if side == 0 else -1.0
+        swept = (lambda x: self.stroke - x) if side == 0 else (lambda x: x)
+        rigid = self._rigid_volume(swept(x_piston))
+        mass_term = self.p_atm * self._rigid_volume(swept(self.x_seal))  # p V at sealing
+
+        def residual(g: float) -> float:
+            volume = rigid + sign * self.bend_sensitivity(g) * theta + self.C_a * g
+            return (self.p_atm + g) * volume - mass_term
+
+        if residual(0.0) >= 0.0:
+            return brentq(residual, -self.p_atm, 0.0, xtol=1e-9, rtol=1e-15)
+        # under pressure G = G_a, so the volume is at least V_rigid + sign G_a theta
+        upper = mass_term / (rigid + sign * self.G_a * theta) - self.p_atm
+        return brentq(residual, 0.0, upper, xtol=1e-9, rtol=1e-15)
+
+    def net_torque(self, x_piston: float, theta: float) -> float:
+        """Static torque on the segment at rest at `theta` [rad]: H(g_a) - H(g_b) - k theta
+        [N m]; it falls as theta grows (the gas and the spring both resist the bend)."""
+        return (
+            self.channel_torque(self.side_pressure(x_piston, theta, 0))
+            - self.channel_torque(self.side_pressure(x_piston, theta, 1))
+            - self.k_bend * theta
+        )
+
+    def equilibrium_curvature(self, x_piston: float) -> float:
+        """Static equilibrium curvature [1/m] at piston position `x_piston` [m], on the
+        mechanical limit theta_max / length if the torque presses the segment against it.
+
+        Raises ValueError naming x_piston outside the stroke."""
+        if not 0.0 <= x_piston <= self.stroke:
+            raise ValueError(f"x_piston = {x_piston!r} m is outside the stroke [0, {self.stroke}]")
+        limit = self.theta_max
+        if self.net_torque(x_piston, limit) >= 0.0:
+            return limit / self.length
+        if self.net_torque(x_piston, -limit) <= 0.0:
+            return -limit / self.length
+        theta = brentq(
+            lambda angle: self.net_torque(x_piston, angle), -limit, limit, xtol=1e-13, rtol=1e-14
+        )
+        return theta / self.length
+
+    def reachable_curvature(self) -> tuple[float, float]:
+        """(kappa_min, kappa_max) [1/m]: the equilibria with the piston at x = 0 and x = stroke,
+        the segment's whole static range."""
+        return self.equilibrium_curvature(0.0), self.equilibrium_curvature(self.stroke)
 
     def pressure_stiffness(self) -> float:
         """Sum over both sides of dp/dV at sealing [Pa/m^3]; side a holds A (stroke - x_seal),
