@@ -38,8 +38,9 @@ def segment_end(
     half = 0.5 * kappa * length
     # the same end point written as a chord of length L sinc(kL/2) along th0 + kL/2: it has no
     # cancellation, so it is exact to rounding for every curvature; below SMALL_CURVATURE the
-    # sinc takes its series
-    sinc = 1.0 - half * half / 6.0 if abs(kappa) < SMALL_CURVATURE else math.sin(half) / half
+    # sinc takes its series (as it must for a zero length: pose_at's point at a segment start)
+    small = abs(kappa) < SMALL_CURVATURE or half == 0.0
+    sinc = 1.0 - half * half / 6.0 if small else math.sin(half) / half
     chord = length * sinc
     direction = th0 + half
     return x0 + chord * math.cos(direction), y0 + chord * math.sin(direction), th0 + 2.0 * half
