@@ -49,6 +49,7 @@ from controllers.kinematics import forward, tip_derivatives
 
 DAMPING = 0.01  # [m] largest DLS damping, reached at a singularity
 MAX_BEND_STEP = 0.5  # [rad] largest bend-angle change per segment in one solver iteration
+REACHED = 1e-9  # [m] ik_step tries no stall escape for a smaller (weighted) error
 STATIONARY = 1e-9  # [rad] a solver step this small (per segment) means the iterate has settled
 RCOND = 1e-9  # singular values below this share of the largest count as zero (null space)
 LINE_SEARCH = 30  # tries (halving each time) before a step counts as no descent
@@ -253,12 +254,12 @@ def _bounds(
     lengths: np.ndarray, lower: Sequence[float], upper: Sequence[float]
 ) -> tuple[np.ndarray, np.ndarray]:
     """Bend-angle bounds [rad] from curvature bounds [1/m], checked."""
-    lo = np.asarray(lower, dtype=float) * lengths
-    hi = np.asarray(upper, dtype=float) * lengths
+    lo, hi = np.asarray(lower, dtype=float), np.asarray(upper, dtype=float)
     if lo.shape != lengths.shape or hi.shape != lengths.shape:
         raise ValueError(
             f"bounds of {lo.size} and {hi.size} segments for {lengths.size} segment lengths"
         )
+    lo, hi = lo * lengths, hi * lengths
     if not np.all(lo <= hi):
         bad = int(np.argmax(~(lo <= hi)))
         raise ValueError(f"segment {bad}: lower curvature bound above the upper bound")
@@ -442,11 +443,14 @@ def ik_step(
     local = task.evaluate(theta)
     theta_rest = _rest_angles(rest, lengths_, lo, hi)
     step, free = _active_step(local, theta, lo, hi, theta_rest, damping, rest_weight)
-    if float(np.max(np.abs(step), initial=0.0)) <= STATIONARY:
+    stalled = float(np.max(np.abs(step), initial=0.0)) <= STATIONARY
+    if stalled and float(np.linalg.norm(local.error)) > REACHED:
         escape = _escape(task, local, theta, free, MAX_BEND_STEP)
         if escape is None:
             return theta / lengths_
         step = escape
+    elif stalled:
+        return theta / lengths_
     delta = step / lengths_
     if max_step is not None:
         limit = np.broadcast_to(np.asarray(max_step, dtype=float), delta.shape)
@@ -501,6 +505,9 @@ def reachable(
     certificate; False means none of them reached it (the IK is local, so not a proof)."""
     lo = np.asarray(lower, dtype=float)
     hi = np.asarray(upper, dtype=float)
+    distance = math.hypot(target[0] - base[0], target[1] - base[1])
+    if distance > math.fsum(lengths) + tol:
+        return False  # no bending makes the arm longer than its arc length
     starts = (np.zeros_like(lo), 0.5 * hi, 0.5 * lo)
     return any(
         solve_ik(target, start, lengths, base, lo, hi, tol=tol).converged for start in starts
