@@ -127,16 +127,21 @@ def test_target_beyond_the_bounds_ends_saturated_with_its_error() -> None:
 
 
 def test_saturated_segment_leaves_the_rest_to_the_others() -> None:
-    # segment 0 may not bend left: a target on the left is still reached by the others
+    # segment 0 may bend left only to 3 1/m, less than the least-bending answer asks of it:
+    # it is held at the bound and the others reach the target
     lower, upper = LOWER.copy(), UPPER.copy()
-    upper[0] = 0.0
-    target = tip(np.array([0.0, 12.0, 12.0, 8.0, 0.0, 0.0]))[:2]
+    upper[0] = 3.0
+    drawn = np.array([0.0, 12.0, 12.0, 8.0, 0.0, 0.0])
+    target = tip(drawn)[:2]
     unbounded = solve_ik(target, np.zeros(N), LENGTHS, BASE, LOWER, UPPER)
-    assert unbounded.kappas[0] > 0.0  # the least-bending answer would use segment 0
-    result = solve_ik(target, np.zeros(N), LENGTHS, BASE, lower, upper)
-    assert result.converged
-    assert result.kappas[0] == 0.0 and result.saturated[0] and not result.saturated[1:].any()
-    assert np.all(result.kappas >= lower) and np.all(result.kappas <= upper)
+    assert unbounded.kappas[0] > 3.5
+    # from rest, and from the drawn configuration, where the task is met at once and only the
+    # pull towards rest (here towards segment 0's bound) moves it
+    for start in (np.zeros(N), drawn):
+        result = solve_ik(target, start, LENGTHS, BASE, lower, upper)
+        assert result.converged
+        assert result.kappas[0] == 3.0 and result.saturated[0] and not result.saturated[1:].any()
+        assert np.all(result.kappas >= lower) and np.all(result.kappas <= upper)
 
 
 def test_heading_option_reaches_position_and_heading() -> None:
@@ -180,6 +185,20 @@ def test_repeated_steps_on_a_perfect_plant_converge_within_the_rate_limit() -> N
             assert np.all(new >= LOWER) and np.all(new <= UPPER)
             kappas = new
         assert np.linalg.norm(target - tip(kappas)[:2]) < 1e-6
+
+
+def test_step_converges_quadratically_away_from_singularities() -> None:
+    # Gauss-Newton (no damping where the Jacobian is well conditioned): the error left after
+    # one step from a small error d shrinks as d^2, not in proportion to d
+    kappas = np.array([6.0, 8.0, 9.0, 7.0, 5.0, 2.0])
+    ratios = []
+    for d in (1e-5, 1e-6):
+        error = np.array([d, -d]) / math.sqrt(2)
+        new = ik_step(kappas, error, LENGTHS, BASE, LOWER, UPPER, rest_weight=0.0)
+        left = np.linalg.norm(tip(kappas)[:2] + error - tip(new)[:2])
+        ratios.append(left / d)
+    assert ratios[0] < 1e-3
+    assert ratios[1] == pytest.approx(0.1 * ratios[0], rel=0.05)
 
 
 def test_rate_limit_keeps_the_step_direction() -> None:
