@@ -19,33 +19,45 @@ singularity.
 Method. The variables are the bend angles theta_i = kappa_i L_i [rad], so segments of different
 lengths weigh alike and the damping has one unit [m]; the task is the tip position, optionally
 with the heading error weighted by `heading_weight` [m/rad] (default: the mean segment length).
-Redundancy (N curvatures for 2 or 3 task coordinates): each step adds the move towards `rest`
-(default: straight, the least bending) projected into the null space of the task Jacobian,
-(I - J^+ J) rest_weight (theta_rest - theta). With rest_weight = 1 a step is the sequential
-quadratic programming step of min ||theta - theta_rest||^2 subject to tip = target, so a
-converged answer is a stationary point of that problem: locally unique, and moving continuously
-with the target when warm-started (Tikhonov regularisation towards rest would instead leave a
-residual task error). Bounds: an active set. A segment at a bound whose unconstrained step points
-outwards is held there and its column removed; the others take the step, and any that cross a
-bound are clamped to it and join the set. A target needing more than the bounds ends with the
-segments saturated and `converged` False, its remaining error reported.
+Redundancy (N curvatures for 2 or 3 task coordinates): each step adds a Newton step towards
+`rest` (default: straight, the least bending) within the null space Z of the task Jacobian: the
+sequential quadratic programming step of min ||theta - theta_rest||^2 / 2 subject to tip =
+target, with the Lagrangian Hessian I - sum mu_k H_k (H_k the tip's exact Hessians,
+`kinematics.tip_derivatives`, mu the least-squares multipliers) reduced to Z, its eigenvalues
+taken in magnitude and floored so that the step stays a bounded descent direction. (The plain
+projection (I - J^+ J)(theta_rest - theta) ignores the curvature of the solution set and can
+cycle between two configurations.) A converged answer is therefore a stationary point of the
+least-bending problem: unique within its basin (a start bent the opposite way may settle on the
+mirrored S-shape), moving continuously with the target when warm-started. Tikhonov
+regularisation towards rest would instead leave a residual task error. `rest_weight` scales the
+null-space step (0: none).
+
+Globalisation: while the target is not met, a step is kept only if the task error falls (a
+large-residual Gauss-Newton step can overshoot): the full step if it at least halves the error,
+else the task step alone, halved until it lowers the error. Each step is limited to
+MAX_BEND_STEP per segment.
+
+Bounds: an active set. Segments at a bound that the step would push outwards are held there and
+their columns removed, and the step recomputed until none is; a step that crosses a bound is
+clamped to it. A target needing more than the bounds ends with segments saturated and
+`converged` False, its remaining error reported.
 
 First-order stall: a straight arm and a target straight ahead, nearer than the arm's length, make
 the error orthogonal to every column (J^T e = 0), so every first-order method stops there. The
-solver then tries a step along the largest singular direction, both signs, and takes it if it
-reduces the error (bending shortens the arm); if it does not, the point is a true local optimum
-(e.g. a target beyond reach, straight ahead).
+solver then steps along the direction of most negative curvature of ||e||^2 / 2 (Hessian J^T J -
+sum e_k H_k; bending in an S shortens the arm without moving the tip sideways to first order),
+halved until the error falls; if there is none the point is a true local optimum (e.g. a target
+beyond reach, straight ahead).
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
-from controllers.kinematics import forward, tip_derivatives
+from controllers.kinematics import Floats, forward, tip_derivatives
 
 DAMPING = 0.01  # [m] largest DLS damping, reached at a singularity
 MAX_BEND_STEP = 0.5  # [rad] largest bend-angle change per segment in one solver iteration
@@ -250,9 +262,7 @@ def _descend(
     return None
 
 
-def _bounds(
-    lengths: np.ndarray, lower: Sequence[float], upper: Sequence[float]
-) -> tuple[np.ndarray, np.ndarray]:
+def _bounds(lengths: np.ndarray, lower: Floats, upper: Floats) -> tuple[np.ndarray, np.ndarray]:
     """Bend-angle bounds [rad] from curvature bounds [1/m], checked."""
     lo, hi = np.asarray(lower, dtype=float), np.asarray(upper, dtype=float)
     if lo.shape != lengths.shape or hi.shape != lengths.shape:
@@ -267,7 +277,7 @@ def _bounds(
 
 
 def _rest_angles(
-    rest: Sequence[float] | None, lengths: np.ndarray, lo: np.ndarray, hi: np.ndarray
+    rest: Floats | None, lengths: np.ndarray, lo: np.ndarray, hi: np.ndarray
 ) -> np.ndarray:
     if rest is None:
         return np.clip(np.zeros_like(lengths), lo, hi)
@@ -275,17 +285,17 @@ def _rest_angles(
 
 
 def solve_ik(
-    target: Sequence[float],
-    initial: Sequence[float],
-    lengths: Sequence[float],
+    target: Floats,
+    initial: Floats,
+    lengths: Floats,
     base: tuple[float, float, float],
-    lower: Sequence[float],
-    upper: Sequence[float],
+    lower: Floats,
+    upper: Floats,
     *,
     heading: float | None = None,
     heading_weight: float | None = None,
     damping: float = DAMPING,
-    rest: Sequence[float] | None = None,
+    rest: Floats | None = None,
     rest_weight: float = 1.0,
     tol: float = 1e-6,
     heading_tol: float = 1e-6,
@@ -314,7 +324,8 @@ def solve_ik(
     rest
         Curvatures the redundancy is resolved towards [1/m]; default zero (least bending).
     rest_weight
-        Share of the null-space distance to `rest` taken per iteration (1: the SQP step).
+        Scale of the null-space Newton step towards `rest` (1: the full SQP step; 0: none,
+        the answer then depends on the start).
     tol, heading_tol
         Convergence tolerances on the position [m] and heading [rad] errors.
     max_iter
@@ -391,19 +402,19 @@ def solve_ik(
 
 
 def ik_step(
-    kappas: Sequence[float],
-    position_error: Sequence[float],
-    lengths: Sequence[float],
+    kappas: Floats,
+    position_error: Floats,
+    lengths: Floats,
     base: tuple[float, float, float],
-    lower: Sequence[float],
-    upper: Sequence[float],
+    lower: Floats,
+    upper: Floats,
     *,
     heading_error: float | None = None,
     heading_weight: float | None = None,
     damping: float = DAMPING,
-    rest: Sequence[float] | None = None,
+    rest: Floats | None = None,
     rest_weight: float = 1.0,
-    max_step: float | Sequence[float] | None = None,
+    max_step: float | Floats | None = None,
 ) -> np.ndarray:
     """One DLS step from `kappas` towards a task-space error: the next curvatures [1/m].
 
@@ -464,10 +475,10 @@ def ik_step(
 
 def sample_workspace(
     rng: np.random.Generator,
-    lengths: Sequence[float],
+    lengths: Floats,
     base: tuple[float, float, float],
-    lower: Sequence[float],
-    upper: Sequence[float],
+    lower: Floats,
+    upper: Floats,
     n: int,
     margin: float = 0.1,
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -492,11 +503,11 @@ def sample_workspace(
 
 
 def reachable(
-    target: Sequence[float],
-    lengths: Sequence[float],
+    target: Floats,
+    lengths: Floats,
     base: tuple[float, float, float],
-    lower: Sequence[float],
-    upper: Sequence[float],
+    lower: Floats,
+    upper: Floats,
     tol: float = 1e-6,
 ) -> bool:
     """Whether some curvatures within the bounds put the tip within `tol` [m] of `target`.

@@ -22,6 +22,9 @@ from collections.abc import Sequence
 
 import numpy as np
 
+# curvatures, lengths: any sequence of floats, numpy arrays included
+Floats = Sequence[float] | np.ndarray
+
 SMALL_CURVATURE = 1e-6
 # below this half bend angle [rad] d sinc/dh takes its series: (h cos h - sin h) / h^2 loses
 # 3 eps / h^2 of relative accuracy to cancellation, the three-term series errs by h^7 / 45360
@@ -46,9 +49,7 @@ def segment_end(
     return x0 + chord * math.cos(direction), y0 + chord * math.sin(direction), th0 + 2.0 * half
 
 
-def forward(
-    kappas: Sequence[float], lengths: Sequence[float], base: tuple[float, float, float]
-) -> np.ndarray:
+def forward(kappas: Floats, lengths: Floats, base: tuple[float, float, float]) -> np.ndarray:
     """Poses of the base and of every segment end, shape (N + 1, 3): x [m], y [m], heading [rad]."""
     poses = [base]
     for kappa, length in zip(kappas, lengths, strict=True):
@@ -56,16 +57,12 @@ def forward(
     return np.array(poses)
 
 
-def markers(
-    kappas: Sequence[float], lengths: Sequence[float], base: tuple[float, float, float]
-) -> np.ndarray:
+def markers(kappas: Floats, lengths: Floats, base: tuple[float, float, float]) -> np.ndarray:
     """Marker positions (base, then each segment end), shape (N + 1, 2) [m]."""
     return forward(kappas, lengths, base)[:, :2]
 
 
-def curvatures_from_markers(
-    points: np.ndarray, lengths: Sequence[float], base_heading: float
-) -> np.ndarray:
+def curvatures_from_markers(points: np.ndarray, lengths: Floats, base_heading: float) -> np.ndarray:
     """Per-segment curvature from consecutive marker positions (the chord-angle inverse).
 
     For a circular arc the chord direction alpha is the mean of start and end headings, so
@@ -93,7 +90,7 @@ def curvatures_from_markers(
     return kappas
 
 
-def _segment_at(lengths: Sequence[float], s: float) -> tuple[int, float]:
+def _segment_at(lengths: Floats, s: float) -> tuple[int, float]:
     """Index of the segment holding arc length `s` and the length of it up to `s` [m].
 
     A point on a joint belongs to the proximal segment (its whole length), so s = 0 is the
@@ -117,7 +114,7 @@ def _segment_at(lengths: Sequence[float], s: float) -> tuple[int, float]:
 
 
 def pose_at(
-    kappas: Sequence[float], lengths: Sequence[float], base: tuple[float, float, float], s: float
+    kappas: Floats, lengths: Floats, base: tuple[float, float, float], s: float
 ) -> tuple[float, float, float]:
     """Pose (x [m], y [m], heading [rad]) of the backbone at arc length `s` [m] from the base.
 
@@ -134,8 +131,8 @@ def pose_at(
 
 
 def backbone(
-    kappas: Sequence[float],
-    lengths: Sequence[float],
+    kappas: Floats,
+    lengths: Floats,
     base: tuple[float, float, float],
     per_segment: int = 8,
 ) -> np.ndarray:
@@ -174,8 +171,8 @@ def _chord_derivative(heading: float, kappa: float, length: float) -> tuple[floa
 
 
 def _columns(
-    kappas: Sequence[float],
-    lengths: Sequence[float],
+    kappas: Floats,
+    lengths: Floats,
     joints: np.ndarray,
     point: Sequence[float],
     index: int,
@@ -196,7 +193,7 @@ def _columns(
 
 
 def point_jacobian(
-    kappas: Sequence[float], lengths: Sequence[float], base: tuple[float, float, float], s: float
+    kappas: Floats, lengths: Floats, base: tuple[float, float, float], s: float
 ) -> np.ndarray:
     """Jacobian of the pose at arc length `s` with respect to the curvatures, shape (3, N).
 
@@ -212,9 +209,7 @@ def point_jacobian(
     return _columns(kappas, lengths, joints, point, index, partial)
 
 
-def tip_jacobian(
-    kappas: Sequence[float], lengths: Sequence[float], base: tuple[float, float, float]
-) -> np.ndarray:
+def tip_jacobian(kappas: Floats, lengths: Floats, base: tuple[float, float, float]) -> np.ndarray:
     """Jacobian of the tip pose (x, y, heading) with respect to the curvatures, shape (3, N):
     rows in m per 1/m (position) and rad per 1/m (heading); see `point_jacobian`."""
     return tip_derivatives(kappas, lengths, base)[1]
@@ -245,7 +240,7 @@ def _arc_curvature(angle: float) -> complex:
 
 
 def tip_derivatives(
-    kappas: Sequence[float], lengths: Sequence[float], base: tuple[float, float, float]
+    kappas: Floats, lengths: Floats, base: tuple[float, float, float]
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Tip pose, its Jacobian and its position Hessian with respect to the curvatures, from one
     pass along the arm.
@@ -287,9 +282,7 @@ def tip_derivatives(
     return tip, jacobian, np.stack((hessian.real, hessian.imag))
 
 
-def tip_hessian(
-    kappas: Sequence[float], lengths: Sequence[float], base: tuple[float, float, float]
-) -> np.ndarray:
+def tip_hessian(kappas: Floats, lengths: Floats, base: tuple[float, float, float]) -> np.ndarray:
     """Second derivatives of the tip position with respect to the curvatures, shape (2, N, N)
     [m per (1/m)^2]; see `tip_derivatives`."""
     return tip_derivatives(kappas, lengths, base)[2]
