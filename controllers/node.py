@@ -50,11 +50,18 @@ from controllers.protocol import (
     Heartbeat,
     Protocol,
     Sync,
+    TaskState,
 )
+from controllers.tasks import TaskPlan
 from controllers.trajectories import CurvatureProfile, Sine
 
 POLICIES = ("strict", "hold")
-OWN_FRAMES = (Sync, DriveCommand, ControllerState)  # the frames only the controller sends
+OWN_FRAMES = (
+    Sync,
+    DriveCommand,
+    ControllerState,
+    TaskState,
+)  # the frames only the controller sends
 ESTIMATORS = ("raw", "kf", "ukf")
 
 
@@ -101,6 +108,7 @@ class ControllerConfig:
     timeout: float = 10.0  # wall-clock wait for a cycle's frames [s]
     estimator: str = "raw"
     latency_compensation: bool = True
+    plan: TaskPlan | None = None  # task-space task (point-to-point, path); None: the profile
 
     @property
     def segments(self) -> int:
@@ -129,6 +137,8 @@ class ControllerConfig:
         if config.control_period <= 0 or config.cycles < 0 or config.timeout <= 0:
             raise ValueError("control_period and timeout must be positive, cycles not negative")
         _check_ranges(config)
+        if config.plan is not None:
+            _check_plan(config.plan, n)
         return config
 
 
@@ -163,6 +173,30 @@ def _check_ranges(config: ControllerConfig) -> None:
         raise ValueError("camera_timing: period_ticks and control_ticks must be at least 1")
     if timing.markers != config.segments + 1:
         raise ValueError(f"camera_timing.markers: must be {config.segments + 1} (segments + 1)")
+
+
+def _check_plan(plan: TaskPlan, segments: int) -> None:
+    from controllers.tasks import TASK_KINDS
+
+    if plan.kind not in TASK_KINDS:
+        raise ValueError(f"plan.kind: {plan.kind!r} is not one of {', '.join(TASK_KINDS)}")
+    if not plan.targets:
+        raise ValueError("plan.targets: no target")
+    if plan.kind == "path" and len(plan.ends) != len(plan.targets):
+        raise ValueError(f"plan.ends: {len(plan.ends)} ends for {len(plan.targets)} paths")
+    for name in ("kappa_min", "kappa_max", "kappa_rate"):
+        if len(getattr(plan, name)) != segments:
+            raise ValueError(
+                f"plan.{name}: {len(getattr(plan, name))} values for {segments} segments"
+            )
+    if any(lo >= hi for lo, hi in zip(plan.kappa_min, plan.kappa_max, strict=True)):
+        raise ValueError("plan.kappa_min: must be below plan.kappa_max")
+    for name in ("kappa_rate",):
+        if any(v <= 0 for v in getattr(plan, name)):
+            raise ValueError(f"plan.{name}: must be positive")
+    for name in ("tolerance", "settle_time", "max_time", "speed", "acceleration", "accel_time"):
+        if getattr(plan, name) <= 0:
+            raise ValueError(f"plan.{name}: must be positive")
 
 
 def _from_data(cls: Any, data: Any, key: str) -> Any:

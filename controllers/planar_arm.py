@@ -7,7 +7,7 @@ ControllerState frame per segment (the reference it tracks and the estimate it u
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
 from controllers.curvature import CurvaturePI
@@ -54,11 +54,23 @@ class CurvatureControl:
     def compute(
         self, cycle: int, t: float, estimate: Estimate, drives: Mapping[int, DriveReading]
     ) -> list[Any]:
+        references = [self.config.profile.for_segment(i, t) for i in range(len(self.pis))]
+        return self.command(cycle, references, estimate, drives)
+
+    def command(
+        self,
+        cycle: int,
+        references: Sequence[float],
+        estimate: Estimate,
+        drives: Mapping[int, DriveReading],
+    ) -> list[Any]:
+        """Each segment's PI towards its curvature reference: a DriveCommand and a
+        ControllerState frame per segment."""
         frames: list[Any] = []
         lo, hi = self.shown_range
         for i, pi in enumerate(self.pis):
             node = i + 1
-            kappa_ref = self.config.profile.for_segment(i, t)
+            kappa_ref = float(references[i])
             reading = drives.get(node)
             piston = reading.piston_position if reading is not None else None
             kappa_est = float(estimate.kappa[i])
@@ -68,5 +80,11 @@ class CurvatureControl:
         return frames
 
 
-def make_controller(config: ControllerConfig, protocol: Protocol) -> CurvatureControl:
+def make_controller(config: ControllerConfig, protocol: Protocol) -> Any:
+    """Curvature tracking of the task's profile, or task-space control when the configuration
+    carries a task plan (point-to-point, path)."""
+    if config.plan is not None:
+        from controllers.task_space import TaskSpaceControl
+
+        return TaskSpaceControl(config, protocol)
     return CurvatureControl(config, protocol)

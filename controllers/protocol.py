@@ -129,6 +129,21 @@ class ControllerState:
     counter: int
 
 
+@frame_type("TaskState")
+@dataclass(frozen=True)
+class TaskState:
+    """The task-space controller's state (recorded by the plant, used to score the task)."""
+
+    target_index: int  # target (point-to-point) or path (path tracking), 0 first
+    phase: int  # TASK_PHASES
+    target_x: float  # [m] the task-space reference point now
+    target_y: float  # [m]
+    counter: int
+
+
+TASK_PHASES = ("idle", "moving", "settling", "settled", "done", "tracking")  # the DBC's values
+
+
 @frame_type("EMCY", index="node")
 @dataclass(frozen=True)
 class Emcy:

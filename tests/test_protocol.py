@@ -37,6 +37,7 @@ from controllers.protocol import (
     Heartbeat,
     Protocol,
     Sync,
+    TaskState,
     bus_load,
     frame_bits,
     frame_key,
@@ -209,7 +210,7 @@ def test_dbc_names_and_ids_agree(protocol: Protocol) -> None:
         "ValveCommand": 0x210,
         "ValveStatus": 0x190,
     }
-    singles = {"SYNC": 0x080, "CameraFrame": 0x27F, "CanisterStatus": 0x1A0}
+    singles = {"SYNC": 0x080, "CameraFrame": 0x27F, "CanisterStatus": 0x1A0, "TaskState": 0x3F0}
     database = protocol.database
     assert len(database.messages) == 5 * 8 + 2 * 16 + 2 * 4 + len(singles)
     ids = [m.frame_id for m in database.messages]
@@ -530,6 +531,9 @@ GOLDEN: list[tuple[Frame, int, str]] = [
         0x1A0,
         "C8AFB888647D0055",
     ),
+    # counter 0x9C, target 0x0102 (little endian), phase 5 (tracking), x 0.1234 m = 6170
+    # (0x181A), y -0.0567 m = -2835 (0xF4ED)
+    (TaskState(0x0102, 5, 0.1234, -0.0567, 0x9C), 0x3F0, "9C0201051A18EDF4"),
 ]
 
 
