@@ -201,7 +201,10 @@ def _run(
 
     for spec in rig.plots:
         folder.claim(f"{spec.name}.png")
-    plot_run(read_signals(out / "signals.csv"), rig.plots, out)
+    recorded = read_signals(out / "signals.csv")
+    plot_run(recorded, rig.plots, out)
+    for name, draw in rig.figures:
+        draw(recorded, folder.claim(f"{name}.png"))
     failure = realtime_failure(scenario, summary["controller"])
     if failure is not None:
         summary["warnings"].append(failure)
@@ -229,6 +232,8 @@ RESULT_FILES = (
     "curvature.png",
     "pressures.png",
     "piston.png",
+    "estimation.png",
+    "arm.png",
 )
 
 

@@ -132,10 +132,26 @@ class SineSpec:
 
 @dataclass(frozen=True)
 class TaskSpec:
+    """The task: a curvature profile per segment (`curvature_profile`), or in task space
+    (`point_to_point`, `path`: README, "Task space"). Lengths in m, times in s."""
+
     kind: str = "curvature_profile"
     steps: tuple[tuple[float, float], ...] = ()
     sine: SineSpec | None = None
     scale: tuple[float, ...] = (1.0,)
+    # task space: targets [x, y] or paths [x0, y0, x1, y1]; empty: `count` drawn from the seed
+    targets: tuple[tuple[float, float], ...] = ()
+    paths: tuple[tuple[float, float, float, float], ...] = ()
+    count: int = 8
+    margin: float = 0.7  # share of each segment's reachable curvature range drawn targets use
+    path_length: float = 0.08  # drawn paths
+    tolerance: float = 1e-3  # estimated tip within it: on target
+    settle_time: float = 0.5  # on target this long: settled, next target
+    max_time: float = 6.0  # per target before the controller gives up on it
+    speed: float = 0.01  # path speed [m/s]
+    acceleration: float = 0.02  # path acceleration [m/s^2]
+    task_gain: float = 1.0  # integral gain on the estimated tip error [1/s]
+    band: float = 2e-3  # settling band of the time_to_settle metric
 
     def profile(self) -> CurvatureProfile:
         """The reference profile that the controller tracks and the plant scores against."""

@@ -89,12 +89,7 @@ def _run(args: argparse.Namespace) -> int:
         f"{scenario.name}: {scenario.duration:g} s simulated in {s['wall_time']:.2f} s "
         f"(real-time factor {s['real_time_factor']:.1f}) over {s['bus']}"
     )
-    print(
-        f"  rms tracking error {s['rms_tracking_error']:.3f} 1/m, max overshoot "
-        f"{_shown(s['max_overshoot'], 100, '.1f', ' %')}, settling "
-        f"{_shown(s['settling_time'], 1, '.2f', ' s')}, steady-state error "
-        f"{_shown(s['steady_state_error'], 1, '.4f', ' 1/m')}"
-    )
+    print(f"  {task_line(s)}")
     f = s["frames"]
     print(
         f"  bus load {100 * s['bus_load']:.1f} % at {s['bitrate'] // 1000} kbit/s; frames sent "
@@ -112,10 +107,35 @@ def _run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _shown(value: float | None, scale: float, spec: str, unit: str) -> str:
+def _shown(value: object, scale: float, spec: str, unit: str) -> str:
     """A metric for the terminal: n/a where the task has none, 'never' where it never settled."""
-    if value is None:
+    if not isinstance(value, int | float):
         return "n/a"
     if math.isinf(value):
         return "never"
     return f"{scale * value:{spec}}{unit}"
+
+
+def task_line(s: dict[str, object]) -> str:
+    """The task's headline metrics for the terminal, by what the summary holds."""
+    if "tip_error_mean" in s:
+        return (
+            f"tip error mean {_shown(s['tip_error_mean'], 1e3, '.2f', ' mm')}, std "
+            f"{_shown(s['tip_error_std'], 1e3, '.2f', ' mm')}, max "
+            f"{_shown(s['tip_error_max'], 1e3, '.2f', ' mm')}; settled {s['targets_settled']} of "
+            f"{s['targets']} targets, time to settle {_shown(s['time_to_settle'], 1, '.2f', ' s')}"
+        )
+    if "path_rms" in s:
+        return (
+            f"path error rms {_shown(s['path_rms'], 1e3, '.2f', ' mm')}, max "
+            f"{_shown(s['path_max'], 1e3, '.2f', ' mm')}; {s['paths_tracked']} of {s['paths']} "
+            "paths tracked"
+        )
+    if "rms_tracking_error" in s:
+        return (
+            f"rms tracking error {_shown(s['rms_tracking_error'], 1, '.3f', ' 1/m')}, max "
+            f"overshoot {_shown(s['max_overshoot'], 100, '.1f', ' %')}, settling "
+            f"{_shown(s['settling_time'], 1, '.2f', ' s')}, steady-state error "
+            f"{_shown(s['steady_state_error'], 1, '.4f', ' 1/m')}"
+        )
+    return "no task metrics"

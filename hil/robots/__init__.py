@@ -14,7 +14,7 @@ package can add one without editing softhil.
 from __future__ import annotations
 
 import importlib
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from importlib.metadata import entry_points
 from pathlib import Path
@@ -67,6 +67,10 @@ class Rig:
     signals: list[SignalSpec]
     plots: list[PlotSpec] = field(default_factory=list)
     parameters: dict[str, Mapping[str, float]] = field(default_factory=dict)  # per participant
+    # figures beyond the line plots: (name, draw(signals, path)) writing `<name>.png`
+    figures: list[tuple[str, Callable[[Mapping[str, Any], Path], None]]] = field(
+        default_factory=list
+    )
 
     def close(self) -> None:
         for participant in self.participants:

@@ -22,6 +22,7 @@ from controllers.estimation import BendModel, CameraNoise
 from controllers.loop_design import design_outer_loop, effective_delay, estimator_delay
 from controllers.node import CameraTiming, ControllerConfig
 from controllers.protocol import Protocol
+from controllers.tasks import TASK_KINDS, TaskPlan, draw_paths, draw_targets
 from hil.devices import HEARTBEAT_PERIOD, CameraNode, DriveNode
 from hil.master import Connection, FmuParticipant, Participant
 from hil.robots import PlotSpec, Rig, SignalSpec, fmu_ref
@@ -29,6 +30,11 @@ from hil.vision import Camera
 
 if TYPE_CHECKING:
     from hil.scenario import Scenario
+
+TASK_STREAM = 0x7A5C  # the task's random stream, apart from the camera's (seeded by the seed alone)
+DRIVE_SPEED_SHARE = 0.5  # of the drive's no-load speed that curvature moves may ask for
+IK_RANGE_SHARE = 0.9  # of each segment's reachable curvature range that IK may use: the rest is
+# left for the curvature loop to correct in
 
 SEGMENT_GEOMETRY = (
     "bore",
@@ -64,6 +70,12 @@ PER_SEGMENT: tuple[tuple[str, str, str], ...] = (
     ("v", "m/s", "piston velocity"),
     ("i_motor", "A", "drive motor current"),
     ("fault", "", "drive fault bits (DriveStatus.fault)"),
+)
+TASK_SIGNALS: tuple[tuple[str, str, str], ...] = (
+    ("target_index", "", "target (point-to-point) or path (path task) pursued, 0 first"),
+    ("phase", "", "task phase: 0 idle, 1 moving, 2 settling, 3 settled, 4 done, 5 tracking"),
+    ("target_x", "m", "task-space reference point x, as the controller reported it"),
+    ("target_y", "m", "task-space reference point y, as the controller reported it"),
 )
 _SOURCES = {
     "kappa": "segment{n}.kappa",
@@ -201,8 +213,12 @@ class PlanarArm:
         from hil.scenario import fail
 
         file, task = s.source, s.task
-        if task.kind != "curvature_profile":
-            raise fail(file, "task.kind", f"unknown task {task.kind!r} (known: curvature_profile)")
+        known = ("curvature_profile", *TASK_KINDS)
+        if task.kind not in known:
+            raise fail(file, "task.kind", f"unknown task {task.kind!r} (known: {', '.join(known)})")
+        if task.kind in TASK_KINDS:
+            self._check_task_space(s)
+            return
         if len(task.scale) > s.robot.segments:
             raise fail(
                 file,
@@ -345,6 +361,11 @@ class PlanarArm:
         for c in scenario.connections:
             connections[c.target] = Connection(c.source, c.target, c.gain, c.offset)
         participants: list[Participant] = [*fmus, *drives, camera]
+        figures = []
+        if scenario.task.kind in TASK_KINDS:
+            from hil.robots.planar_tasks import draw_arm
+
+            figures.append(("arm", lambda signals, path: draw_arm(self, scenario, signals, path)))
         return Rig(
             participants,
             list(connections.values()),
@@ -352,6 +373,7 @@ class PlanarArm:
             self.signals(scenario),
             self.plots(scenario),
             parameters,
+            figures,
         )
 
     def signals(self, scenario: Scenario) -> list[SignalSpec]:
@@ -364,6 +386,9 @@ class PlanarArm:
                     specs.append(SignalSpec(column, unit, text, frame=("ControllerState", n, name)))
                 else:
                     specs.append(SignalSpec(column, unit, text, source=_SOURCES[name].format(n=n)))
+        if scenario.task.kind in TASK_KINDS:
+            for name, unit, text in TASK_SIGNALS:
+                specs.append(SignalSpec(name, unit, text, frame=("TaskState", None, name)))
         return specs
 
     def plots(self, scenario: Scenario) -> list[PlotSpec]:
@@ -407,6 +432,8 @@ class PlanarArm:
             rates[f"DriveCommand{n}"] = per_period
             rates[f"ControllerState{n}"] = per_period
             rates[f"Heartbeat{n}"] = 1.0 / HEARTBEAT_PERIOD
+        if scenario.task.kind in TASK_KINDS:
+            rates["TaskState"] = per_period
         rates["CameraFrame"] = scenario.camera.rate
         for m in range(scenario.robot.segments + 1):
             rates[f"CameraMarker{m}"] = scenario.camera.rate
@@ -460,6 +487,7 @@ class PlanarArm:
             gains=tuple(gains),
             feedforward=tuple(1.0 / m.static_gain() if c.feedforward else 0.0 for m in models),
             profile=scenario.task.profile(),
+            plan=self.task_plan(scenario),
             policy=c.policy,
             timeout=c.timeout,
             bends=tuple(
@@ -493,11 +521,125 @@ class PlanarArm:
             ),
         )
 
+    # ------------------------------------------------------------------ task space
+
+    def curvature_limits(self, scenario: Scenario) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Each segment's reachable curvature range at full stroke (from its static equilibrium
+        with the sealed gas circuits, PHYSICS.md section 2) and the curvature rate the drive can
+        follow: its no-load speed u_max / Ke * lead / (2 pi), derated by DRIVE_SPEED_SHARE for the
+        load, times the segment's curvature per piston travel (1/m per m)."""
+        lower, upper, rates = [], [], []
+        for model, cylinder in zip(
+            self.segment_models(scenario), self.parameters(scenario, "cylinder"), strict=True
+        ):
+            lo, hi = model.reachable_curvature()
+            lower.append(lo)
+            upper.append(hi)
+            speed = cylinder["u_max"] / cylinder["Ke"] * cylinder["lead"] / (2.0 * math.pi)
+            rates.append(DRIVE_SPEED_SHARE * speed * abs(model.static_gain()))
+        return np.array(lower), np.array(upper), np.array(rates)
+
+    def task_plan(self, scenario: Scenario) -> TaskPlan | None:
+        """The task-space plan the controller pursues and the plant scores (None for a curvature
+        profile): explicit targets or paths, or drawn from the scenario's seed."""
+        task = scenario.task
+        if task.kind not in TASK_KINDS:
+            return None
+        lower, upper, rates = self.curvature_limits(scenario)
+        lengths = [p["length"] for p in self.parameters(scenario, "segment")]
+        base = scenario.robot.base
+        rng = np.random.default_rng([scenario.seed, TASK_STREAM])
+        ends: tuple[tuple[float, float], ...] = ()
+        if task.kind == "point_to_point":
+            targets = task.targets or tuple(
+                draw_targets(rng, lengths, base, lower, upper, task.count, task.margin)
+            )
+        elif task.paths:
+            targets = tuple((p[0], p[1]) for p in task.paths)
+            ends = tuple((p[2], p[3]) for p in task.paths)
+        else:
+            paths = draw_paths(
+                rng, lengths, base, lower, upper, task.count, task.path_length, task.margin
+            )
+            targets = tuple(a for a, _ in paths)
+            ends = tuple(b for _, b in paths)
+        mid, half = 0.5 * (lower + upper), 0.5 * (upper - lower) * IK_RANGE_SHARE
+        return TaskPlan(
+            kind=task.kind,
+            targets=tuple(targets),
+            ends=ends,
+            kappa_min=tuple(float(v) for v in mid - half),
+            kappa_max=tuple(float(v) for v in mid + half),
+            kappa_rate=tuple(float(v) for v in rates),
+            tolerance=task.tolerance,
+            settle_time=task.settle_time,
+            max_time=task.max_time,
+            speed=task.speed,
+            acceleration=task.acceleration,
+            task_gain=task.task_gain,
+        )
+
+    def _check_task_space(self, s: Scenario) -> None:
+        """Targets and paths within reach; positive tolerances, times and speeds."""
+        from hil.scenario import fail
+
+        file, task = s.source, s.task
+        for name in ("tolerance", "settle_time", "max_time", "speed", "acceleration", "band"):
+            if getattr(task, name) <= 0:
+                raise fail(file, f"task.{name}", f"must be positive, got {getattr(task, name)}")
+        if task.task_gain < 0:
+            raise fail(file, "task.task_gain", "must not be negative")
+        if task.task_gain * s.timing.control_period >= 1.0:
+            raise fail(file, "task.task_gain", "times the control period must stay below 1")
+        if not 0.0 < task.margin <= 1.0:
+            raise fail(file, "task.margin", f"must be in (0, 1], got {task.margin}")
+        if task.settle_time >= task.max_time:
+            raise fail(file, "task.settle_time", "must be shorter than task.max_time")
+        if not 1 <= task.count <= 65535:
+            raise fail(file, "task.count", f"must be 1..65535, got {task.count}")
+        if task.kind == "path" and task.targets:
+            raise fail(file, "task.targets", "a path task takes task.paths ([x0, y0, x1, y1])")
+        if task.kind == "point_to_point" and task.paths:
+            raise fail(file, "task.paths", "a point_to_point task takes task.targets ([x, y])")
+        if task.kind == "path" and task.path_length <= 0:
+            raise fail(file, "task.path_length", "must be positive")
+        from controllers.ik import solve_ik
+
+        lower, upper, _ = self.curvature_limits(s)
+        mid, half = 0.5 * (lower + upper), 0.5 * (upper - lower) * IK_RANGE_SHARE
+        lengths = [p["length"] for p in self.parameters(s, "segment")]
+        points = [(f"task.targets[{i}]", np.array(p)) for i, p in enumerate(task.targets)]
+        for i, path in enumerate(task.paths):
+            a, b = np.array(path[:2]), np.array(path[2:])
+            if np.linalg.norm(b - a) == 0.0:
+                raise fail(file, f"task.paths[{i}]", "start and end are the same point")
+            points += [(f"task.paths[{i}]", a + f * (b - a)) for f in np.linspace(0, 1, 11)]
+        guess = np.zeros(len(lengths))
+        for key, point in points:
+            result = solve_ik(point, guess, lengths, s.robot.base, mid - half, mid + half)
+            if not result.converged:
+                raise fail(
+                    file,
+                    key,
+                    f"({point[0]:.4g}, {point[1]:.4g}) m is out of the arm's reach within "
+                    f"{100 * IK_RANGE_SHARE:g} % of each segment's curvature range (closest: "
+                    f"{1e3 * result.position_error:.3g} mm away)",
+                )
+            guess = result.kappas
+        try:
+            self.task_plan(s)
+        except ValueError as exc:
+            raise fail(file, "task", str(exc)) from None
+
     # ------------------------------------------------------------------ scoring
 
     def task_metrics(self, scenario: Scenario, signals: Mapping[str, Any]) -> dict[str, Any]:
         from hil.summary import curvature_metrics
 
+        if scenario.task.kind in TASK_KINDS:
+            from hil.robots.planar_tasks import task_space_metrics
+
+            return task_space_metrics(self, scenario, signals)
         return curvature_metrics(scenario, signals)
 
 

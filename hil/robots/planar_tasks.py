@@ -1,0 +1,197 @@
+"""Scoring and drawing the planar arm's task-space tasks (issue 11), from the recorded signals.
+
+The plant scores with the truth: the tip position is the forward kinematics of the true
+curvatures (the FeaSegment outputs), never the controller's estimate. Which target or path the
+controller pursued, and in which phase, comes from its TaskState frames (recorded columns
+`target_index`, `phase`); the targets themselves are the plant's own (drawn from the seed by the
+same function the controller was configured from), so a controller that reported a wrong target
+would be scored against the right one.
+
+Point-to-point, per target: its error is the mean distance of the true tip from the target over
+the last `settle_time` of the time the controller spent on it (the window in which it judged the
+tip settled), its time to settle the time from the target's start until the true tip enters and
+stays within `band` of it. A target counts as settled when the controller reported it settled
+before `max_time`. Path, per path: the distance of the true tip from the straight line segment
+over the traverse (phase `tracking`), as RMS and maximum.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from controllers import kinematics
+from controllers.tasks import PHASE, point_to_segment
+
+if TYPE_CHECKING:
+    from hil.robots.planar_arm import PlanarArm
+    from hil.scenario import Scenario
+
+ON_TARGET_PHASES = (PHASE["moving"], PHASE["settling"], PHASE["settled"])
+SHAPES = 14  # arm shapes drawn over a run
+
+
+def true_tips(robot: PlanarArm, scenario: Scenario, signals: Mapping[str, Any]) -> np.ndarray:
+    """The true tip position at every recorded SYNC, shape (rows, 2) [m]."""
+    lengths = [p["length"] for p in robot.parameters(scenario, "segment")]
+    kappas = np.column_stack([signals[f"kappa_{n}"] for n in range(1, scenario.robot.segments + 1)])
+    return np.array([kinematics.forward(k, lengths, scenario.robot.base)[-1, :2] for k in kappas])
+
+
+def task_space_metrics(
+    robot: PlanarArm, scenario: Scenario, signals: Mapping[str, Any]
+) -> dict[str, Any]:
+    plan = robot.task_plan(scenario)
+    assert plan is not None
+    t = np.asarray(signals["time"])
+    tips = true_tips(robot, scenario, signals)
+    index = np.asarray(signals["target_index"])
+    phase = np.asarray(signals["phase"])
+    task = scenario.task
+    if plan.kind == "point_to_point":
+        return _point_to_point(plan.targets, t, tips, index, phase, task)
+    return _paths(plan.targets, plan.ends, t, tips, index, phase, task)
+
+
+def _point_to_point(
+    targets: tuple[tuple[float, float], ...],
+    t: np.ndarray,
+    tips: np.ndarray,
+    index: np.ndarray,
+    phase: np.ndarray,
+    task: Any,
+) -> dict[str, Any]:
+    per_target = []
+    for k, target in enumerate(targets):
+        rows = (index == k) & np.isin(phase, ON_TARGET_PHASES)
+        entry: dict[str, Any] = {"target": [target[0], target[1]], "reached": bool(rows.any())}
+        if rows.any():
+            tk, error = t[rows], np.linalg.norm(tips[rows] - np.array(target), axis=1)
+            window = tk >= tk[-1] - task.settle_time + 1e-9
+            outside = np.nonzero(error > task.band)[0]
+            if outside.size == 0:
+                settle: float | None = 0.0
+            elif outside[-1] + 1 < tk.size:
+                settle = float(tk[outside[-1] + 1] - tk[0])
+            else:
+                settle = None  # never within the band
+            entry.update(
+                error=float(np.mean(error[window])),
+                final_error=float(error[-1]),
+                time_to_settle=settle,
+                settled=bool(np.any(phase[rows] == PHASE["settled"])),
+                start=float(tk[0]),
+            )
+        per_target.append(entry)
+    reached = [e for e in per_target if e["reached"]]
+    errors = np.array([e["error"] for e in reached])
+    settle_times = [e["time_to_settle"] for e in reached if e["time_to_settle"] is not None]
+    settled = sum(1 for e in reached if e["settled"])
+    return {
+        "tip_error_mean": float(np.mean(errors)) if errors.size else None,
+        "tip_error_std": float(np.std(errors)) if errors.size else None,
+        "tip_error_max": float(np.max(errors)) if errors.size else None,
+        "time_to_settle": float(np.mean(settle_times)) if settle_times else None,
+        "time_to_settle_max": (
+            max(settle_times) if settle_times and len(settle_times) == len(reached) else None
+        ),
+        "targets": len(targets),
+        "targets_settled": settled,
+        "success": settled == len(targets),
+        "per_target": per_target,
+    }
+
+
+def _paths(
+    starts: tuple[tuple[float, float], ...],
+    ends: tuple[tuple[float, float], ...],
+    t: np.ndarray,
+    tips: np.ndarray,
+    index: np.ndarray,
+    phase: np.ndarray,
+    task: Any,
+) -> dict[str, Any]:
+    per_path = []
+    distances = []
+    for k, (a, b) in enumerate(zip(starts, ends, strict=True)):
+        rows = (index == k) & (phase == PHASE["tracking"])
+        entry: dict[str, Any] = {"start": list(a), "end": list(b), "tracked": bool(rows.any())}
+        if rows.any():
+            d = point_to_segment(tips[rows], np.array(a), np.array(b))
+            distances.append(d)
+            after = (index == k) & np.isin(phase, (PHASE["settling"], PHASE["settled"]))
+            after &= t > t[rows][-1]
+            end_error = np.linalg.norm(tips[after] - np.array(b), axis=1) if after.any() else None
+            entry.update(
+                rms=float(np.sqrt(np.mean(d**2))),
+                max=float(np.max(d)),
+                end_error=float(end_error[-1]) if end_error is not None else None,
+                settled=bool(np.any(phase[index == k] == PHASE["settled"])),
+            )
+        per_path.append(entry)
+    every = np.concatenate(distances) if distances else np.array([])
+    tracked = [e for e in per_path if e["tracked"]]
+    return {
+        "path_rms": float(np.sqrt(np.mean(every**2))) if every.size else None,
+        "path_max": float(np.max(every)) if every.size else None,
+        "paths": len(starts),
+        "paths_tracked": len(tracked),
+        "success": len(tracked) == len(starts) and all(e["settled"] for e in tracked),
+        "per_path": per_path,
+    }
+
+
+def draw_arm(robot: PlanarArm, scenario: Scenario, signals: Mapping[str, Any], path: Path) -> None:
+    """The arm's true shapes over the run (darker is later), the true tip's trace, and the
+    targets or paths, seen from above."""
+    import io
+
+    import matplotlib.pyplot as plt
+
+    from hil.results import write_file
+
+    plan = robot.task_plan(scenario)
+    assert plan is not None
+    lengths = [p["length"] for p in robot.parameters(scenario, "segment")]
+    base = scenario.robot.base
+    t = np.asarray(signals["time"])
+    kappas = np.column_stack([signals[f"kappa_{n}"] for n in range(1, scenario.robot.segments + 1)])
+    tips = true_tips(robot, scenario, signals)
+    fig, ax = plt.subplots(figsize=(7, 7))
+    colours = plt.get_cmap("viridis")
+    for j, row in enumerate(np.linspace(0, len(t) - 1, SHAPES).astype(int)):
+        shape = kinematics.backbone(kappas[row], lengths, base)
+        ax.plot(shape[:, 0], shape[:, 1], color=colours(j / (SHAPES - 1)), lw=2, alpha=0.8)
+    ax.plot(tips[:, 0], tips[:, 1], color="grey", lw=0.8, label="tip (true)")
+    if plan.kind == "point_to_point":
+        for k, (x, y) in enumerate(plan.targets):
+            ax.plot(x, y, "rx", ms=9, mew=2, label="targets" if k == 0 else None)
+            ax.annotate(str(k), (x, y), textcoords="offset points", xytext=(5, 5), color="red")
+    else:
+        for k, (a, b) in enumerate(zip(plan.targets, plan.ends, strict=True)):
+            ax.plot(
+                [a[0], b[0]],
+                [a[1], b[1]],
+                "r-",
+                lw=2.5,
+                alpha=0.6,
+                label="paths" if k == 0 else None,
+            )
+            ax.plot(*a, "ro", ms=5)
+    ax.plot(base[0], base[1], "ks", ms=8, label="base")
+    ax.set_aspect("equal")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    sm = plt.cm.ScalarMappable(cmap=colours, norm=plt.Normalize(t[0], t[-1] if t.size else 1.0))
+    fig.colorbar(sm, ax=ax, label="time [s]", shrink=0.8)
+    ax.set_title(f"{scenario.name}: arm shapes over time")
+    ax.grid(True, alpha=0.3)
+    ax.legend(loc="best", fontsize=8)
+    fig.tight_layout()
+    image = io.BytesIO()
+    fig.savefig(image, format="png", dpi=110)
+    plt.close(fig)
+    write_file(path, image.getvalue())
