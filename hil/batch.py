@@ -15,6 +15,7 @@ batch run twice, or locally and on a Dask cluster, writes the same bytes.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import io
 import itertools
@@ -413,9 +414,12 @@ class Execution:
     progress: bool = True
 
 
-def execute(specs: Sequence[TrialSpec], execution: Execution) -> list[dict[str, Any]]:
-    """Run every trial; the outcomes ordered by trial index. A trial whose worker died comes
-    back failed like any other; only an interrupt or a lost scheduler ends the whole batch."""
+def execute(
+    specs: Sequence[TrialSpec], execution: Execution, client: Any = None
+) -> list[dict[str, Any]]:
+    """Run every trial, on `client` (a connected dask.distributed Client) if given, else on
+    local processes; the outcomes ordered by trial index. A trial whose worker died comes back
+    failed like any other; only an interrupt or a lost scheduler ends the whole batch."""
     from tqdm import tqdm
 
     by_index: dict[int, dict[str, Any]] = {}
@@ -433,8 +437,8 @@ def execute(specs: Sequence[TrialSpec], execution: Execution) -> list[dict[str, 
             bar.set_postfix(failed=failed, refresh=False)
             bar.update()
 
-        if execution.scheduler:
-            _run_dask(specs, execution.scheduler, done)
+        if client is not None:
+            _run_dask(specs, client, done)
         else:
             _run_local(specs, execution.workers or os.cpu_count() or 1, done)
     return [by_index[spec.index] for spec in specs]
@@ -460,7 +464,8 @@ def _context() -> multiprocessing.context.BaseContext:
     start, and safe even when this process runs threads (a Dask client, a progress bar)."""
     if "forkserver" in multiprocessing.get_all_start_methods():
         context = multiprocessing.get_context("forkserver")
-        context.set_forkserver_preload(["hil.batch"])
+        # the run's plotting and estimation report too: every worker forks warm
+        context.set_forkserver_preload(["hil.batch", "hil.plots", "hil.estimation"])
         return context
     return multiprocessing.get_context("spawn")
 
@@ -490,32 +495,42 @@ def _run_local(
     pool.shutdown(wait=True)
 
 
-def _run_dask(
-    specs: Sequence[TrialSpec],
-    address: str,
-    done: Callable[[TrialSpec, dict[str, Any]], None],
-) -> None:
+def connect(address: str) -> Any:
+    """A dask.distributed Client of the scheduler at `address`; one-line HilError if none."""
     try:
         from distributed import Client
-        from distributed import as_completed as dask_completed
     except ImportError:  # pragma: no cover - a dependency of softhil
         raise HilError(
             "--scheduler: needs dask.distributed (pip install 'dask[distributed]')"
         ) from None
     try:
-        client = Client(address, timeout="10s", set_as_default=False)
+        # the connect timeout is dask's (distributed.comm.timeouts.connect, 30 s by default)
+        client = Client(address, set_as_default=False)
     except (OSError, TimeoutError, ValueError) as exc:
         raise HilError(f"--scheduler {address}: cannot connect: {_one_line(exc)}") from None
-    with client:
-        futures = client.map(run_trial, list(specs), pure=False)
+    return client
+
+
+def _run_dask(
+    specs: Sequence[TrialSpec],
+    client: Any,
+    done: Callable[[TrialSpec, dict[str, Any]], None],
+) -> None:
+    from distributed import as_completed as dask_completed
+
+    futures = client.map(run_trial, list(specs), pure=False)
+    try:
         by_future = dict(zip(futures, specs, strict=True))
-        for future in dask_completed(futures):
+        for future in dask_completed(futures, loop=client.loop):
             spec = by_future[future]
             try:
                 outcome = future.result()
             except Exception as exc:  # KilledWorker and the like: this trial is lost
                 outcome = _lost(spec, exc)
             done(spec, outcome)
+    except BaseException:
+        client.cancel(futures)  # an interrupt: leave the cluster free for the next batch
+        raise
 
 
 # ------------------------------------------------------------------ the report
@@ -622,9 +637,11 @@ def run_plan(plan: Plan, execution: Execution) -> dict[str, Any]:
     """Run every trial into `plan.out` (new or empty) and write batch.json, timing.json and
     batch.png; returns the batch.json content. Failed trials do not raise: see its
     `failed_trials`."""
-    with ResultsFolder(plan.out, OUTPUT_FILES) as folder:
+    # connect first: an unreachable scheduler leaves no results folder behind
+    client = connect(execution.scheduler) if execution.scheduler else None
+    with client or contextlib.nullcontext(), ResultsFolder(plan.out, OUTPUT_FILES) as folder:
         started = time.perf_counter()
-        outcomes = execute(plan.trials, execution)
+        outcomes = execute(plan.trials, execution, client)
         wall_time = time.perf_counter() - started
         content = report(plan, outcomes)
         write_file(folder.claim("batch.json"), batch_json(content))
