@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import re
 import statistics
 import tomllib
@@ -131,7 +132,10 @@ def test_dask_local_cluster_gives_the_local_batch_json(
     ) as cluster:
         code, _, err = hil(capsys, "batch", "short", "--trials", 3, "--out", out, "--no-progress",
                            "--scheduler", cluster.scheduler_address)  # fmt: skip
+        with distributed.Client(cluster) as client:
+            workers = set(client.run(os.getpid).values())
     assert code == 0, err
+    assert {t["pid"] for t in load(out / "timing.json")["trials"]} <= workers  # ran there
     assert (out / "batch.json").read_bytes() == (local_batch / "batch.json").read_bytes()
     timing = load(out / "timing.json")
     assert timing["executor"] == "dask" and timing["scheduler"] == cluster.scheduler_address
