@@ -3,8 +3,9 @@
 A scenario names the robot (its FMUs and parameters), extra connections, rates, bus, camera,
 safety limits, controller and task, seed and duration. `load_scenario` returns a frozen
 `Scenario` or raises `ScenarioError` with one line naming the file, the key and the reason
-(unknown key, wrong type, missing FMU, impossible rate, value out of range). The default scenario
-ships inside the package (`hil/scenarios/default.toml`).
+(unknown key, wrong type, missing FMU, impossible rate, value out of range). The built-in
+scenarios ship inside the package: every `hil/scenarios/*.toml`, named by its file stem
+(`builtin_scenarios`, `resolve_scenario`); `default` is the one `hil run` runs.
 """
 
 from __future__ import annotations
@@ -26,7 +27,8 @@ from controllers.trajectories import CurvatureProfile, Sine
 from hil.errors import HilError, ScenarioError
 from hil.vision import CameraEffects, check_effects
 
-DEFAULT_SCENARIO = Path(str(files("hil") / "scenarios" / "default.toml"))
+SCENARIO_FOLDER = Path(str(files("hil") / "scenarios"))  # the built-in scenarios
+DEFAULT_SCENARIO = SCENARIO_FOLDER / "default.toml"
 DEFAULT_LOG_START = "2015-06-01T00:00:00Z"  # the thesis's year; see RecordingSpec
 _NAME = re.compile(r"[A-Za-z0-9_.-]+")
 
@@ -224,6 +226,48 @@ def load_scenario(path: Path | None = None, *, seed: int | None = None) -> Scena
         scenario = replace(scenario, seed=seed)
     _check(scenario)
     return scenario
+
+
+@dataclass(frozen=True)
+class BuiltinScenario:
+    """A scenario shipped in `hil/scenarios/`: `hil run NAME` runs it."""
+
+    name: str  # the file stem
+    path: Path
+    description: str  # its `description` key ("" where it has none or cannot be read)
+
+
+def builtin_scenarios() -> dict[str, BuiltinScenario]:
+    """Every `*.toml` in the package's scenario folder, by name (the file stem), sorted.
+
+    Only the `description` is read here; a broken file is still listed (with no description)
+    so that `hil run NAME` reports its problem with the file, key and reason."""
+    found: dict[str, BuiltinScenario] = {}
+    for path in sorted(SCENARIO_FOLDER.glob("*.toml")):
+        try:
+            description = tomllib.loads(path.read_text(encoding="utf-8")).get("description", "")
+        except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
+            description = ""
+        text = description if isinstance(description, str) else ""
+        found[path.stem] = BuiltinScenario(path.stem, path, " ".join(text.split()))
+    return found
+
+
+def resolve_scenario(name_or_path: str | Path) -> Path:
+    """The scenario file meant by a command-line argument: an existing file first (a file in
+    the working directory wins over a built-in of the same name), else a built-in name, else a
+    ScenarioError listing the built-in names."""
+    path = Path(name_or_path)
+    if path.is_file():
+        return path
+    builtin = builtin_scenarios()
+    if str(name_or_path) in builtin:
+        return builtin[str(name_or_path)].path
+    known = ", ".join(builtin) or "none"
+    raise ScenarioError(
+        f"{name_or_path}: no such scenario file or built-in scenario (built-in: {known}; "
+        "`hil scenarios` lists them)"
+    )
 
 
 def _robot_section(raw: Any, file: str, key: str) -> Any:

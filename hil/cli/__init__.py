@@ -15,16 +15,20 @@ import threading
 from collections.abc import Callable, Sequence
 
 from controllers.protocol import FrameError
+from hil.cli import batch as batch_command
 from hil.cli import bus as bus_command
 from hil.cli import controller as controller_command
 from hil.cli import estimate as estimate_command
 from hil.cli import fmu as fmu_command
 from hil.cli import replay as replay_command
 from hil.cli import run as run_command
+from hil.cli import scenarios as scenarios_command
 from hil.errors import HilError, Terminated
 
 SUBCOMMANDS = (
     run_command,
+    scenarios_command,
+    batch_command,
     replay_command,
     estimate_command,
     controller_command,
@@ -37,6 +41,9 @@ EXIT_OK, EXIT_ERROR, EXIT_USAGE, EXIT_INTERRUPTED, EXIT_TERMINATED = 0, 1, 2, 13
 EXAMPLES = """examples:
   hil run                         run the default scenario, results in ./runs/<name>-<seed>/
   hil run my.toml --inprocess     controller in this process, virtual bus
+  hil scenarios                   the built-in scenarios (hil run NAME runs one)
+  hil batch --trials 20           20 seeds of the default scenario in parallel
+  hil sweep --set controller.crossover=0.5,1,2   a parameter grid
   hil bus load                    bus load of the default scenario
   hil fmu build                   build every FMU into the per-user cache
   hil fmu check DriveCylinder     validate an FMU with fmpy and simulate it briefly

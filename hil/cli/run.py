@@ -9,7 +9,7 @@ from pathlib import Path
 
 from hil.errors import HilError
 from hil.run import RunOptions, run_scenario
-from hil.scenario import load_scenario
+from hil.scenario import load_scenario, resolve_scenario
 
 
 def add_parser(commands: argparse._SubParsersAction) -> None:
@@ -20,12 +20,19 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
         "run",
         "run a scenario: the plant here, the controller as a separate program, over CAN",
         "  hil run                                  the default scenario\n"
+        "  hil run planar-path                      a built-in scenario (`hil scenarios`)\n"
         "  hil run my.toml --out runs/try1 --seed 7\n"
         "  hil run --inprocess                      controller in this process, virtual bus\n"
         "  hil run --realtime                       SYNC paced by the wall clock\n"
         "  hil run --bus loopback:127.0.0.1:29536   join a hub started by `hil bus serve`\n",
     )
-    parser.add_argument("scenario", nargs="?", type=Path, help="scenario TOML (default: built-in)")
+    parser.add_argument(
+        "scenario",
+        nargs="?",
+        metavar="NAME|FILE",
+        help="a scenario TOML file, or the name of a built-in scenario (`hil scenarios`); "
+        "default: the built-in default",
+    )
     parser.add_argument(
         "--out",
         help="results folder, new or empty (default: runs/NAME-SEED); softhil never replaces "
@@ -68,7 +75,8 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
 def _run(args: argparse.Namespace) -> int:
     if args.out is not None and not args.out.strip():
         raise HilError("--out: an empty folder name; name the results folder")
-    scenario = load_scenario(args.scenario, seed=args.seed)
+    path = None if args.scenario is None else resolve_scenario(args.scenario)
+    scenario = load_scenario(path, seed=args.seed)
     out = Path(args.out) if args.out else Path("runs") / f"{scenario.name}-{scenario.seed}"
     result = run_scenario(
         scenario,

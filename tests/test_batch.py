@@ -1,0 +1,313 @@
+"""`hil batch`, `hil sweep`, `hil scenarios` and `hil run NAME` (issue 11).
+
+The runs use a 0.3 s variant of the default scenario (one curvature step at 0.05 s, the realistic
+camera, so that seeds change the results) offered as a built-in scenario `short` from a temporary
+scenario folder. Acceptance: a batch run twice gives the same batch.json; a Dask LocalCluster run
+gives the same batch.json as the local one.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import re
+import statistics
+import tomllib
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from hil import batch
+from hil.cli import main
+from hil.errors import HilError, ScenarioError
+from hil.scenario import DEFAULT_SCENARIO, builtin_scenarios, resolve_scenario
+
+SHORT = re.sub(
+    r"(?m)^sine = .*\n",
+    "",
+    DEFAULT_SCENARIO.read_text()
+    .replace("duration = 10.0", "duration = 0.3")
+    .replace('name = "default"', 'name = "short"')
+    .replace("One segment tracking", "0.3 s: one segment tracking"),
+)
+SHORT = re.sub(r"(?m)^steps = .*$", "steps = [[0.0, 0.0], [0.05, 10.0]]", SHORT)
+BROKEN = 'name = "broken"\ndescription = "a built-in with an unknown key"\nduraton = 1.0\n'
+
+
+@pytest.fixture(scope="module")
+def builtins(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
+    """A scenario folder holding `short` and `broken`, in place of the package's."""
+    folder = tmp_path_factory.mktemp("scenarios")
+    (folder / "short.toml").write_text(SHORT)
+    (folder / "broken.toml").write_text(BROKEN)
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr("hil.scenario.SCENARIO_FOLDER", folder)
+        yield folder
+
+
+def hil(capsys: pytest.CaptureFixture[str], *argv: str) -> tuple[int, str, list[str]]:
+    """Exit code, stdout and the lines of stderr of `hil ARGV`."""
+    code = main([*map(str, argv)])
+    out, err = capsys.readouterr()
+    return code, out, err.splitlines()
+
+
+@pytest.fixture(scope="module")
+def local_batch(builtins: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("local") / "batch"
+    code = main(["batch", "short", "--trials", "3", "--workers", "2", "--out", str(out)])
+    assert code == 0
+    return out
+
+
+def load(path: Path) -> dict:
+    return json.loads(path.read_text())
+
+
+# ------------------------------------------------------------------ batch
+
+
+def test_a_batch_run_twice_writes_the_same_batch_json(
+    local_batch: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Acceptance; the second run has one worker, so neither the worker count nor the order in
+    which trials finish may show in the file."""
+    out = tmp_path / "again"
+    code, stdout, _ = hil(capsys, "batch", "short", "--trials", 3, "--workers", 1, "--out", out,
+                          "--no-progress")  # fmt: skip
+    assert code == 0 and "3 completed" in stdout
+    assert (out / "batch.json").read_bytes() == (local_batch / "batch.json").read_bytes()
+
+
+def test_batch_json_trials_seeds_and_aggregates(local_batch: Path) -> None:
+    report = load(local_batch / "batch.json")
+    trials = report["trials"]
+    assert report["seeds"] == [1, 2, 3] and [t["seed"] for t in trials] == [1, 2, 3]
+    assert [t["index"] for t in trials] == [0, 1, 2]
+    assert report["command"] == "hil batch short --trials 3" and report["scenario"] == "short"
+    for trial in trials:  # each trial ran its own seed in its own folder
+        folder = local_batch / trial["folder"]
+        ran = tomllib.loads((folder / "scenario.toml").read_text())
+        assert ran["seed"] == trial["seed"] and ran["duration"] == 0.3
+        summary = load(folder / "summary.json")
+        assert summary["seed"] == trial["seed"] and summary["status"] == "completed"
+        assert trial["metrics"] == batch.metrics(summary)
+        assert trial["metrics"]["rms_tracking_error"] == summary["rms_tracking_error"]
+    errors = [t["metrics"]["rms_tracking_error"] for t in trials]
+    assert len(set(errors)) == 3, "the seeds made no difference: the camera noise is not seeded"
+    stats = report["aggregate"]["rms_tracking_error"]
+    assert stats["n"] == 3 and stats["min"] == min(errors) and stats["max"] == max(errors)
+    assert math.isclose(stats["mean"], statistics.fmean(errors), rel_tol=1e-15)
+    assert math.isclose(stats["std"], statistics.stdev(errors), rel_tol=1e-15)
+    assert report["completed"] == 3 and report["failed"] == 0 and not report["failed_trials"]
+    assert "success_rate" not in report  # the curvature task defines no success
+    timing = load(local_batch / "timing.json")
+    assert timing["executor"] == "local" and len(timing["trials"]) == 3
+    assert (local_batch / "batch.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_metrics_leave_out_the_wall_clock(local_batch: Path) -> None:
+    summary = load(local_batch / "trial-000" / "summary.json")
+    assert {"wall_time", "real_time_factor", "startup_time"} <= summary.keys()
+    names = set(batch.metrics(summary))
+    assert "rms_tracking_error" in names and "bus_load" in names
+    assert not names & {"wall_time", "real_time_factor", "startup_time", "seed", "duration"}
+    assert batch.metrics({"a": 1, "b": 2.5, "ok": True, "t": {"x": 1}, "s": "x", "n": None}) == {
+        "a": 1,
+        "b": 2.5,
+    }
+    assert batch.metrics({"controller_wall_time": 1.0, "planner_startup_time": 2.0}) == {}
+
+
+def test_dask_local_cluster_gives_the_local_batch_json(
+    local_batch: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Acceptance: the same trials on a dask.distributed LocalCluster of two processes."""
+    distributed = pytest.importorskip("distributed")
+    out = tmp_path / "dask"
+    with distributed.LocalCluster(
+        n_workers=2, processes=True, threads_per_worker=1, dashboard_address=None
+    ) as cluster:
+        code, _, err = hil(capsys, "batch", "short", "--trials", 3, "--out", out, "--no-progress",
+                           "--scheduler", cluster.scheduler_address)  # fmt: skip
+        with distributed.Client(cluster) as client:
+            workers = set(client.run(os.getpid).values())
+    assert code == 0, err
+    assert {t["pid"] for t in load(out / "timing.json")["trials"]} <= workers  # ran there
+    assert (out / "batch.json").read_bytes() == (local_batch / "batch.json").read_bytes()
+    timing = load(out / "timing.json")
+    assert timing["executor"] == "dask" and timing["scheduler"] == cluster.scheduler_address
+
+
+def test_an_unreachable_scheduler_is_one_line(
+    builtins: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    dask = pytest.importorskip("dask")
+    with dask.config.set({"distributed.comm.timeouts.connect": "0.2s"}):
+        code, _, err = hil(capsys, "batch", "short", "--trials", 1, "--out", tmp_path / "x",
+                           "--scheduler", "tcp://127.0.0.1:1", "--no-progress")  # fmt: skip
+    assert code == 1 and len(err) == 1 and "--scheduler tcp://127.0.0.1:1" in err[0]
+    assert not (tmp_path / "x").exists()
+
+
+# ------------------------------------------------------------------ sweep
+
+
+def test_sweep_grid_folders_and_a_failing_value(
+    builtins: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A 2x2 grid: a 3 kPa over-pressure limit stops the strict run at the step (at run time,
+    not at load), the others complete; every trial keeps its folder and the values it ran."""
+    out = tmp_path / "sweep"
+    code, stdout, err = hil(capsys, "sweep", "short", "--set", "safety.max_pressure=3000,60000",
+                            "--set", "controller.estimator=kf,ukf", "--seed", 7, "--out", out,
+                            "--no-progress")  # fmt: skip
+    assert code == 1 and err[-1].startswith("hil: error: 2 of 4 trials failed")
+    assert "seed 7" in err[-1] and "over-pressure" in err[-1]
+    report = load(out / "batch.json")
+    expected = [(3000, "kf"), (3000, "ukf"), (60000, "kf"), (60000, "ukf")]
+    for trial, (pressure, estimator) in zip(report["trials"], expected, strict=True):
+        ran = tomllib.loads((out / trial["folder"] / "scenario.toml").read_text())
+        assert ran["safety"]["max_pressure"] == pressure
+        assert trial["overrides"] == {
+            "safety.max_pressure": pressure,
+            "controller.estimator": estimator,
+        }
+        assert ran["controller"]["estimator"] == estimator and ran["seed"] == trial["seed"] == 7
+        assert load(out / trial["folder"] / "summary.json")["seed"] == 7
+        if pressure == 3000:
+            assert trial["status"] == "failed" and "over-pressure" in trial["error"]
+            assert not trial["metrics"]
+        else:
+            assert trial["status"] == "completed" and trial["metrics"]["rms_tracking_error"] > 0
+    assert [(f["index"], f["seed"]) for f in report["failed_trials"]] == [(0, 7), (1, 7)]
+    assert report["grid"]["keys"] == ["safety.max_pressure", "controller.estimator"]
+    assert [p["trials"] for p in report["points"]] == [[0], [1], [2], [3]]
+    assert [p["failed"] for p in report["points"]] == [1, 1, 0, 0]
+    assert report["points"][2]["aggregate"]["rms_tracking_error"]["n"] == 1
+    assert report["aggregate"]["rms_tracking_error"]["n"] == 2
+    assert len(list(out.glob("trial-*/scenario.toml"))) == 4
+    assert "[safety.max_pressure=60000 controller.estimator=ukf]" in stdout
+
+
+@pytest.mark.parametrize(
+    ("option", "reason"),
+    [
+        ("controller.crossover=-1.0", "controller.crossover"),
+        ("controller.crossovr=1.0", "unknown key"),
+        ("valve.open_time=0.1", "robot.valve: unknown key"),
+        ("camera.noise=0.001,fast", "camera.noise: must be a number"),
+        ("controller.crossover", "expected section.key=value"),
+        ("controller.crossover=1,1", "repeated"),
+        ("controller.crossover=[1", "not a TOML value"),
+        ("seed=1,2", "use --seed and --trials"),
+    ],
+)
+def test_set_errors_are_one_line_before_anything_runs(
+    builtins: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], option: str, reason: str
+) -> None:
+    out = tmp_path / "never"
+    code, _, err = hil(capsys, "sweep", "short", "--set", option, "--out", out)
+    assert code == 1 and len(err) == 1, err
+    assert err[0].startswith(f"hil: error: --set {option.partition('=')[0]}") and reason in err[0]
+    assert not out.exists()
+
+
+def test_parse_set_values_and_the_robot_fallback() -> None:
+    crossover = batch.parse_set("controller.crossover=0.5,1,2e-1")
+    assert crossover.key == "controller.crossover" and crossover.values == (0.5, 1, 0.2)
+    assert batch.parse_set("segment.bore=0.02").key == "robot.segment.bore"
+    assert batch.parse_set("robot.segments=1,2").key == "robot.segments"
+    assert batch.parse_set("duration=0.2").key == "duration"
+    assert batch.parse_set("controller.estimator=kf,ukf").values == ("kf", "ukf")
+    assert batch.parse_set('a.b="x,y",true,[1, 2]').values == ("x,y", True, [1, 2])
+    data = {"robot": {"kind": "planar_arm"}, "camera": {"noise": 0.0}}
+    changed = batch.apply_overrides(data, [("robot.segment.3.bore", 0.02), ("camera.noise", 1.0)])
+    assert changed == {
+        "robot": {"kind": "planar_arm", "segment": {"3": {"bore": 0.02}}},
+        "camera": {"noise": 1.0},
+    }
+    assert data["camera"]["noise"] == 0.0  # the parsed scenario is not touched
+    with pytest.raises(HilError, match="camera.noise is not a table"):
+        batch.apply_overrides(data, [("camera.noise.x", 1.0)])
+
+
+def test_toml_writer_round_trip(builtins: Path) -> None:
+    for scenario in [DEFAULT_SCENARIO, builtins / "short.toml"]:
+        data = tomllib.loads(scenario.read_text())
+        assert tomllib.loads(batch.dumps_toml(data)) == data
+    data = {
+        "name": 'quote " backslash \\ newline \n tab \t del \x7f e\u0301 \U0001f41f',
+        "f": [0.1, 1e-300, 1.7976931348623157e308, -0.0, 5e-324, math.inf, -math.inf],
+        "i": [0, -1, 2**63 - 1],
+        "b": [True, False],
+        "empty": [],
+        "nested": [[1, 2], ["a"], [{"x": 1}]],
+        "key with space": {"inline": {"a": 1}, "deep": {"er": {"still": "x"}}},
+        "connections": [
+            {"from": "a.b", "to": "c.d", "sub": {"gain": 2.0}},
+            {"from": "e.f", "to": "g.h", "sub": {"gain": 3.0}},
+        ],
+        "table": {},
+    }
+    assert tomllib.loads(batch.dumps_toml(data)) == data
+    assert math.isnan(tomllib.loads(batch.dumps_toml({"x": math.nan}))["x"])
+
+
+def test_success_rate_counts_failed_trials_as_unsuccessful(builtins: Path, tmp_path: Path) -> None:
+    """Later tasks' summaries carry a boolean `success`; the rate is over every trial."""
+    plan = batch.make_plan(
+        builtins / "short.toml", kind="batch", command="c", out=tmp_path / "p", trials=4
+    )
+    outcomes = [
+        {"status": "completed", "error": None, "metrics": {"e": 1.0}, "success": True},
+        {"status": "completed", "error": None, "metrics": {"e": 3.0}, "success": False},
+        {"status": "completed", "error": None, "metrics": {"e": 2.0}, "success": True},
+        {"status": "failed", "error": "boom", "metrics": {}, "success": None},
+    ]
+    report = batch.report(plan, outcomes)
+    assert report["success_rate"] == 0.5
+    assert report["aggregate"]["e"] == {"mean": 2.0, "std": 1.0, "min": 1.0, "max": 3.0, "n": 3}
+    assert report["failed_trials"] == [
+        {"index": 3, "seed": 4, "folder": "trial-003", "error": "boom"}
+    ]
+    assert [t.get("success") for t in report["trials"]] == [True, False, True, None]
+    assert not (tmp_path / "p").exists()  # planning writes nothing
+
+
+# ------------------------------------------------------------------ scenarios and run NAME
+
+
+def test_hil_scenarios_lists_default(capsys: pytest.CaptureFixture[str], monkeypatch) -> None:
+    monkeypatch.setattr("hil.scenario.SCENARIO_FOLDER", DEFAULT_SCENARIO.parent)  # the package's
+    code, stdout, _ = hil(capsys, "scenarios")
+    description = tomllib.loads(DEFAULT_SCENARIO.read_text())["description"]
+    assert code == 0 and re.search(rf"(?m)^default +{re.escape(description)}$", stdout)
+
+
+def test_every_toml_in_the_scenario_folder_is_a_builtin(
+    builtins: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    found = builtin_scenarios()
+    assert list(found) == ["broken", "short"]
+    assert found["broken"].description == "a built-in with an unknown key"
+    code, stdout, _ = hil(capsys, "scenarios")
+    assert code == 0 and stdout.splitlines()[1].startswith("short   0.3 s: one segment")
+
+
+def test_run_name_resolves_builtins_files_first_and_lists_the_known(
+    builtins: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch
+) -> None:
+    assert resolve_scenario("short") == builtins / "short.toml"
+    monkeypatch.chdir(tmp_path)
+    Path("short").write_text(SHORT)  # an existing path wins over a built-in name
+    assert resolve_scenario("short") == Path("short")
+    # the built-in's own problem is reported with its file: the name was resolved to it
+    code, _, err = hil(capsys, "run", "broken", "--inprocess")
+    assert code == 1 and len(err) == 1 and f"{builtins / 'broken.toml'}: duraton" in err[0]
+    code, _, err = hil(capsys, "run", "nonesuch", "--inprocess")
+    assert code == 1 and len(err) == 1 and "nonesuch" in err[0] and "broken, short" in err[0]
+    with pytest.raises(ScenarioError, match="built-in: broken, short"):
+        resolve_scenario("nonesuch.toml")
