@@ -239,6 +239,35 @@ static double dot(const double a[N_LAT], const double b[N_LAT]) {
     return sum;
 }
 
+/* A piece resting against its mechanical limit and pushed further is held there: a constraint
+ * force lambda on its bend coordinate, M nu' = F + sum lambda_j e_j with theta_j'' = 0, solved
+ * exactly on the constant mass matrix (at most two pieces). It does no work (theta_j' = 0), so the
+ * energy balance holds; the stop itself is the projection in model_after_substep. */
+static void stop_at_limits(const Instance *inst, const double y[], const double F[N_LAT],
+                           double acc[N_LAT]) {
+    const State *s = (const State *)inst->state;
+    const double limit = V(inst, theta_max);
+    int active[N_PIECES], n = 0, j, i;
+    (void)F;
+    for (j = 0; j < N_PIECES; j++) {
+        const double th = y[TH_1 + j], rate = y[NU_W1 + j], a = acc[2 + j];
+        if ((th >= limit && rate >= 0.0 && a > 0.0) || (th <= -limit && rate <= 0.0 && a < 0.0))
+            active[n++] = 2 + j;
+    }
+    if (n == 1) {
+        const int c = active[0];
+        const double lambda = -acc[c] / s->M_inv[c][c];
+        for (i = 0; i < N_LAT; i++) acc[i] += lambda * s->M_inv[i][c];
+    } else if (n == 2) {
+        const int c0 = active[0], c1 = active[1];
+        const double a = s->M_inv[c0][c0], b = s->M_inv[c0][c1], c = s->M_inv[c1][c0],
+                     d = s->M_inv[c1][c1], det = a * d - b * c;
+        const double l0 = (-acc[c0] * d + acc[c1] * b) / det;
+        const double l1 = (-acc[c1] * a + acc[c0] * c) / det;
+        for (i = 0; i < N_LAT; i++) acc[i] += l0 * s->M_inv[i][c0] + l1 * s->M_inv[i][c1];
+    }
+}
+
 int model_derivatives(const Instance *inst, const double y[], double dy[]) {
     const State *s = (const State *)inst->state;
     const double gamma = V(inst, gamma), R = V(inst, R_gas);
@@ -296,6 +325,7 @@ int model_derivatives(const Instance *inst, const double y[], double dy[]) {
         Pdot[1] = Q[1] - u * P[0] + v * P_u;
         for (i = 2; i < N_LAT; i++) Pdot[i] = Q[i];
         for (i = 0; i < N_LAT; i++) dy[NU_V + i] = dot(s->M_inv[i], Pdot);
+        stop_at_limits(inst, y, Pdot, &dy[NU_V]);
         dy[POS_X] = u * cos(y[YAW]) - v * sin(y[YAW]);
         dy[POS_Y] = u * sin(y[YAW]) + v * cos(y[YAW]);
         dy[YAW] = r;
@@ -311,10 +341,37 @@ double model_time_to_event(const Instance *inst) {
 
 void model_discrete_update(Instance *inst) { (void)inst; }
 
-/* The vented mass is the held input integrated exactly (no solver rounding beyond the sum). */
+static double elastic_energy(const Instance *inst, const double y[]);
+static double kinetic_energy(const State *s);
+
+/* The vented mass is the held input integrated exactly (no solver rounding beyond the sum). A
+ * piece past its mechanical limit theta_max is put back on it and stopped (an inelastic stop);
+ * the gas does g dV on the volume change and whatever the stop removes from the elastic and
+ * kinetic energy is counted as dissipated, so the energy balance stays exact. */
 void model_after_substep(Instance *inst, double dt) {
     State *s = (State *)inst->state;
+    double *y = s->y;
+    const double limit = V(inst, theta_max);
+    int j, hit = 0;
     s->m_vented += (V(inst, mdot_vent_a) + V(inst, mdot_vent_b)) * dt;
+    for (j = 0; j < N_PIECES; j++) hit |= fabs(y[TH_1 + j]) > limit;
+    if (hit) {
+        Channels c;
+        double before = elastic_energy(inst, y) + kinetic_energy(s), vol_before[2], vol_after[2];
+        double gas_work;
+        channel_volumes(inst, y, vol_before);
+        if (!channel_state(inst, y, &c)) return; /* model_outputs reports it */
+        for (j = 0; j < N_PIECES; j++) {
+            const double th = y[TH_1 + j];
+            if (fabs(th) <= limit) continue;
+            y[TH_1 + j] = th > 0.0 ? limit : -limit;
+            if (y[NU_W1 + j] * th > 0.0) y[NU_W1 + j] = 0.0;
+        }
+        channel_volumes(inst, y, vol_after);
+        gas_work = c.g[0] * (vol_after[0] - vol_before[0]) + c.g[1] * (vol_after[1] - vol_before[1]);
+        y[W_GAS] += gas_work;
+        y[E_RES] += gas_work + before - elastic_energy(inst, y) - kinetic_energy(s);
+    }
 }
 
 fmi2Status model_step_start(Instance *inst) {
@@ -439,6 +496,13 @@ fmi2Status model_initialize(Instance *inst, OdeSystem *ode) {
                     "invalid parameter substep = %g: beyond the stability limit %g s of the tail "
                     "modes (inertia, stiffness, gas stiffness and damping)",
                     V(inst, substep), ode->stability_limit);
+        return fmi2Error;
+    }
+    if (!(V0 - (V(inst, G_1) + V(inst, G_2)) * V(inst, theta_max) >= 0.25 * V0)) {
+        log_message(inst, fmi2Error,
+                    "invalid parameters: at theta_max = %g rad the compressed channel keeps less "
+                    "than a quarter of V_0 = %g m^3 (reduce G_1, G_2 or theta_max)",
+                    V(inst, theta_max), V0);
         return fmi2Error;
     }
     for (j = 0; j < N_STATES; j++) s->y[j] = 0.0;
