@@ -1,0 +1,252 @@
+"""The soft fish's FMUs (PHYSICS.md section 7, issue 13): nozzle flow against its closed forms,
+gas mass conserved from canister to channels to vents, the work split, the escape calibration, a
+drained canister and forward swimming, through fmpy and a small Jacobi co-simulation loop."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import numpy as np
+import pytest
+from fmpy.validation import validate_fmu
+
+from hil.fmu.build import build_fmu
+from hil.fmu.slave import FmuSlave
+
+H = 1e-3  # communication step [s]
+GAMMA, R_CO2, T0, P_ATM = 1.29, 188.9, 293.15, 101325.0
+BODY = [
+    "yaw", "yaw_rate", "a_head", "surge", "x", "p_a", "p_b", "T_a", "T_b", "m_a", "m_b",
+    "m_vented", "W_gas", "E_elastic", "E_kinetic", "E_resistive",
+]  # fmt: skip
+
+
+def nozzle_closed_form(cda: float, p_u: float, p_d: float, t_u: float = T0) -> float:
+    """Mass flow [kg/s] of an ideal gas through a nozzle, choked or subsonic (PHYSICS.md 7)."""
+    r = p_d / p_u
+    r_c = (2 / (GAMMA + 1)) ** (GAMMA / (GAMMA - 1))
+    if r <= r_c:
+        return (
+            cda * p_u * math.sqrt(GAMMA / (R_CO2 * t_u))
+            * (2 / (GAMMA + 1)) ** ((GAMMA + 1) / (2 * (GAMMA - 1)))
+        )  # fmt: skip
+    bracket = r ** (2 / GAMMA) - r ** ((GAMMA + 1) / GAMMA)
+    return cda * p_u * math.sqrt(2 * GAMMA / ((GAMMA - 1) * R_CO2 * t_u) * bracket)
+
+
+class Fish:
+    """GasSource, two FishValves and FishBody stepped together (Jacobi, zero-order hold)."""
+
+    def __init__(self, body=None, valve=None, source=None) -> None:  # noqa: ANN001
+        self.src = FmuSlave(build_fmu("GasSource"), "source", source or {})
+        self.valves = [FmuSlave(build_fmu("FishValve"), f"valve_{s}", valve or {}) for s in "ab"]
+        self.body = FmuSlave(build_fmu("FishBody"), "body", body or {})
+        vr = lambda slave, names: [slave.value_reference(n) for n in names]  # noqa: E731
+        self.src_out = vr(self.src, ["p_supply", "T_supply", "m_canister"])
+        self.src_in = vr(self.src, ["mdot_a", "mdot_b"])
+        self.v_out = vr(self.valves[0], ["mdot_in", "mdot_vent"])
+        self.v_in = vr(self.valves[0], ["p_supply", "T_supply", "p_channel", "T_channel"])
+        self.b_in = vr(self.body, ["mdot_in_a", "mdot_vent_a", "mdot_in_b", "mdot_vent_b"])
+        self.b_in += vr(self.body, ["T_supply"])
+        self.b_out = vr(self.body, BODY)
+        self.k = 0
+        self.command = [False, False]
+
+    def step(self, open_a: bool, open_b: bool) -> None:
+        p_s, t_s, _ = self.src.get_reals(self.src_out)
+        flows = [v.get_reals(self.v_out) for v in self.valves]
+        b = dict(zip(BODY, self.body.get_reals(self.b_out), strict=True))
+        for side, (valve, command) in enumerate(zip(self.valves, (open_a, open_b), strict=True)):
+            if command != self.command[side]:
+                valve.set("open", command)
+                self.command[side] = command
+        self.src.set_reals(self.src_in, [flows[0][0], flows[1][0]])
+        self.valves[0].set_reals(self.v_in, [p_s, t_s, b["p_a"], b["T_a"]])
+        self.valves[1].set_reals(self.v_in, [p_s, t_s, b["p_b"], b["T_b"]])
+        self.body.set_reals(self.b_in, [*flows[0], *flows[1], t_s])
+        for slave in (self.src, *self.valves, self.body):
+            slave.do_step(self.k * H, H)
+        self.k += 1
+
+    def read(self) -> dict[str, float]:
+        values = dict(zip(BODY, self.body.get_reals(self.b_out), strict=True))
+        values["m_canister"], values["p_supply"] = (
+            self.src.get("m_canister"),
+            self.src.get("p_supply"),
+        )
+        values["empty"] = float(self.src.get("empty"))
+        return values
+
+    def close(self) -> None:
+        for slave in (self.src, *self.valves, self.body):
+            slave.close()
+
+
+def run(
+    commands: Callable[[int], tuple[bool, bool]], ticks: int, **parameters: dict
+) -> dict[str, np.ndarray]:
+    """Runs the fish for `ticks` steps; values after initialisation first, then after each step."""
+    fish = Fish(**parameters)
+    try:
+        rows = [fish.read()]
+        for k in range(ticks):
+            fish.step(*commands(k))
+            rows.append(fish.read())
+    finally:
+        fish.close()
+    return {key: np.array([row[key] for row in rows]) for key in rows[0]}
+
+
+def escape(t_open: float, duration: float = 0.5, **parameters: dict) -> dict[str, np.ndarray]:
+    """Open-loop escape: valve a open for t_open, then closed (venting)."""
+    n_open = round(t_open / H)
+    return run(lambda k: (k < n_open, False), round(duration / H), **parameters)
+
+
+# ------------------------------------------------------------------ valve
+
+
+@pytest.mark.parametrize("p_channel_abs", [101325.0, 150e3, 0.5475 * 300e3, 220e3, 280e3, 299e3])
+def test_nozzle_flow_equals_the_closed_forms(p_channel_abs: float) -> None:
+    d, cd, p_supply = 0.8e-3, 0.8, 300e3
+    inputs = {"open": True, "p_supply": p_supply, "p_channel": p_channel_abs - P_ATM}
+    with FmuSlave(build_fmu("FishValve"), "valve", inputs) as valve:
+        valve.do_step(0.0, H)
+        expected = nozzle_closed_form(cd * math.pi * d**2 / 4, p_supply, p_channel_abs)
+        assert valve.get("opening") == 1.0
+        assert valve.get("mdot_in") == pytest.approx(expected, rel=1e-12)
+        assert valve.get("mdot_vent") == 0.0  # the vent is shut while the valve is open
+        assert valve.get("choked") == (p_channel_abs / p_supply <= 0.5475)
+
+
+def test_nozzle_flow_is_continuous_at_the_critical_ratio_and_reverses() -> None:
+    r_c = (2 / (GAMMA + 1)) ** (GAMMA / (GAMMA - 1))
+    assert r_c == pytest.approx(0.5475, abs=1e-4)
+    p_supply = 250e3
+    flows = {}
+    for name, ratio in {"below": r_c * (1 - 1e-9), "above": r_c * (1 + 1e-9), "back": 1.2}.items():
+        inputs = {"open": True, "p_supply": p_supply, "p_channel": ratio * p_supply - P_ATM}
+        with FmuSlave(build_fmu("FishValve"), "valve", inputs) as valve:
+            assert valve.get("critical_ratio") == pytest.approx(r_c, rel=1e-14)
+            flows[name] = valve.get("mdot_in")
+            flows[name + "_choked"] = valve.get("choked")
+    assert flows["below_choked"] and not flows["above_choked"]
+    assert flows["above"] == pytest.approx(flows["below"], rel=1e-8)
+    assert flows["back"] < 0.0  # a channel above the supply pushes back
+
+
+def test_closed_valve_vents_the_channel_by_the_same_law() -> None:
+    inputs = {"open": False, "p_channel": 60e3, "T_channel": 310.0}
+    with FmuSlave(build_fmu("FishValve"), "valve", inputs) as valve:
+        expected = nozzle_closed_form(0.8 * math.pi * 1e-3**2 / 4, P_ATM + 60e3, P_ATM, 310.0)
+        assert valve.get("mdot_vent") == pytest.approx(expected, rel=1e-12)
+        assert valve.get("mdot_in") == 0.0
+
+
+def test_valve_opens_after_its_dead_time_and_lag() -> None:
+    with FmuSlave(build_fmu("FishValve"), "valve", {"p_supply": 300e3}) as valve:
+        valve.set("open", True)
+        opening = []
+        for k in range(12):
+            valve.do_step(k * H, H)
+            opening.append(valve.get("opening"))
+    # dead time 5 ms, then 1 - exp(-t / 2 ms)
+    assert opening[:5] == [0.0] * 5
+    for k in range(5, 12):
+        assert opening[k] == pytest.approx(1 - math.exp(-((k + 1) * H - 5e-3) / 2e-3), rel=1e-9)
+
+
+# ------------------------------------------------------------------ the coupled fish
+
+
+def test_gas_mass_is_conserved_from_canister_to_channels_and_vents() -> None:
+    rng = np.random.default_rng(13)
+    sequence = rng.random((40, 2)) < 0.5  # a random valve pattern, 10 ms per entry
+    r = run(lambda k: tuple(sequence[k // 10]), 400)
+    canister_loss = r["m_canister"][0] - r["m_canister"]
+    channel_gain = (r["m_a"] + r["m_b"]) - (r["m_a"][0] + r["m_b"][0])
+    assert canister_loss[-1] > 1e-5  # gas really moved
+    assert r["m_vented"][-1] > 1e-6  # and some was vented
+    np.testing.assert_allclose(canister_loss, channel_gain + r["m_vented"], rtol=0, atol=1e-15)
+
+
+def test_work_split_closes_and_gas_work_bounds_elastic_plus_resistive() -> None:
+    r = escape(0.06, duration=0.4)
+    balance = r["W_gas"] - (r["E_elastic"] + r["E_kinetic"] + r["E_resistive"])
+    assert r["W_gas"][-1] > 0.05
+    assert np.max(np.abs(balance)) < 1e-6 * r["W_gas"][-1]
+    assert np.all(r["E_elastic"] + r["E_resistive"] <= r["W_gas"] + 1e-12)
+    assert np.all(np.diff(r["E_resistive"]) >= -1e-15)  # dissipation only grows
+
+
+def calibration_runs(d_nozzle: float = 0.8e-3) -> dict[float, dict[str, float]]:
+    """Heading change (peak |yaw|) [deg], turn time to it [s], peak yaw rate [deg/s] and peak head
+    acceleration [m/s^2] of an escape per valve-open time."""
+    out = {}
+    for t_open in (0.02, 0.04, 0.06, 0.08, 0.10, 0.12):
+        r = escape(t_open, valve={"d_nozzle": d_nozzle})
+        yaw = np.degrees(r["yaw"])
+        peak = int(np.argmax(np.abs(yaw)))
+        out[t_open] = {
+            "heading": abs(yaw[peak]),
+            "turn_time": peak * H,
+            "yaw_rate": float(np.degrees(np.abs(r["yaw_rate"])).max()),
+            "accel": float(r["a_head"].max()),
+        }
+    return out
+
+
+@pytest.fixture(scope="module")
+def calibration() -> dict[float, dict[str, float]]:
+    return calibration_runs()
+
+
+def test_escape_turn_rises_with_open_time_beyond_100_degrees(calibration) -> None:
+    headings = [calibration[t]["heading"] for t in sorted(calibration)]
+    assert all(b > a for a, b in zip(headings, headings[1:], strict=False))
+    assert headings[-1] > 100.0
+
+
+def test_larger_nozzle_gives_a_higher_peak_yaw_rate() -> None:
+    rates = []
+    for d in (0.6e-3, 0.8e-3):
+        r = escape(0.06, duration=0.3, valve={"d_nozzle": d})
+        rates.append(np.abs(r["yaw_rate"]).max())
+    assert rates[1] > 1.2 * rates[0]
+
+
+@pytest.mark.xfail(
+    reason="calibration incomplete: short opens accelerate the head below 16 m/s^2, "
+    "long opens keep turning past 210 ms",
+    strict=True,
+)
+def test_escape_accelerations_and_turn_times_are_biological(calibration) -> None:
+    for values in calibration.values():
+        assert 16.0 <= values["accel"] <= 151.0
+        assert 0.030 <= values["turn_time"] <= 0.210
+
+
+def test_running_the_canister_down_reports_empty_and_stays_physical() -> None:
+    source = {"V_canister": 2e-6, "m_initial": 0.5e-3}  # 0.39 g of vapour, 0.11 g of liquid
+    r = run(lambda k: ((k // 60) % 2 == 0, False), 3000, source=source)
+    empty = r["empty"] > 0.5
+    assert not empty[0] and empty[-1]
+    first = int(np.argmax(empty))
+    assert r["p_supply"][first - 1] == 400e3 and r["p_supply"][-1] < 200e3
+    assert np.all(r["p_supply"][first:] < 400e3)  # the regulator never recovers
+    assert np.all(r["m_canister"] > 0.0)
+    # the fills weaken with the supply
+    assert r["p_a"][-600:].max() < 0.8 * r["p_a"][first - 600 : first].max()
+
+
+def test_alternating_the_sides_swims_forward() -> None:
+    half_period = 125  # 4 Hz tail beat, 50 % duty per side
+    r = run(lambda k: ((k // half_period) % 2 == 0, (k // half_period) % 2 == 1), 1000)
+    # forward speed along the heading, after the first beat
+    assert np.mean(r["surge"][250:]) > 0.02
+
+
+@pytest.mark.parametrize("name", ["GasSource", "FishValve", "FishBody"])
+def test_fish_fmus_pass_fmpy_validation(name: str) -> None:
+    assert validate_fmu(str(build_fmu(name).path)) == []
