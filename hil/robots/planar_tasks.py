@@ -162,9 +162,16 @@ def draw_arm(robot: PlanarArm, scenario: Scenario, signals: Mapping[str, Any], p
     tips = true_tips(robot, scenario, signals)
     fig, ax = plt.subplots(figsize=(7, 7))
     colours = plt.get_cmap("viridis")
-    for j, row in enumerate(np.linspace(0, len(t) - 1, SHAPES).astype(int)):
+    span = max(float(t[-1] - t[0]), 1e-9) if t.size else 1.0
+    for row in np.linspace(0, len(t) - 1, SHAPES).astype(int):  # the arm on its way, faint
         shape = kinematics.backbone(kappas[row], lengths, base)
-        ax.plot(shape[:, 0], shape[:, 1], color=colours(j / (SHAPES - 1)), lw=2, alpha=0.8)
+        ax.plot(shape[:, 0], shape[:, 1], color=colours((t[row] - t[0]) / span), lw=1, alpha=0.35)
+    phase = np.asarray(signals["phase"])
+    for row in np.nonzero((phase == PHASE["settled"]) | (phase == PHASE["tracking"]))[0]:
+        if phase[row] == PHASE["tracking"] and row % 50:  # every 0.5 s along a path
+            continue
+        shape = kinematics.backbone(kappas[row], lengths, base)  # settled shapes, bold
+        ax.plot(shape[:, 0], shape[:, 1], color=colours((t[row] - t[0]) / span), lw=2.2)
     ax.plot(tips[:, 0], tips[:, 1], color="grey", lw=0.8, label="tip (true)")
     if plan.kind == "point_to_point":
         for k, (x, y) in enumerate(plan.targets):
