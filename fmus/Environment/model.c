@@ -59,8 +59,8 @@
  *
  * Table friction [estimate]: PHYSICS.md's mu ~ 0.3 gives a Coulomb torque mu m g L / 2 per
  * segment for its own mass only. Acting on every backbone point, friction of the segments beyond
- * also resists a bend: the torque on segment i is mu g sum_p m_p |dp/dtheta_i|, 0.271 mu N m on
- * the base of a straight six-segment arm (0.03 kg, 0.06 m per segment), 0.081 N m at mu = 0.3:
+ * also resists a bend: the torque on segment i is mu g sum_p m_p |dp/dtheta_i|, 0.27 mu N m on
+ * the base of a straight six-segment arm (0.03 kg, 0.06 m per segment), 0.080 N m at mu = 0.3:
  * about three times the segment's full-stroke torque (G_a 40 kPa ~ 0.03 N m), so such an arm could
  * not bend its base. The default mu_table = 0.02 (a low-friction support) gives 5.4e-3 N m on the
  * base and 9.7e-5 N m on the tip, the order of PHYSICS.md's per-segment dead band.
@@ -265,11 +265,14 @@ static void contact_law(const Instance *inst, double delta, const double n[2], c
     speed = hypot(vt[0], vt[1]);
     out->F[0] = Fn * n[0];
     out->F[1] = Fn * n[1];
-    if (speed > 0.0 && mu > 0.0) {
+    if (mu > 0.0) {
+        const double sech = 1.0 / cosh(speed / eps);
         fric = mu * Fn * tanh(speed / eps);
-        out->F[0] -= fric * vt[0] / speed;
-        out->F[1] -= fric * vt[1] / speed;
-        slope = mu * Fn / eps; /* the steepest tangent of the regularised friction */
+        if (speed > 0.0) {
+            out->F[0] -= fric * vt[0] / speed;
+            out->F[1] -= fric * vt[1] / speed;
+        }
+        slope = mu * Fn / eps * sech * sech; /* d(friction)/d(sliding speed) */
     }
     out->normal_force = Fn;
     out->elastic = 0.5 * k * delta * delta;
@@ -360,10 +363,18 @@ static void arm_forces(const Instance *inst, const State *s, const double q[],
             const double Z[2][2] = {{0.0, 0.0}, {0.0, 0.0}};
             double F[2] = {0.0, 0.0}, C[2][2] = {{limit / eps, 0.0}, {0.0, limit / eps}};
             if (speed > 0.0) {
-                const double f = limit * tanh(speed / eps);
+                /* the exact tangent of F = -f(|v|) v / |v|: f' along v, f / |v| across it */
+                const double f = limit * tanh(speed / eps), sech = 1.0 / cosh(speed / eps);
+                const double along = limit / eps * sech * sech, across = f / speed;
+                int a, b;
                 F[0] = -f * v[0] / speed;
                 F[1] = -f * v[1] / speed;
                 out->dissipation += f * speed;
+                for (a = 0; a < 2; a++)
+                    for (b = 0; b < 2; b++) {
+                        const double vv = v[a] * v[b] / (speed * speed);
+                        C[a][b] = along * vv + across * ((a == b ? 1.0 : 0.0) - vv);
+                    }
             }
             add_point_force(out, &bb, p, F, Z, C, H);
         }
