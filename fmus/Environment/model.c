@@ -23,9 +23,11 @@
  * Contact at a point p of capsule radius r: against a wall polyline the closest edge point c
  * (distance d, min over the edges, so a vertex is not counted twice), depth delta = r - d,
  * normal n = (p - c) / d; against a disk of radius R at o, delta = r + R - d, n = (p - o) / d.
- * Normal force F_n = max(0, k delta + c_d delta'), delta' = -n . v_rel (Hunt-Crossley-like
- * clamping: the contact never pulls); its dissipated power (F_n - k delta) delta' >= 0 in both
- * branches. Coulomb friction regularised F_t = -mu F_n tanh(|v_t| / v_slip) v_t / |v_t|: power
+ * Normal force (Hunt and Crossley 1975) F_n = max(0, delta (k + c_d delta')), delta' = -n . v_rel:
+ * continuous where a contact opens or closes (a Kelvin-Voigt k delta + c delta' jumps there, and
+ * the implicit coupling's Newton iteration stalls on that kink), it never pulls, and its
+ * dissipated power (F_n - k delta) delta' is c_d delta delta'^2 >= 0, or -k delta delta' >= 0 in
+ * the clamped branch (separation faster than k / c_d). Coulomb friction regularised F_t = -mu F_n tanh(|v_t| / v_slip) v_t / |v_t|: power
  * -F_t . v_t >= 0. Table friction on the arm: each point carries mass_j / n_samples, force
  * -mu_table m_p g tanh(|v| / v_slip) v / |v|. Walls are two-sided lines: a point deeper than its
  * radius tunnels (penetrations stay at mm for the defaults, far below the 10 mm radius).
@@ -50,10 +52,18 @@
  * environment never adds energy: -W_arm = dE_contact + dE_kinetic + E_dissipated with
  * E_dissipated non-decreasing (to the discretisation of the steps and substeps).
  *
+ * Passivity: the prediction is exact only for an inertia-free arm and the coupling the
+ * parameters state; what it misses (the segments' inertia m L^2 / 20 over a 1 ms step, the Jacobi
+ * delay) can return a little more energy than a contact holds, for example at an impact. A
+ * passivity observer and controller (Hannaford and Ryu 2002, see passivity_damping) watches the
+ * energy balance at the interface, which the environment knows exactly, and damps the deficit
+ * away in the next step: the environment then never gives back more than it took, up to one
+ * step's worth.
+ *
  * Objects: disks (x, y, yaw) pushed by the arm and stopped by the walls and by table friction
  * (exact Coulomb: a velocity update that may stop but never reverse the motion, torque limit
  * 2/3 mu m g R for uniform pressure), integrated by semi-implicit Euler in substeps (stable below
- * 2 / sqrt(k / m_min), checked at initialisation). During a step the arm moves along
+ * 1 / sqrt(2 k / m_min), checked at initialisation). During a step the arm moves along
  * theta_n + theta_dot_n t for them. Neglected: object-object contact; the arm's reaction to
  * the objects uses their poses at the step's end (an O(h) mismatch of action and reaction).
  *
@@ -91,6 +101,7 @@
 #define MAX_OBJECTS 4
 #define NEWTON_ITERATIONS 20
 #define MAX_HALVINGS 12
+#define PASSIVITY_MAX_GAIN 100.0 /* largest passivity damping, in units of 1 / arm_mobility */
 #define NEWTON_TOLERANCE 1e-12 /* |tau - G|_1 [N m] */
 #define SMALL_HALF_ANGLE 1e-6
 
@@ -112,6 +123,7 @@ typedef struct {
     double W_arm;      /* [J] */
     double W_objects;  /* [J] */
     double impulse;    /* [N s] */
+    double beta;       /* passivity damping of this step [N m s/rad] */
 } State;
 
 size_t model_state_size(void) { return sizeof(State); }
@@ -257,7 +269,7 @@ static void contact_law(const Instance *inst, double delta, const double n[2], c
                         double mu, Contact *out) {
     const double k = V(inst, k_contact), c = V(inst, d_contact), eps = V(inst, v_slip);
     const double rate = -(n[0] * v[0] + n[1] * v[1]);
-    double Fn = k * delta + c * rate, vt[2], speed, fric = 0.0, slope = 0.0;
+    double Fn = delta * (k + c * rate), vt[2], speed, fric = 0.0, slope = 0.0;
     int a, b;
     if (Fn < 0.0) Fn = 0.0;
     vt[0] = v[0] + rate * n[0];
@@ -280,8 +292,8 @@ static void contact_law(const Instance *inst, double delta, const double n[2], c
     for (a = 0; a < 2; a++)
         for (b = 0; b < 2; b++) {
             const double nn = n[a] * n[b], tt = (a == b ? 1.0 : 0.0) - nn;
-            out->K[a][b] = Fn > 0.0 ? k * nn : 0.0;
-            out->C[a][b] = (Fn > 0.0 ? c * nn : 0.0) + slope * tt;
+            out->K[a][b] = Fn > 0.0 ? (k + c * rate) * nn : 0.0;
+            out->C[a][b] = (Fn > 0.0 ? c * delta * nn : 0.0) + slope * tt;
         }
 }
 
@@ -353,8 +365,7 @@ static void arm_forces(const Instance *inst, const State *s, const double q[],
             out->force[seg][1] += ct.F[1];
             if (r + R - d > out->penetration[seg]) out->penetration[seg] = r + R - d;
             out->elastic += ct.elastic;
-            out->dissipation += ct.dissipation;
-            out->force_sum += hypot(ct.F[0], ct.F[1]);
+            /* its dissipation and impulse are counted in the objects' substeps (finer) */
         }
         { /* table friction of this point's share of the segment's mass */
             const double speed = hypot(v[0], v[1]), eps = V(inst, v_slip);
@@ -420,6 +431,11 @@ static double coupling_residual(const Instance *inst, const State *s, double H, 
         q[i] = s->theta[i] + H * rate[i];
     }
     arm_forces(inst, s, q, rate, H, out);
+    for (i = 0; i < ns; i++) { /* the passivity controller's damping (see the header) */
+        out->tau[i] -= s->beta * rate[i];
+        out->A[i][i] += s->beta;
+        out->dissipation += s->beta * rate[i] * rate[i];
+    }
     for (i = 0; i < ns; i++) {
         residual[i] = tau[i] - out->tau[i];
         size += fabs(residual[i]);
@@ -427,45 +443,63 @@ static double coupling_residual(const Instance *inst, const State *s, double H, 
     return size;
 }
 
-/* The torque for the arm, solved against its predicted response over the horizon H (see the
- * header): tau = G(theta + H theta_dot + H m (tau - tau_now)). The contact is piecewise smooth
- * (on/off, the clamped damper), so Newton is damped: a step is halved until the residual falls.
- * Fills `out` at the returned torque. */
-static void solve_arm_torque(const Instance *inst, const State *s, double H, double tau[],
-                             ArmForces *out) {
+/* A damped Newton step from tau with the Newton matrix I + m A: the full step, halved until the
+ * residual falls. Returns 1 and updates tau, residual, size and out if it found a descent. */
+static int newton_step(const Instance *inst, const State *s, double H,
+                       const double A[MAX_SEGMENTS][MAX_SEGMENTS], double tau[],
+                       double residual[], double *size, ArmForces *out, ArmForces *full_step) {
     const int ns = n_segments(inst);
     const double m = V(inst, arm_mobility);
+    double M[MAX_SEGMENTS][MAX_SEGMENTS], step[MAX_SEGMENTS], trial[MAX_SEGMENTS];
+    double trial_residual[MAX_SEGMENTS], fraction = 1.0;
+    ArmForces trial_out;
+    int i, j, halvings;
+    for (i = 0; i < ns; i++) {
+        step[i] = -residual[i];
+        for (j = 0; j < ns; j++) M[i][j] = (i == j ? 1.0 : 0.0) + m * A[i][j];
+    }
+    if (!solve_linear(ns, M, step)) return 0;
+    for (halvings = 0; halvings < MAX_HALVINGS; halvings++, fraction *= 0.5) {
+        double trial_size;
+        for (i = 0; i < ns; i++) trial[i] = tau[i] + fraction * step[i];
+        trial_size = coupling_residual(inst, s, H, trial, trial_residual, &trial_out);
+        if (halvings == 0 && full_step) *full_step = trial_out;
+        if (trial_size < *size) {
+            for (i = 0; i < ns; i++) tau[i] = trial[i], residual[i] = trial_residual[i];
+            *out = trial_out;
+            *size = trial_size;
+            return 1;
+        }
+    }
+    return 0;
+}
+
+/* The torque for the arm, solved against its predicted response over the horizon H (see the
+ * header): tau = G(theta + H theta_dot + H m (tau - tau_now)). The contact is piecewise smooth
+ * (on/off, the clamped damper), so Newton is damped, and a step that crosses into another piece
+ * (a contact closing) is retried with the Newton matrix of the piece it reached. Fills `out` at
+ * the torque found; returns the residual left |tau - G|_1 [N m]. */
+static double solve_arm_torque(const Instance *inst, const State *s, double H, double tau[],
+                               ArmForces *out) {
+    const int ns = n_segments(inst);
     double residual[MAX_SEGMENTS], size;
-    int i, j, it;
+    int i, it;
     for (i = 0; i < MAX_SEGMENTS; i++) tau[i] = i < ns ? s->tau_now[i] : 0.0;
     size = coupling_residual(inst, s, H, tau, residual, out);
-    if (m == 0.0) { /* explicit: the forces at the prediction theta + H theta_dot */
+    if (V(inst, arm_mobility) == 0.0) { /* explicit: the forces at theta + H theta_dot */
         for (i = 0; i < ns; i++) tau[i] = out->tau[i];
-        return;
+        return 0.0;
     }
     for (it = 0; it < NEWTON_ITERATIONS && size > NEWTON_TOLERANCE; it++) {
-        double M[MAX_SEGMENTS][MAX_SEGMENTS], step[MAX_SEGMENTS], trial[MAX_SEGMENTS];
-        double trial_residual[MAX_SEGMENTS], fraction = 1.0;
-        ArmForces trial_out;
-        int halvings;
-        for (i = 0; i < ns; i++) {
-            step[i] = -residual[i];
-            for (j = 0; j < ns; j++) M[i][j] = (i == j ? 1.0 : 0.0) + m * out->A[i][j];
-        }
-        if (!solve_linear(ns, M, step)) break;
-        for (halvings = 0; halvings < MAX_HALVINGS; halvings++, fraction *= 0.5) {
-            double trial_size;
-            for (i = 0; i < ns; i++) trial[i] = tau[i] + fraction * step[i];
-            trial_size = coupling_residual(inst, s, H, trial, trial_residual, &trial_out);
-            if (trial_size < size) {
-                for (i = 0; i < ns; i++) tau[i] = trial[i], residual[i] = trial_residual[i];
-                *out = trial_out;
-                size = trial_size;
-                break;
-            }
-        }
-        if (halvings == MAX_HALVINGS) break; /* no descent: keep the best torque found */
+        ArmForces full_step;
+        if (newton_step(inst, s, H, (const double(*)[MAX_SEGMENTS])out->A, tau, residual, &size,
+                        out, &full_step))
+            continue;
+        if (!newton_step(inst, s, H, (const double(*)[MAX_SEGMENTS])full_step.A, tau, residual,
+                         &size, out, NULL))
+            break; /* no descent from either piece: keep the best torque found */
     }
+    return size;
 }
 
 /* ---------------------------------------------------------------- objects */
@@ -639,6 +673,29 @@ int model_derivatives(const Instance *inst, const double y[], double dy[]) {
     return 1; /* no continuous states: the objects are integrated in model_after_substep */
 }
 
+/* Passivity observer and controller (Hannaford and Ryu 2002): the energy the environment has
+ * absorbed from the arm, -W_arm, less what it holds (elastic energy at the angles received, the
+ * objects' kinetic energy), is what it has dissipated and cannot be negative for a passive
+ * environment. If it is (the coupling's prediction missed the arm's real response), the coming
+ * torque gets the damping beta that takes the deficit back over the next H at the rates
+ * received: beta = deficit / (H sum theta_dot^2), at most PASSIVITY_MAX_GAIN / arm_mobility
+ * [N m s/rad]; it is part of the implicit solve, so it cannot destabilise it. */
+static double passivity_damping(const Instance *inst, const State *s, double H,
+                                const ArmForces *now) {
+    const int ns = n_segments(inst);
+    const double m = V(inst, arm_mobility);
+    double held, deficit, rates = 0.0, beta, limit;
+    int i;
+    if (!(H > 0.0) || m == 0.0) return 0.0;
+    held = now->elastic + object_wall_elastic(inst, s) + kinetic_energy(inst, s);
+    deficit = s->W_arm + held;
+    if (!(deficit > 0.0)) return 0.0;
+    for (i = 0; i < ns; i++) rates += s->theta_dot[i] * s->theta_dot[i];
+    limit = PASSIVITY_MAX_GAIN / m;
+    beta = rates > 0.0 ? deficit / (H * rates) : limit;
+    return beta < limit ? beta : limit;
+}
+
 /* Solves the arm's torque for the coming step and sets every output. Called by the glue once at
  * the end of every step (s->t_step is then the step's length) and at initialisation (length 0). */
 fmi2Status model_outputs(Instance *inst) {
@@ -646,9 +703,12 @@ fmi2Status model_outputs(Instance *inst) {
     const int ns = n_segments(inst);
     const double h = s->t_step, H = (1.0 + V(inst, coupling_delay)) * h;
     double tau[MAX_SEGMENTS];
-    ArmForces out;
+    ArmForces out, now;
     int i, o;
-    solve_arm_torque(inst, s, H, tau, &out);
+    /* the state of the contact at the angles received; the torque solved for the coming step */
+    arm_forces(inst, s, s->theta, s->theta_dot, 0.0, &now);
+    s->beta = passivity_damping(inst, s, H, &now);
+    V(inst, coupling_residual) = solve_arm_torque(inst, s, H, tau, &out);
     for (i = 0; i < MAX_SEGMENTS; i++) {
         if (!isfinite(tau[i])) {
             log_message(inst, fmi2Error, "the contact torque on segment %d is not finite", i + 1);
@@ -665,7 +725,7 @@ fmi2Status model_outputs(Instance *inst) {
             s->tau_next[i] = tau[i];
         }
         VI(inst, tau_ext, i) = tau[i];
-        VI(inst, penetration, i) = i < ns ? out.penetration[i] : 0.0;
+        VI(inst, penetration, i) = i < ns ? now.penetration[i] : 0.0;
         VI(inst, contact_force, i) = i < ns ? hypot(out.force[i][0], out.force[i][1]) : 0.0;
     }
     /* the arm's dissipation and impulse over the step in which this torque acts */
@@ -681,7 +741,7 @@ fmi2Status model_outputs(Instance *inst) {
         VI(inst, object_omega, o) = ob[OW];
     }
     V(inst, contact_impulse) = s->impulse;
-    V(inst, E_contact) = out.elastic + object_wall_elastic(inst, s);
+    V(inst, E_contact) = now.elastic + object_wall_elastic(inst, s);
     V(inst, E_kinetic) = kinetic_energy(inst, s);
     V(inst, E_dissipated) = s->E_diss;
     V(inst, W_arm) = s->W_arm;
@@ -712,8 +772,8 @@ fmi2Status model_initialize(Instance *inst, OdeSystem *ode) {
         /* semi-implicit Euler on a penalty spring is stable below 2 / omega; damping and the
          * disk's rotation (I / R^2 = m / 2) halve the margin */
         if (V(inst, k_contact) > 0.0) {
-            const double bound = 2.0 / sqrt(2.0 * V(inst, k_contact) / m) -
-                                 2.0 * V(inst, d_contact) / V(inst, k_contact);
+            /* half the undamped limit: margin for the Hunt-Crossley damping */
+            const double bound = 1.0 / sqrt(2.0 * V(inst, k_contact) / m);
             if (bound < limit) limit = bound;
         }
     }
