@@ -90,6 +90,19 @@ def test_penetration_follows_the_pcc_backbone_of_kinematics_py(environment_fmu) 
     np.testing.assert_allclose(out["penetration"], expected, atol=1e-12)
 
 
+@pytest.mark.parametrize("stub", [[(0.105, 0.05), (0.105, 0.02)], [(0.105, 0.02), (0.105, 0.05)]])
+def test_a_wall_ending_short_of_the_arm_does_not_touch_it(environment_fmu, stub) -> None:
+    # the stub's line passes through the straight arm, its end stays 10 mm clear of the capsule
+    params = {"n_segments": 3, "arm_mobility": 0.0}
+    with_wall(params, 1, stub)
+    out = static_outputs(environment_fmu, params, [0.0, 0.0, 0.0])
+    assert np.all(out["penetration"] == 0.0) and np.all(out["tau"] == 0.0)
+    # and 1 mm lower, its end touches the capsule of the point under it by 1 mm
+    with_wall(params, 1, [(x, y - 0.011) for x, y in stub])
+    touching = static_outputs(environment_fmu, params, [0.0, 0.0, 0.0])["penetration"]
+    assert touching == pytest.approx([0.0, 1e-3, 0.0], abs=1e-12)
+
+
 @pytest.mark.parametrize("with_object", [False, True])
 def test_torque_is_the_virtual_work_of_the_contact(environment_fmu, with_object) -> None:
     # conservative contact at rest: tau_i = -dE_contact/dtheta_i (work-conjugate to the bend)
@@ -368,6 +381,32 @@ def test_an_object_pushed_by_the_arm_moves_and_stops_under_table_friction(
     np.testing.assert_allclose(
         np.diff(np.asarray(vx)[free[0] : free[-1] + 2]), -0.3 * 9.81 * H, rtol=1e-9
     )
+
+
+def test_an_object_placed_into_a_wall_is_pushed_out_along_its_normal(environment_fmu) -> None:
+    # a disk 1 mm deep in a wall along y = 0, far from the arm: the wall's spring pushes it out
+    params = {
+        "n_segments": 1,
+        "n_objects": 1,
+        "object_x0_1": 0.2,
+        "object_y0_1": 0.014,
+        "object_radius_1": 0.015,
+    }
+    with_wall(params, 1, [(0.1, 0.0), (0.3, 0.0)])
+    with FmuSlave(environment_fmu, "env", params) as env:
+        stored = env.get("E_contact")
+        assert stored == pytest.approx(0.5 * K_CONTACT * 1e-3**2, rel=1e-9)
+        for k in range(50):
+            env.do_step(k * H, H)
+        assert env.get("E_contact") == 0.0 and env.get("W_arm") == 0.0
+        assert env.get("object_y_1") > 0.015 and env.get("object_vy_1") > 0.0
+        assert env.get("object_x_1") == 0.2 and env.get("object_yaw_1") == 0.0  # along the normal
+        # the spring's energy became motion, contact damping and table friction
+        accounted = env.get("E_kinetic") + env.get("E_dissipated")
+        assert accounted == pytest.approx(stored, rel=0.02)
+        # the contact's work on the disk is its kinetic energy plus what the table took, and
+        # less than the spring held by what the contact's damping took
+        assert env.get("E_kinetic") < env.get("W_objects") < stored
 
 
 # ------------------------------------------------------------------ FMU, spec, estimates
