@@ -28,9 +28,10 @@
  * the implicit coupling's Newton iteration stalls on that kink), it never pulls, and its
  * dissipated power (F_n - k delta) delta' is c_d delta delta'^2 >= 0, or -k delta delta' >= 0 in
  * the clamped branch (separation faster than k / c_d). Coulomb friction, regularised:
- * F_t = -mu F_n tanh(|v_t| / v_slip) v_t / |v_t|, power -F_t . v_t >= 0. Table friction on the arm: each point carries mass_j / n_samples, force
- * -mu_table m_p g tanh(|v| / v_slip) v / |v|. Walls are two-sided lines: a point deeper than its
- * radius tunnels (penetrations stay at mm for the defaults, far below the 10 mm radius).
+ * F_t = -mu F_n tanh(|v_t| / v_slip) v_t / |v_t|, power -F_t . v_t >= 0. Table friction on the
+ * arm: each point carries mass_j / n_samples, force -mu_table m_p g tanh(|v| / v_slip) v / |v|.
+ * Walls are two-sided lines: a point deeper than its radius tunnels (penetrations stay below
+ * 1 mm in the tests, far below the 10 mm radius).
  *
  * Coupling (why the torque is solved implicitly): the arm lies on a table, its segments are
  * overdamped (bend damping d ~ 6e-3 N m s/rad, inertia m L^2 / 20 ~ 5e-6 kg m^2), and a penalty
@@ -632,7 +633,8 @@ void model_after_substep(Instance *inst, double dt) {
             ob[OY] += dt * ob[OVY];
             ob[OYAW] += dt * ob[OW];
             /* work of the contact forces over the displacement the integrator made */
-            s->W_objects += F[o][0] * (ob[OX] - x0) + F[o][1] * (ob[OY] - y0) + T[o] * (ob[OYAW] - yaw0);
+            s->W_objects +=
+                F[o][0] * (ob[OX] - x0) + F[o][1] * (ob[OY] - y0) + T[o] * (ob[OYAW] - yaw0);
         }
     }
     s->t_step += dt;
@@ -778,8 +780,8 @@ fmi2Status model_initialize(Instance *inst, OdeSystem *ode) {
     }
     if (V(inst, substep) > limit) {
         log_message(inst, fmi2Error,
-                    "invalid parameter substep = %g: beyond the stability limit %g s of the objects' "
-                    "contact (k_contact, d_contact, object_mass)",
+                    "invalid parameter substep = %g: beyond the stability limit %g s of the "
+                    "objects' contact (k_contact, d_contact, object_mass)",
                     V(inst, substep), limit);
         return fmi2Error;
     }
