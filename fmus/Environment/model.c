@@ -226,10 +226,10 @@ static void wall_vertex(const Instance *inst, int w, int k, double v[2]) {
 static int wall_distance(const Instance *inst, int w, const double p[2], double *distance,
                          double normal[2]) {
     const int n = wall_vertices(inst, w);
-    double best = INFINITY;
+    double best2 = INFINITY, best_r[2] = {0.0, 0.0}, best_e[2] = {1.0, 0.0}, d;
     int k;
     for (k = 0; k + 1 < n; k++) {
-        double a[2], b[2], e[2], t, len2, c[2], r[2], d;
+        double a[2], b[2], e[2], t, len2, r[2], d2;
         wall_vertex(inst, w, k, a);
         wall_vertex(inst, w, k + 1, b);
         e[0] = b[0] - a[0];
@@ -237,24 +237,23 @@ static int wall_distance(const Instance *inst, int w, const double p[2], double 
         len2 = e[0] * e[0] + e[1] * e[1];
         t = len2 > 0.0 ? ((p[0] - a[0]) * e[0] + (p[1] - a[1]) * e[1]) / len2 : 0.0;
         t = t < 0.0 ? 0.0 : (t > 1.0 ? 1.0 : t);
-        c[0] = a[0] + t * e[0];
-        c[1] = a[1] + t * e[1];
-        r[0] = p[0] - c[0];
-        r[1] = p[1] - c[1];
-        d = hypot(r[0], r[1]);
-        if (d < best) {
-            best = d;
-            if (d > 1e-12) {
-                normal[0] = r[0] / d, normal[1] = r[1] / d;
-            } else if (len2 > 0.0) {
-                const double le = sqrt(len2);
-                normal[0] = -e[1] / le, normal[1] = e[0] / le;
-            } else {
-                normal[0] = 1.0, normal[1] = 0.0;
-            }
+        r[0] = p[0] - (a[0] + t * e[0]);
+        r[1] = p[1] - (a[1] + t * e[1]);
+        d2 = r[0] * r[0] + r[1] * r[1]; /* squared: one square root per wall, not per edge */
+        if (d2 < best2) {
+            best2 = d2;
+            best_r[0] = r[0], best_r[1] = r[1];
+            if (len2 > 0.0) best_e[0] = e[0], best_e[1] = e[1];
         }
     }
-    *distance = best;
+    d = sqrt(best2);
+    *distance = d;
+    if (d > 1e-12) {
+        normal[0] = best_r[0] / d, normal[1] = best_r[1] / d;
+    } else { /* on the line: the edge's left normal */
+        const double le = hypot(best_e[0], best_e[1]);
+        normal[0] = -best_e[1] / le, normal[1] = best_e[0] / le;
+    }
     return n >= 2;
 }
 
