@@ -9,6 +9,7 @@ inputs, then outputs), so C and XML cannot disagree.
 
 from __future__ import annotations
 
+import dataclasses
 import datetime
 import hashlib
 import importlib.metadata
@@ -93,6 +94,10 @@ _UNITS: dict[str, dict[str, float]] = {
     "1/m": {"m": -1},
     "N": {"kg": 1, "m": 1, "s": -2},
     "N.s/m": {"kg": 1, "s": -1},
+    "N.s/m2": {"kg": 1, "m": -1, "s": -1},
+    "N.s": {"kg": 1, "m": 1, "s": -1},
+    "N/m": {"kg": 1, "s": -2},
+    "rad/(N.m.s)": {"kg": -1, "m": -2, "s": 1, "rad": 1},
     "N.m": {"kg": 1, "m": 2, "s": -2},
     "N.m/rad": {"kg": 1, "m": 2, "s": -2, "rad": -1},
     "N.m.s/rad": {"kg": 1, "m": 2, "s": -1, "rad": -1},
@@ -120,7 +125,8 @@ _DISPLAY_UNITS: dict[str, list[tuple[str, float]]] = {
 
 CAUSALITIES = ("parameters", "inputs", "outputs")
 _TYPES = ("Real", "Integer", "Boolean")
-_VARIABLE_KEYS = {"type", "unit", "start", "min", "max", "description", "depends_on"}
+_VARIABLE_KEYS = {"type", "unit", "start", "min", "max", "description", "depends_on", "count"}
+MAX_FAMILY = 64  # members of one indexed family
 
 
 @dataclass(frozen=True)
@@ -155,6 +161,8 @@ class ModelSpec:
     step_size: float
     variables: tuple[Variable, ...]
     folder: Path
+    # indexed families: base name -> number of members (NAME_1 ... NAME_N)
+    families: tuple[tuple[str, int], ...] = ()
 
     def variable(self, name: str) -> Variable:
         for v in self.variables:
@@ -180,10 +188,23 @@ def load_spec(folder: Path) -> ModelSpec:
     if name != folder.name or not name.isidentifier():
         raise BuildError(f"{path}: model.name {name!r} must equal the folder name {folder.name!r}")
     variables: list[Variable] = []
+    families: dict[str, int] = {}
     for group in CAUSALITIES:
         for var_name, decl in data.get(group, {}).items():
-            variables.append(_variable(path, group, var_name, decl, len(variables)))
+            if isinstance(decl, dict) and "count" in decl:
+                members = _family(path, group, var_name, decl)
+                families[var_name] = len(members)
+                for member_name, member in members:
+                    variables.append(_variable(path, group, member_name, member, len(variables)))
+            else:
+                variables.append(_variable(path, group, var_name, decl, len(variables)))
     known = {v.name: v for v in variables}
+    if len(known) != len(variables):
+        names = [v.name for v in variables]
+        twice = sorted({n for n in names if names.count(n) > 1})
+        raise BuildError(f"{path}: variable(s) {twice} declared twice (a family member?)")
+    if families:
+        variables = [_expand_dependencies(v, families) for v in variables]
     for v in variables:
         for dependency in v.depends_on:
             if dependency not in known or known[dependency].causality == "output":
@@ -200,7 +221,39 @@ def load_spec(folder: Path) -> ModelSpec:
         step_size=float(model.get("step_size", 1e-3)),
         variables=tuple(variables),
         folder=folder,
+        families=tuple(families.items()),
     )
+
+
+def _family(path: Path, group: str, name: str, decl: dict) -> list[tuple[str, dict]]:
+    """The member declarations `NAME_1` ... `NAME_N` of an indexed family (`count = N`)."""
+    key = f"{group}.{name}"
+    count = decl["count"]
+    if not isinstance(count, int) or isinstance(count, bool) or not 1 <= count <= MAX_FAMILY:
+        raise BuildError(f"{path}: {key}.count must be an integer in [1, {MAX_FAMILY}]")
+    start = decl.get("start")
+    if isinstance(start, list) and len(start) != count:
+        raise BuildError(f"{path}: {key}.start has {len(start)} values for count = {count}")
+    members = []
+    for i in range(1, count + 1):
+        member = {k: v for k, v in decl.items() if k != "count"}
+        if isinstance(start, list):
+            member["start"] = start[i - 1]
+        if "description" in member:
+            member["description"] = str(member["description"]).replace("{i}", str(i))
+        members.append((f"{name}_{i}", member))
+    return members
+
+
+def _expand_dependencies(v: Variable, families: dict[str, int]) -> Variable:
+    """`depends_on` with every family name replaced by its members."""
+    expanded: list[str] = []
+    for name in v.depends_on:
+        if name in families:
+            expanded += [f"{name}_{i}" for i in range(1, families[name] + 1)]
+        else:
+            expanded.append(name)
+    return dataclasses.replace(v, depends_on=tuple(expanded))
 
 
 def _variable(path: Path, group: str, name: str, decl: object, vr: int) -> Variable:
@@ -267,6 +320,7 @@ def generate_header(spec: ModelSpec, model_guid: str) -> str:
         "enum {",
         *[f"    VR_{v.name} = {v.value_reference}," for v in spec.variables],
         "};",
+        *[f"#define COUNT_{name} {count}" for name, count in spec.families],
         "static const VariableInfo VARIABLES[N_VARIABLES] = {",
     ]
     for v in spec.variables:
