@@ -84,7 +84,9 @@ def test_drawn_targets_are_reachable_spread_and_seeded() -> None:
         np.min(np.linalg.norm(np.delete(points, i, axis=0) - points[i], axis=1))
         for i in range(len(points))
     ]
-    assert min(gaps) > 0.03  # farthest-point thinning: no two targets within 3 cm
+    # farthest-point thinning: no two targets within 6 cm (uniform curvature draws put some
+    # within 1 cm of each other for most seeds; thinning gives 8-11 cm on seeds 0-4)
+    assert min(gaps) > 0.06
     from controllers.ik import solve_ik
 
     for target in targets:

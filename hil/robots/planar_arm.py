@@ -25,7 +25,7 @@ from controllers.protocol import Protocol
 from controllers.tasks import TASK_KINDS, TaskPlan, draw_paths, draw_targets
 from hil.devices import HEARTBEAT_PERIOD, CameraNode, DriveNode
 from hil.master import Connection, FmuParticipant, Participant
-from hil.robots import PlotSpec, Rig, SignalSpec, fmu_ref
+from hil.robots import PlotSpec, Rig, SignalSpec, environment, fmu_ref
 from hil.vision import Camera
 
 if TYPE_CHECKING:
@@ -56,6 +56,23 @@ class PlanarArmSpec:
     cylinder: dict[str, Any] = field(default_factory=dict)
     segment_decimation: int = 1
     cylinder_decimation: int = 1
+    actuator: str = "rectangular"  # the FEA parameter set (PARAMETER_SETS) under the given values
+    environment: dict[str, Any] = field(default_factory=dict)  # walls, objects: environment.py
+
+
+# The thesis's two planar arms [thesis, PHYSICS.md section 6]: free space uses bidirectional
+# "rectangular" FEAs (the FeaSegment defaults), confined spaces bidirectional "cylindrical" FEAs.
+# [estimate] The cylindrical actuator is rounder and slimmer (16 mm against 20 mm wide): lighter,
+# a little stiffer in bending, with less channel volume change per bend angle and a lower
+# mechanical limit (1.2 rad: about 20 1/m over 60 mm). A scenario's own values override the set.
+PARAMETER_SETS: dict[str, dict[str, dict[str, float]]] = {
+    "rectangular": {"segment": {}, "cylinder": {}},
+    "cylindrical": {
+        "segment": {"mass": 0.02, "k_bend": 0.03, "G_a": 7.0e-7, "theta_max": 1.2},
+        "cylinder": {},
+    },
+}
+ACTUATOR_WIDTH = {"rectangular": 0.02, "cylindrical": 0.016}  # backbone width for contact [m]
 
 
 PER_SEGMENT: tuple[tuple[str, str, str], ...] = (
@@ -108,7 +125,10 @@ class PlanarArm:
         spec: PlanarArmSpec = scenario.robot
         n = spec.segments
         raw: dict[str, Any] = getattr(spec, table)
-        per: list[dict[str, tuple[float, str]]] = [{} for _ in range(n)]
+        preset = PARAMETER_SETS.get(spec.actuator, {}).get(table, {})
+        per: list[dict[str, tuple[float, str]]] = [
+            {name: (value, "robot.actuator") for name, value in preset.items()} for _ in range(n)
+        ]
         overrides: list[tuple[int, str, dict[str, Any]]] = []
         for name, value in raw.items():
             key = f"robot.{table}.{name}"
@@ -166,6 +186,12 @@ class PlanarArm:
         drives = protocol.count("DriveStatus")
         if not 1 <= r.segments <= drives:
             raise fail(file, "robot.segments", f"must be 1..{drives}, got {r.segments}")
+        if r.actuator not in PARAMETER_SETS:
+            raise fail(
+                file,
+                "robot.actuator",
+                f"unknown parameter set {r.actuator!r} (known: {', '.join(PARAMETER_SETS)})",
+            )
         if s.camera and r.segments + 1 > protocol.count("CameraMarker"):
             raise fail(file, "robot.segments", "more markers than the DBC's CameraMarker frames")
         for name in ("segment_decimation", "cylinder_decimation"):
@@ -207,6 +233,8 @@ class PlanarArm:
                     f"{stroke:g} m is beyond the {piston_max:g} m that DriveStatus/DriveCommand "
                     "can carry",
                 )
+        if environment.present(s):
+            environment.parameters(s, self.parameters(s, "segment"), ACTUATOR_WIDTH[r.actuator])
         self._check_task(s)
 
     def _check_task(self, s: Scenario) -> None:
@@ -261,6 +289,12 @@ class PlanarArm:
                     {n for n, v in interface.items() if v.causality == "input"},
                 )
             ports[f"drive{i}"] = ({"x_ref", "enable", "fault"}, {"x", "p_a", "p_b", "servo_fault"})
+        if environment.present(scenario):
+            interface = fmu_interface(scenario.source, "robot.environment", environment.FMU)
+            ports["environment"] = (
+                {n for n, v in interface.items() if v.causality == "output"},
+                {n for n, v in interface.items() if v.causality == "input"},
+            )
         return ports
 
     def reach(self, scenario: Scenario) -> float:
@@ -354,6 +388,15 @@ class PlanarArm:
                     (f"segment{n}.kappa", f"camera.kappa_{n}"),
                 ):
                     connections[target] = Connection(source, target)
+            if environment.present(scenario):
+                world_values = environment.parameters(
+                    scenario, segments, ACTUATOR_WIDTH[r.actuator]
+                )
+                world = FmuSlave(environment.FMU, "environment", world_values)
+                fmus.append(FmuParticipant(world, 1))
+                parameters["environment"] = world_values
+                for source, target in environment.connections(r.segments):
+                    connections[target] = Connection(source, target)
         except BaseException:
             for participant in fmus:
                 participant.close()
@@ -386,6 +429,8 @@ class PlanarArm:
                     specs.append(SignalSpec(column, unit, text, frame=("ControllerState", n, name)))
                 else:
                     specs.append(SignalSpec(column, unit, text, source=_SOURCES[name].format(n=n)))
+        if environment.present(scenario):
+            specs += environment.signals(scenario)
         if scenario.task.kind in TASK_KINDS:
             for name, unit, text in TASK_SIGNALS:
                 specs.append(SignalSpec(name, unit, text, frame=("TaskState", None, name)))

@@ -1,0 +1,220 @@
+"""The planar arm's world (issue 12): `[robot.environment]` to the Environment FMU.
+
+    [robot.environment]
+    walls = [[[x, y], [x, y], ...], [[x, y], ...]]      # up to 2 polylines (channel walls) [m]
+    objects = [{ x = 0.2, y = 0.1, radius = 0.015, mass = 0.01, mu = 0.3 }]   # up to 4 disks
+    width = 0.016                 # backbone width [m] or a list (default: the actuator's)
+    k_contact = 1000.0                                   # any other Environment parameter
+
+When the section is present the robot adds one Environment FMU: each segment's curvature and
+bend rate go in, each segment's external torque (`tau_ext`, work-conjugate to its bend angle)
+comes back, so contact and table friction act on the simulated arm. The coupling's arm mobility
+is the segments' 1 / d_bend (the FMU's implicit coupling needs at least that: fmus/Environment).
+Invariant: every key is checked against the FMU's own capacity and ranges before a run starts.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from typing import TYPE_CHECKING, Any
+
+from hil.robots import SignalSpec
+
+if TYPE_CHECKING:
+    from hil.scenario import Scenario
+
+FMU = "Environment"
+OWN_KEYS = ("walls", "objects", "width")
+OBJECT_KEYS = {"x": None, "y": None, "radius": 0.015, "mass": 0.01, "mu": 0.3, "yaw": 0.0}
+MAX_WALLS, MAX_VERTICES, MAX_OBJECTS, MAX_SEGMENTS = 2, 16, 4, 7
+
+
+def present(scenario: Scenario) -> bool:
+    return bool(getattr(scenario.robot, "environment", {}))
+
+
+def parameters(
+    scenario: Scenario, segments: Sequence[Mapping[str, float]], width: float
+) -> dict[str, float]:
+    """The Environment FMU's parameters from `[robot.environment]` and the arm's segments;
+    raises ScenarioError naming the key."""
+    from hil.scenario import check_parameter, fail, fmu_interface
+
+    file = scenario.source
+    raw: dict[str, Any] = dict(scenario.robot.environment)
+    n = len(segments)
+    if n > MAX_SEGMENTS:
+        raise fail(
+            file,
+            "robot.environment",
+            f"the Environment FMU carries at most {MAX_SEGMENTS} segments",
+        )
+    interface = fmu_interface(file, "robot.environment", FMU)
+    values: dict[str, float] = {"n_segments": float(n)}
+    base = scenario.robot.base
+    values.update(base_x=base[0], base_y=base[1], base_heading=base[2])
+    widths = _per_segment(file, "robot.environment.width", raw.get("width", width), n)
+    for i, segment in enumerate(segments, start=1):
+        values[f"length_{i}"] = segment["length"]
+        values[f"mass_{i}"] = segment["mass"]
+        values[f"width_{i}"] = widths[i - 1]
+    # the implicit coupling predicts the arm with its mobility: at least the most mobile segment's
+    values["arm_mobility"] = max(1.0 / max(s["d_bend"], 1e-12) for s in segments)
+    walls = raw.get("walls", [])
+    if not isinstance(walls, list) or len(walls) > MAX_WALLS:
+        raise fail(file, "robot.environment.walls", f"a list of at most {MAX_WALLS} polylines")
+    values["n_walls"] = float(len(walls))
+    for w, wall in enumerate(walls, start=1):
+        key = f"robot.environment.walls[{w - 1}]"
+        if not isinstance(wall, list) or not 2 <= len(wall) <= MAX_VERTICES:
+            raise fail(file, key, f"a polyline of 2..{MAX_VERTICES} [x, y] vertices")
+        values[f"wall{w}_n"] = float(len(wall))
+        for v, vertex in enumerate(wall, start=1):
+            x, y = _point(file, f"{key}[{v - 1}]", vertex)
+            values[f"wall{w}_x_{v}"], values[f"wall{w}_y_{v}"] = x, y
+    objects = raw.get("objects", [])
+    if not isinstance(objects, list) or len(objects) > MAX_OBJECTS:
+        raise fail(file, "robot.environment.objects", f"a list of at most {MAX_OBJECTS} tables")
+    values["n_objects"] = float(len(objects))
+    for o, item in enumerate(objects, start=1):
+        key = f"robot.environment.objects[{o - 1}]"
+        if not isinstance(item, dict):
+            raise fail(file, key, "a table {x, y, radius, mass, mu, yaw}")
+        unknown = set(item) - set(OBJECT_KEYS)
+        if unknown:
+            raise fail(
+                file,
+                f"{key}.{sorted(unknown)[0]}",
+                f"unknown key (allowed: {', '.join(OBJECT_KEYS)})",
+            )
+        for name, default in OBJECT_KEYS.items():
+            value = item.get(name, default)
+            if value is None:
+                raise fail(file, f"{key}.{name}", "missing required key")
+            number = _number(file, f"{key}.{name}", value)
+            target = {"x": "object_x0", "y": "object_y0", "yaw": "object_yaw0"}.get(
+                name, f"object_{name}"
+            )
+            values[f"{target}_{o}"] = number
+    for name, value in raw.items():
+        if name in OWN_KEYS:
+            continue
+        key = f"robot.environment.{name}"
+        number = _number(file, key, value)
+        if name in values or not _settable(name):
+            raise fail(file, key, "set by the robot, not by the scenario")
+        values[name] = number
+    for name, value in values.items():
+        check_parameter(file, f"robot.environment ({name})", interface, name, value)
+    return values
+
+
+def connections(segments: int) -> list[tuple[str, str]]:
+    """Segment n's curvature and bend rate in, its external torque out."""
+    pairs = []
+    for n in range(1, segments + 1):
+        pairs += [
+            (f"segment{n}.kappa", f"environment.kappa_{n}"),
+            (f"segment{n}.theta_dot", f"environment.theta_dot_{n}"),
+            (f"environment.tau_ext_{n}", f"segment{n}.tau_ext"),
+        ]
+    return pairs
+
+
+def signals(scenario: Scenario) -> list[SignalSpec]:
+    specs = []
+    for n in range(1, scenario.robot.segments + 1):
+        specs += [
+            SignalSpec(
+                f"penetration_{n}",
+                "m",
+                f"segment {n}: deepest contact penetration",
+                source=f"environment.penetration_{n}",
+            ),
+            SignalSpec(
+                f"contact_force_{n}",
+                "N",
+                f"segment {n}: contact force magnitude",
+                source=f"environment.contact_force_{n}",
+            ),
+            SignalSpec(
+                f"tau_ext_{n}",
+                "N.m",
+                f"segment {n}: external torque from contact and table",
+                source=f"environment.tau_ext_{n}",
+            ),
+        ]
+    specs += [
+        SignalSpec(
+            "contact_impulse",
+            "N.s",
+            "time integral of the contact force magnitudes",
+            source="environment.contact_impulse",
+        ),
+        SignalSpec(
+            "E_dissipated_env",
+            "J",
+            "energy dissipated by contact and friction",
+            source="environment.E_dissipated",
+        ),
+        SignalSpec(
+            "W_arm_env",
+            "J",
+            "work of the environment's torques on the arm",
+            source="environment.W_arm",
+        ),
+    ]
+    for o in range(1, len(scenario.robot.environment.get("objects", [])) + 1):
+        for name, unit in (("x", "m"), ("y", "m"), ("yaw", "rad")):
+            specs.append(
+                SignalSpec(
+                    f"object{o}_{name}",
+                    unit,
+                    f"object {o}: {name}",
+                    source=f"environment.object_{name}_{o}",
+                )
+            )
+    return specs
+
+
+def _settable(name: str) -> bool:
+    """Parameters a scenario may set directly (the rest come from the arm or the keys above)."""
+    return name in (
+        "n_samples",
+        "k_contact",
+        "d_contact",
+        "mu_arm",
+        "mu_table",
+        "mu_table_object",
+        "v_slip",
+        "gravity",
+        "coupling_delay",
+        "substep",
+    )
+
+
+def _per_segment(file: str, key: str, value: Any, n: int) -> list[float]:
+    from hil.scenario import fail
+
+    if isinstance(value, list):
+        if len(value) != n:
+            raise fail(file, key, f"has {len(value)} values for {n} segments")
+        return [_number(file, f"{key}[{i}]", v) for i, v in enumerate(value)]
+    return [_number(file, key, value)] * n
+
+
+def _point(file: str, key: str, value: Any) -> tuple[float, float]:
+    from hil.scenario import fail
+
+    if not isinstance(value, list) or len(value) != 2:
+        raise fail(file, key, f"must be [x, y], got {value!r}")
+    return _number(file, f"{key}[0]", value[0]), _number(file, f"{key}[1]", value[1])
+
+
+def _number(file: str, key: str, value: Any) -> float:
+    from hil.scenario import fail
+
+    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+        raise fail(file, key, f"must be a finite number, got {value!r}")
+    return float(value)

@@ -1,0 +1,127 @@
+"""The Environment FMU in the planar-arm rig (issue 12): contact acts on the simulated arm."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from controllers import kinematics
+from hil.errors import ScenarioError
+from hil.robots import build_rig
+from hil.run import RunOptions, run_scenario
+from hil.scenario import load_scenario
+from hil.summary import read_signals
+
+WALL_X = 0.05
+SCENARIO = f"""
+name = "wall"
+seed = 1
+duration = 2.0
+[robot]
+segments = 3
+actuator = "cylindrical"
+[robot.environment]
+walls = [[[{WALL_X}, -0.1], [{WALL_X}, 0.4]]]
+[camera]
+noise = 0.0
+dropout = 0.0
+outlier_rate = 0.0
+[task]
+steps = [[0.0, 0.0], [0.3, -15.0]]
+"""
+
+
+def write(tmp_path: Path, text: str) -> Path:
+    path = tmp_path / "s.toml"
+    path.write_text(text)
+    return path
+
+
+@pytest.fixture(scope="module")
+def wall_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict, dict]:
+    tmp = tmp_path_factory.mktemp("wall")
+    scenario = load_scenario(write(tmp, SCENARIO))
+    summary = run_scenario(scenario, RunOptions(out=tmp / "run", inprocess=True, progress=False))
+    return summary.summary, read_signals(tmp / "run" / "signals.csv")
+
+
+def test_a_wall_stops_the_arm_it_would_bend_through(wall_run) -> None:
+    """Commanded to -15 1/m, the free arm's tip would reach x ~ 0.08 m; the wall at 0.05 m holds
+    it, the segments feel the torque, and the penetration stays at the contact stiffness' scale."""
+    summary, s = wall_run
+    free_tip = kinematics.forward([-15.0] * 3, [0.06] * 3, (0.0, 0.0, np.pi / 2))[-1, 0]
+    assert free_tip > WALL_X + 0.02
+    kappas = np.column_stack([s[f"kappa_{n}"] for n in (1, 2, 3)])
+    backbone_x = [
+        kinematics.backbone(k, [0.06] * 3, (0.0, 0.0, np.pi / 2))[:, 0].max() for k in kappas
+    ]
+    radius = 0.008  # the cylindrical actuator's 16 mm backbone width / 2
+    assert max(backbone_x) < WALL_X - radius + 2e-3
+    assert np.nanmax([s[f"penetration_{n}"] for n in (1, 2, 3)]) < 2e-3
+    assert np.nanmax(s["contact_force_3"]) > 0.0
+    assert s["tau_ext_1"][-1] != 0.0  # the contact's torque reaches the base segment
+    assert summary["steady_state_error"] > 1.0  # it could not track through the wall
+
+
+def test_contact_never_adds_energy_to_the_arm(wall_run) -> None:
+    _, s = wall_run
+    assert np.all(np.diff(s["E_dissipated_env"]) >= -1e-12)
+    assert np.nanmax(s["W_arm_env"]) <= 1e-6  # the environment only takes energy from the arm
+
+
+def test_no_environment_section_no_environment_fmu(tmp_path: Path) -> None:
+    text = SCENARIO.split("[robot.environment]")[0] + "[camera]" + SCENARIO.split("[camera]")[1]
+    rig = build_rig(load_scenario(write(tmp_path, text)))
+    try:
+        names = {getattr(p, "name", "") for p in rig.participants}
+        assert not any("environment" in n for n in names)
+        assert not any(c.source.startswith("environment") for c in rig.connections)
+    finally:
+        rig.close()
+
+
+@pytest.mark.parametrize(
+    ("old", "new", "message"),
+    [
+        (
+            "walls = [[[",
+            "walls = [[[0, 0], [1, 1]], [[0, 1], [1, 2]], [[",
+            r"walls: a list of at most 2",
+        ),
+        (f"[{WALL_X}, -0.1]", "[0.05]", r"walls\[0\]\[0\]: must be \[x, y\]"),
+        (
+            "[robot.environment]",
+            "[robot.environment]\nlength_1 = 0.1",
+            r"length_1: set by the robot",
+        ),
+        ("[robot.environment]", "[robot.environment]\nk_contact = -5.0", r"k_contact"),
+        (
+            "[robot.environment]",
+            "[robot.environment]\nobjects = [{ x = 0.1, y = 0.1, colour = 3 }]",
+            r"objects\[0\]\.colour: unknown key",
+        ),
+        (
+            'actuator = "cylindrical"',
+            'actuator = "octagonal"',
+            r"robot\.actuator: unknown parameter set",
+        ),
+    ],
+)
+def test_environment_keys_are_checked(tmp_path: Path, old: str, new: str, message: str) -> None:
+    assert old in SCENARIO
+    with pytest.raises(ScenarioError, match=message) as caught:
+        load_scenario(write(tmp_path, SCENARIO.replace(old, new, 1)))
+    assert "\n" not in str(caught.value)
+
+
+def test_cylindrical_set_applies_under_the_scenario_values(tmp_path: Path) -> None:
+    from hil.robots.planar_arm import ROBOT
+
+    text = SCENARIO.replace(
+        "[robot.environment]", "[robot.segment]\nk_bend = 0.05\n[robot.environment]"
+    )
+    params = ROBOT.parameters(load_scenario(write(tmp_path, text)), "segment")
+    assert params[0]["theta_max"] == 1.2 and params[0]["G_a"] == 7.0e-7  # from the set
+    assert params[0]["k_bend"] == 0.05  # the scenario's value wins
