@@ -1,91 +1,136 @@
 /* FishBody physics: the soft robotic fish of PHYSICS.md section 7, a rigid head free in the plane
- * and a tapered bidirectional tail of two constant-curvature (PCC) pieces driven by two gas
- * channels a and b. See FishValve/model.c for why the fish is three FMUs coupled by mass flow:
- * this one integrates each channel's gas mass from mdot_in - mdot_vent (its inputs, held over the
- * step), so the masses balance exactly against the source and the vents.
+ * and a tapered bidirectional tail of three constant-curvature (PCC) pieces driven by two gas
+ * channels a and b, as a planar multibody chain valid at any bend. See FishValve/model.c for why
+ * the fish is three FMUs coupled by mass flow: this one integrates each channel's gas mass from
+ * mdot_in - mdot_vent (its inputs, held over the step), so the masses balance exactly against the
+ * source and the vents. Invariant: W_gas = E_elastic + E_kinetic + E_resistive to the
+ * integrator's accuracy, and every hydrodynamic term dissipates or is conservative.
  *
- * Coordinates. The reference point is the head-tail joint at (x, y); yaw is the heading of the
- * nose. Body-frame velocities nu = (u, v, r, theta_1', theta_2'): surge u, sway v (to the left),
- * yaw rate r and the pieces' bend rates. A tail point at arc length s behind the joint sits at
- * body coordinates (-s, w(s)) with w(s) = sum_j theta_j phi_j(s), phi_j = 0 before piece j,
- * (s - s_{j-1})^2 / (2 L_j) on it and L_j / 2 + (s - s_j) after it (small-angle PCC shape);
- * theta_j > 0 bends the tail tip to the left (+y), and channel a's volume grows with it:
- *   V_a = V_0 + G_1 theta_1 + G_2 theta_2,   V_b = V_0 - G_1 theta_1 - G_2 theta_2,
+ * Coordinates q = (X, Y, psi, theta_1, theta_2, theta_3): the head-tail joint at (X, Y) in the
+ * world, the heading psi of the nose and the pieces' bend angles. Walking from the joint to the
+ * tip the backbone's direction is phi(s) = psi + pi - B_{j-1} - theta_j (s - s_{j-1}) / L_j on
+ * piece j (B_j = theta_1 + ... + theta_j), so theta_j > 0 bends the tail tip to the left (+y of
+ * the head) and channel a's volume grows with it:
+ *   V_a = V_0 + sum G_j theta_j,   V_b = V_0 - sum G_j theta_j,
  * so pressurising a bends the tail left and, by recoil, turns the head left (yaw up).
+ * Positions are the exact PCC chain (PHYSICS.md section 3) in complex form: a point at local arc
+ * sigma on piece j sits at r = X + i Y + sum_m l_m sinc(a_m / 2) exp(i (psi + pi - B_{m-1} -
+ * a_m / 2)) over the pieces m <= j, a_m = theta_m for a whole piece (l_m = L_m) and theta_j
+ * sigma / L_j for the partial one (l_j = sigma). Its Jacobian J = dr/dq and the velocity-product
+ * acceleration J' q' follow in closed form from each term (see `chain_term`), exact at every bend
+ * (series of sinc and its derivatives near zero).
  *
- * Kinetic energy [derived, linearised in the bend]: T = m_u u^2 / 2 + nu_l' M nu_l / 2 with
- * nu_l = (v, r, theta'), the lateral velocity of a section b(s)' nu_l, b(s) = (1, -s, phi(s)) on
- * the tail and (1, e) at distance e ahead of the joint on the head, and
- *   M = m_head b_c b_c' + I_head e_r e_r' + int (mu_struct + mu_added) b b' ds
- * (b_c at the head's centroid; mu_added = C_a rho pi h^2 / 4 for a section of depth h). M is
- * constant; its bend block holds each piece's PCC inertia mu L^3 / 20 (= m L^2 / 20) and the
- * couplings to sway and yaw. Integrals are sums over N_SAMPLES midpoints per piece. The dynamics
- * are Kirchhoff's equations for the quasi-velocities u, v, r (the body frame turns):
- *   d(m_u u)/dt = X + r P_v,  dP_v/dt = Y - r m_u u,  dP_r/dt = N - u P_v + v m_u u,
- *   dP_theta_j/dt = G_j (g_a - g_b) - k_j theta_j - d_j theta_j' + Q_j,   P = M nu_l,
- * whose gyroscopic terms do no work: d(T + E_elastic)/dt = gas power - dissipation exactly. The
- * markers (nose, end of each piece) use the exact PCC chain, not the linearised shape.
+ * Mechanics [derived]: Lagrange's equations of T = 1/2 q'^T M(q) q' with
+ *   M = m_head J_c^T J_c + I_head e_psi e_psi^T + sum_k mu_k ds J_k^T J_k
+ *       + sum_k ma_k ds (J_k^T n_k)(n_k^T J_k) + m_added_surge (J_c^T t_c)(t_c^T J_c)
+ * over sample points k (N_SAMPLES midpoints per piece and N_HEAD_SAMPLES on the head): the
+ * head's centroid c at d_head ahead of the joint, the tail's structural mass mu (following its
+ * depth) and the added mass of each slender section, ma = C_a rho pi h^2 / 4 per length, acting
+ * on the velocity normal to the section, w = n . v. For a mass m acting on the velocity along a
+ * direction d(phi) turning with the section (e = dd/dphi, phi' = a . q'), w = b . q' with
+ * b = J^T d, and Lagrange's equations give
+ *   m b (b . q'' + d . (J' q') + phi' e . v) + m w (phi' J^T e - (e . v) a)
+ * (the second bracket holds the Munk moment); for the full velocity (structural mass) it is
+ * m J^T (J q'' + J' q'). These inertial forces do no net work, so the kinetic energy changes only
+ * by the generalised forces: the gas, elasticity, damping and water resistance.
  *
- * Hydrodynamics [estimate]: added mass (in M and m_u = m_head + m_tail + m_added_surge);
- * resistive drag of each section against its sideways velocity, -rho Cd_lateral h |w| w / 2 per
- * length, and in surge -rho Cd_surge S_front |u| u / 2; reactive force at the tail tip after
- * Lighthill (1960): with U = max(u, 0), tip lateral velocity w_t = b(L)' nu_l and the lateral
- * velocity relative to the water w = w_t + U (theta_1 + theta_2) (the tip's slope), the fin of
- * added mass per length m_f = C_a rho pi h_fin^2 / 4 gives the thrust X_f = m_f (w w_t - w^2 / 2)
- * and the lateral force Y_f = -m_f U w at the tip. Their power, u X_f + w_t Y_f =
- * -m_f U w^2 / 2 + (u - U) X_f, is never positive: the energy shed into the wake [derived]. So
- * every hydrodynamic term dissipates, and a tail beat from rest pushes forward (X_f = m_f w_t^2 / 2).
+ * Hydrodynamics [estimate]: added mass as above; resistive-force theory per section: normal drag
+ * -rho Cd_lateral h |w| w / 2 and tangential skin friction -rho Cf_tangential h |u_t| u_t per
+ * length (wetted perimeter 2 h), u_t = t . v; form drag of the head in surge
+ * -rho Cd_surge S_front |u| u / 2; the reactive force of the caudal fin at the tip after
+ * Lighthill's large-amplitude elongated-body theory (1971): with m_f = C_a rho pi h_fin^2 / 4,
+ * tip tangent t (towards the tip), w = n . v_tip and U = max(-t . v_tip, 0) the water streaming
+ * off the trailing edge, F_tip = m_f (-w^2 t / 2 - U w n): thrust from a tail beat even from rest,
+ * and a power F_tip . v_tip = -m_f U w^2 / 2 (or -m_f w^2 (t . v) / 2 when U = 0), never
+ * positive: the energy shed into the wake. Drag on every section of the head and the tail resists
+ * yaw, so a fish that has turned comes to rest in yaw (no free spinning).
+ *
+ * Escape turn [definition, as biologists measure a C-start]: stage 1 is the contraction that
+ * bends the body into a C; it ends when the head's yaw rate first returns to zero. The heading
+ * change is the head's yaw change from rest to the end of stage 1 and the turn time its duration
+ * (from the onset of the head's rotation); the peak yaw rate and the peak acceleration of the
+ * head's centroid are taken over the manoeuvre. The tests compute them from yaw, yaw_rate and
+ * a_head.
  *
  * Gas [derived]: each channel is an open control volume of ideal gas with internal energy
  * U = p V / (gamma - 1): dm/dt = mdot_in - mdot_vent and
  *   dU/dt = c_p T_in mdot_in - c_p T_out mdot_vent - p dV/dt - m c_v (T - T_wall) / tau_thermal,
  * T_in the supply temperature for inflow (the channel's own for reverse flow), T_out the channel's
  * for outflow: adiabatic filling (a fast fill heats the gas towards gamma T_supply) relaxing to the
- * walls. Volumes as above (rigid walls apart from the bend).
+ * walls. Volumes as above (rigid walls apart from the bend); the bending torque on piece j is
+ * G_j (p_a - p_b) (virtual work of the gas).
  *
  * Energy (outputs): W_gas = int (g_a dV_a + g_b dV_b) (gauge pressure: the water pushes back with
  * p_atm) is the work the gas does on the tail; W_gas = E_elastic + E_kinetic + E_resistive to the
- * integrator's accuracy, E_resistive = drag + wake + internal damping. This is the split of the
- * thesis's "Elastic and Resistive Components of Work". */
+ * integrator's accuracy, E_resistive = drag + wake + internal damping + mechanical stops. This is
+ * the split of the thesis's "Elastic and Resistive Components of Work". */
+#include <complex.h>
 #include <math.h>
 
 #include "glue.h"
 
 #define PI 3.14159265358979323846
-#define N_PIECES 2
-#define N_LAT (2 + N_PIECES)
-#define N_SAMPLES 16 /* midpoints per piece and on the head */
-#define N_POINTS ((N_PIECES + 1) * N_SAMPLES)
+#define N_PIECES 3
+#define N_Q (3 + N_PIECES)  /* X, Y, psi, theta_1..theta_N */
+#define N_SAMPLES 10        /* midpoints per tail piece */
+#define N_HEAD_SAMPLES 8    /* midpoints on the head */
+#define N_POINTS (N_HEAD_SAMPLES + N_PIECES * N_SAMPLES)
+#define SMALL_ANGLE 0.1     /* below it sinc and its derivatives take their series */
 
-/* continuous states, in this order in State.y (MAX_STATES = 16 in glue.h allows two pieces) */
+/* continuous states, in this order in State.y (MAX_STATES = 32 in glue.h) */
 enum {
-    M_A, U_A, M_B, U_B,       /* channel gas masses [kg] and internal energies [J] */
-    TH_1, TH_2,               /* bend angles [rad] */
-    NU_V, NU_R, NU_W1, NU_W2, /* sway [m/s], yaw rate [rad/s], bend rates [rad/s] */
-    SURGE, POS_X, POS_Y, YAW, /* surge [m/s], joint position [m], heading [rad] */
-    W_GAS, E_RES,             /* gas work and dissipation [J] */
+    M_A, U_A, M_B, U_B,                    /* channel gas masses [kg] and internal energies [J] */
+    Q_X, Q_Y, Q_PSI, Q_TH,                 /* joint [m], heading [rad], bend angles [rad] ... */
+    DQ_X = Q_X + N_Q, DQ_Y, DQ_PSI, DQ_TH, /* ... and their rates [m/s], [rad/s] */
+    W_GAS = DQ_X + N_Q, E_RES,             /* gas work and dissipation [J] */
     N_STATES
 };
 
+/* A sample point of the backbone: on the head at `offset` ahead of the joint (piece < 0), or on
+ * tail piece `piece` at the fraction `fraction` of its length. */
+typedef struct {
+    int piece;
+    double offset, fraction;
+    double mass;     /* structural mass [kg] */
+    double added;    /* added mass normal to the section [kg] */
+    double c_normal; /* rho Cd_lateral h ds / 2 [kg/m] */
+    double c_tangent; /* rho Cf_tangential h ds [kg/m] (both faces) */
+} Point;
+
 typedef struct {
     double y[N_STATES];
-    double m_vented;                /* vented mass [kg], exact sum of the held inputs */
-    double M[N_LAT][N_LAT];         /* lateral mass matrix */
-    double M_inv[N_LAT][N_LAT];     /* its inverse */
-    double m_surge;                 /* surge mass incl. added mass [kg] */
-    double b[N_POINTS][N_LAT];      /* section velocity maps b(s) at the sample points */
-    double drag[N_POINTS];          /* rho Cd h ds / 2 at the sample points [kg/m] */
-    double b_tip[N_LAT];            /* b at the tail tip */
+    double m_vented;        /* vented mass [kg], exact sum of the held inputs */
+    Point points[N_POINTS];
 } State;
+
+/* Kinematics of one material point at (q, q'): position, Jacobian, velocity, velocity-product
+ * acceleration J' q', tangent angle phi and its gradient a = dphi/dq (constant). */
+typedef struct {
+    double complex r, J[N_Q], v, acc_vp;
+    double phi, phi_rate, a[N_Q];
+} Kinematics;
 
 size_t model_state_size(void) { return sizeof(State); }
 
-static double piece_length(const Instance *inst, int j) { return j == 0 ? V(inst, L_1) : V(inst, L_2); }
-static double piece_G(const Instance *inst, int j) { return j == 0 ? V(inst, G_1) : V(inst, G_2); }
-static double piece_k(const Instance *inst, int j) { return j == 0 ? V(inst, k_1) : V(inst, k_2); }
-static double piece_d(const Instance *inst, int j) { return j == 0 ? V(inst, d_1) : V(inst, d_2); }
+static double piece_length(const Instance *inst, int j) {
+    return j == 0 ? V(inst, L_1) : j == 1 ? V(inst, L_2) : V(inst, L_3);
+}
+static double piece_G(const Instance *inst, int j) {
+    return j == 0 ? V(inst, G_1) : j == 1 ? V(inst, G_2) : V(inst, G_3);
+}
+static double piece_k(const Instance *inst, int j) {
+    return j == 0 ? V(inst, k_1) : j == 1 ? V(inst, k_2) : V(inst, k_3);
+}
+static double piece_d(const Instance *inst, int j) {
+    return j == 0 ? V(inst, d_1) : j == 1 ? V(inst, d_2) : V(inst, d_3);
+}
 
-static double tail_length(const Instance *inst) { return V(inst, L_1) + V(inst, L_2); }
+static double tail_length(const Instance *inst) {
+    double L = 0.0;
+    int j;
+    for (j = 0; j < N_PIECES; j++) L += piece_length(inst, j);
+    return L;
+}
 
 /* Depth of the tail's body at arc length s behind the joint [m] (linear taper). */
 static double tail_depth(const Instance *inst, double s) {
@@ -104,111 +149,206 @@ static double added_mass_per_length(const Instance *inst, double h) {
     return V(inst, C_a) * V(inst, rho_water) * PI * h * h / 4.0;
 }
 
-/* Lateral displacement per bend angle of piece j at arc length s: the small-angle PCC shape. */
-static double shape(const Instance *inst, int j, double s) {
-    double start = 0.0;
+/* sinc(x) = sin(x) / x and its first two derivatives, series below SMALL_ANGLE (next terms
+ * x^10 / 11!, which is below rounding there). */
+static void sinc_derivatives(double x, double out[3]) {
+    const double x2 = x * x;
+    if (fabs(x) < SMALL_ANGLE) {
+        out[0] = 1.0 - x2 / 6.0 * (1.0 - x2 / 20.0 * (1.0 - x2 / 42.0 * (1.0 - x2 / 72.0)));
+        out[1] = x * (-1.0 / 3.0 + x2 * (1.0 / 30.0 + x2 * (-1.0 / 840.0 + x2 / 45360.0)));
+        out[2] = -1.0 / 3.0 + x2 * (1.0 / 10.0 + x2 * (-1.0 / 168.0 + x2 / 6480.0));
+        return;
+    }
+    {
+        const double s = sin(x), c = cos(x);
+        out[0] = s / x;
+        out[1] = (x * c - s) / x2;
+        out[2] = ((2.0 - x2) * s - 2.0 * x * c) / (x2 * x);
+    }
+}
+
+/* Adds one chord of the PCC chain to k: length l sinc(a / 2) along Phi = psi + pi - B - a / 2,
+ * a = f theta_m, B the bend of the pieces before m. With c(a) = l sinc(a / 2):
+ *   dr = (c' da + i c dPhi) E,  J' q' = (c'' a'^2 + 2 i c' a' Phi' - c Phi'^2) E,  E = exp(i Phi). */
+static void chain_term(const double q[], const double dq[], int m, double l, double f,
+                       Kinematics *k) {
+    double bend = 0.0, bend_rate = 0.0, sd[3];
     int i;
-    const double L = piece_length(inst, j);
-    for (i = 0; i < j; i++) start += piece_length(inst, i);
-    if (s <= start) return 0.0;
-    if (s <= start + L) return (s - start) * (s - start) / (2.0 * L);
-    return L / 2.0 + (s - start - L);
+    for (i = 0; i < m; i++) {
+        bend += q[3 + i];
+        bend_rate += dq[3 + i];
+    }
+    {
+        const double a = f * q[3 + m], a_rate = f * dq[3 + m];
+        const double Phi = q[2] + PI - bend - 0.5 * a, Phi_rate = dq[2] - bend_rate - 0.5 * a_rate;
+        const double complex E = cexp(I * Phi);
+        double c, c1, c2;
+        sinc_derivatives(0.5 * a, sd);
+        c = l * sd[0];
+        c1 = 0.5 * l * sd[1];
+        c2 = 0.25 * l * sd[2];
+        k->r += c * E;
+        k->J[2] += I * c * E;
+        for (i = 0; i < m; i++) k->J[3 + i] -= I * c * E;
+        k->J[3 + m] += f * (c1 - 0.5 * I * c) * E;
+        k->v += (c1 * a_rate + I * c * Phi_rate) * E;
+        k->acc_vp += (c2 * a_rate * a_rate + 2.0 * I * c1 * a_rate * Phi_rate -
+                      c * Phi_rate * Phi_rate) * E;
+    }
 }
 
-static void tail_map(const Instance *inst, double s, double b[N_LAT]) {
-    int j;
-    b[0] = 1.0;
-    b[1] = -s;
-    for (j = 0; j < N_PIECES; j++) b[2 + j] = shape(inst, j, s);
+/* Kinematics of a point on tail piece j at the fraction f of its length. */
+static void tail_point(const Instance *inst, const double q[], const double dq[], int j, double f,
+                       Kinematics *k) {
+    int i;
+    for (i = 0; i < N_Q; i++) {
+        k->J[i] = 0.0;
+        k->a[i] = 0.0;
+    }
+    k->r = q[0] + I * q[1];
+    k->J[0] = 1.0;
+    k->J[1] = I;
+    k->v = dq[0] + I * dq[1];
+    k->acc_vp = 0.0;
+    for (i = 0; i < j; i++) chain_term(q, dq, i, piece_length(inst, i), 1.0, k);
+    chain_term(q, dq, j, f * piece_length(inst, j), f, k);
+    k->a[2] = 1.0;
+    k->phi = q[2] + PI - f * q[3 + j];
+    k->phi_rate = dq[2] - f * dq[3 + j];
+    for (i = 0; i < j; i++) {
+        k->a[3 + i] = -1.0;
+        k->phi -= q[3 + i];
+        k->phi_rate -= dq[3 + i];
+    }
+    k->a[3 + j] = -f;
 }
 
-static void add_outer(double M[N_LAT][N_LAT], const double b[N_LAT], double weight) {
-    int i, k;
-    for (i = 0; i < N_LAT; i++)
-        for (k = 0; k < N_LAT; k++) M[i][k] += weight * b[i] * b[k];
+/* Kinematics of a point of the rigid head at `offset` ahead of the joint (tangent: the heading). */
+static void head_point(const double q[], const double dq[], double offset, Kinematics *k) {
+    const double complex E = cexp(I * q[2]);
+    int i;
+    for (i = 0; i < N_Q; i++) {
+        k->J[i] = 0.0;
+        k->a[i] = 0.0;
+    }
+    k->r = q[0] + I * q[1] + offset * E;
+    k->J[0] = 1.0;
+    k->J[1] = I;
+    k->J[2] = I * offset * E;
+    k->v = dq[0] + I * dq[1] + I * offset * dq[2] * E;
+    k->acc_vp = -offset * dq[2] * dq[2] * E;
+    k->phi = q[2];
+    k->phi_rate = dq[2];
+    k->a[2] = 1.0;
 }
 
-/* Inverts the symmetric positive definite A by Gauss-Jordan with partial pivoting; 0 if singular. */
-static int invert(const double A[N_LAT][N_LAT], double out[N_LAT][N_LAT]) {
-    double a[N_LAT][2 * N_LAT];
-    int i, k, c;
-    for (i = 0; i < N_LAT; i++)
-        for (k = 0; k < 2 * N_LAT; k++) a[i][k] = k < N_LAT ? A[i][k] : (k - N_LAT == i);
-    for (c = 0; c < N_LAT; c++) {
-        int pivot = c;
-        for (i = c + 1; i < N_LAT; i++)
-            if (fabs(a[i][c]) > fabs(a[pivot][c])) pivot = i;
-        if (!(fabs(a[pivot][c]) > 1e-300)) return 0;
-        if (pivot != c)
-            for (k = 0; k < 2 * N_LAT; k++) {
-                const double t = a[c][k];
-                a[c][k] = a[pivot][k];
-                a[pivot][k] = t;
-            }
+static void point_kinematics(const Instance *inst, const Point *p, const double q[],
+                             const double dq[], Kinematics *k) {
+    if (p->piece < 0)
+        head_point(q, dq, p->offset, k);
+    else
+        tail_point(inst, q, dq, p->piece, p->fraction, k);
+}
+
+/* Real dot product of two plane vectors written as complex numbers. */
+static double vdot(double complex a, double complex b) { return creal(conj(a) * b); }
+
+/* Adds the inertia of a full point mass m: M += m J^T J, h += m J^T (J' q'). */
+static void add_point_mass(const Kinematics *k, double m, double M[N_Q][N_Q], double h[N_Q]) {
+    int i, l;
+    for (i = 0; i < N_Q; i++) {
+        for (l = 0; l < N_Q; l++) M[i][l] += m * vdot(k->J[i], k->J[l]);
+        h[i] += m * vdot(k->J[i], k->acc_vp);
+    }
+}
+
+/* Adds the inertia of a mass m acting on the velocity along the direction d (turning with the
+ * point's tangent, e = dd/dphi): see the header. */
+static void add_projected_mass(const Kinematics *k, double complex d, double complex e, double m,
+                               double M[N_Q][N_Q], double h[N_Q]) {
+    double b[N_Q], je[N_Q];
+    const double w = vdot(d, k->v), ev = vdot(e, k->v);
+    const double bdot_q = vdot(d, k->acc_vp) + k->phi_rate * ev;
+    int i, l;
+    for (i = 0; i < N_Q; i++) {
+        b[i] = vdot(d, k->J[i]);
+        je[i] = vdot(e, k->J[i]);
+    }
+    for (i = 0; i < N_Q; i++) {
+        for (l = 0; l < N_Q; l++) M[i][l] += m * b[i] * b[l];
+        h[i] += m * (b[i] * bdot_q + w * (k->phi_rate * je[i] - ev * k->a[i]));
+    }
+}
+
+/* Adds a force F [N] acting at the point to the generalised forces Q. */
+static void add_force(const Kinematics *k, double complex F, double Q[N_Q]) {
+    int i;
+    for (i = 0; i < N_Q; i++) Q[i] += vdot(k->J[i], F);
+}
+
+/* Mass matrix M(q) and velocity-product forces h(q, q') of body, tail and entrained water. */
+static void inertia(const Instance *inst, const double q[], const double dq[], double M[N_Q][N_Q],
+                    double h[N_Q]) {
+    const State *s = (const State *)inst->state;
+    Kinematics k;
+    int i, l, p;
+    for (i = 0; i < N_Q; i++) {
+        h[i] = 0.0;
+        for (l = 0; l < N_Q; l++) M[i][l] = 0.0;
+    }
+    head_point(q, dq, V(inst, d_head), &k);
+    add_point_mass(&k, V(inst, m_head), M, h);
+    M[2][2] += V(inst, I_head);
+    {
+        const double complex t = cexp(I * k.phi);
+        add_projected_mass(&k, t, I * t, V(inst, m_added_surge), M, h);
+    }
+    for (p = 0; p < N_POINTS; p++) {
+        const Point *pt = &s->points[p];
+        point_kinematics(inst, pt, q, dq, &k);
         {
-            const double inv = 1.0 / a[c][c];
-            for (k = 0; k < 2 * N_LAT; k++) a[c][k] *= inv;
-        }
-        for (i = 0; i < N_LAT; i++) {
-            const double f = a[i][c];
-            if (i == c || f == 0.0) continue;
-            for (k = 0; k < 2 * N_LAT; k++) a[i][k] -= f * a[c][k];
+            const double complex tan = cexp(I * k.phi), n = I * tan;
+            if (pt->mass > 0.0) add_point_mass(&k, pt->mass, M, h);
+            add_projected_mass(&k, n, -tan, pt->added, M, h);
         }
     }
-    for (i = 0; i < N_LAT; i++)
-        for (k = 0; k < N_LAT; k++) out[i][k] = a[i][N_LAT + k];
+}
+
+/* Cholesky factor of the symmetric positive definite A (lower triangle in L); 0 if not SPD. */
+static int cholesky(const double A[N_Q][N_Q], double L[N_Q][N_Q]) {
+    int i, j, k;
+    for (i = 0; i < N_Q; i++)
+        for (j = 0; j <= i; j++) {
+            double sum = A[i][j];
+            for (k = 0; k < j; k++) sum -= L[i][k] * L[j][k];
+            if (i == j) {
+                if (!(sum > 0.0)) return 0;
+                L[i][i] = sqrt(sum);
+            } else {
+                L[i][j] = sum / L[j][j];
+            }
+        }
     return 1;
 }
 
-/* Mass matrix, surge mass and the sample points' maps and drag weights. */
-static int assemble(Instance *inst) {
-    State *s = (State *)inst->state;
-    const double L = tail_length(inst), L_head = V(inst, L_head);
-    const double half_rho_cd = 0.5 * V(inst, rho_water) * V(inst, Cd_lateral);
-    double depth_integral = 0.0, b_c[N_LAT] = {0};
-    int i, k, p = 0;
-    for (i = 0; i < N_LAT; i++)
-        for (k = 0; k < N_LAT; k++) s->M[i][k] = 0.0;
-    b_c[0] = 1.0;
-    b_c[1] = V(inst, d_head);
-    add_outer(s->M, b_c, V(inst, m_head));
-    s->M[1][1] += V(inst, I_head);
-    /* the head: added mass and drag of sections ahead of the joint */
-    for (k = 0; k < N_SAMPLES; k++, p++) {
-        const double ds = L_head / N_SAMPLES, e = (k + 0.5) * ds;
-        for (i = 0; i < N_LAT; i++) s->b[p][i] = 0.0;
-        s->b[p][0] = 1.0;
-        s->b[p][1] = e;
-        add_outer(s->M, s->b[p], added_mass_per_length(inst, V(inst, h_head)) * ds);
-        s->drag[p] = half_rho_cd * V(inst, h_head) * ds;
+/* Solves L L^T x = b in place. */
+static void cholesky_solve(const double L[N_Q][N_Q], double x[N_Q]) {
+    int i, k;
+    for (i = 0; i < N_Q; i++) {
+        for (k = 0; k < i; k++) x[i] -= L[i][k] * x[k];
+        x[i] /= L[i][i];
     }
-    /* the tail's structural mass follows its depth: mu = m_tail h(s) / int h ds */
-    depth_integral = 0.5 * (V(inst, h_root) + V(inst, h_tip)) * L;
-    {
-        double start = 0.0;
-        int j;
-        for (j = 0; j < N_PIECES; j++) {
-            const double Lj = piece_length(inst, j), ds = Lj / N_SAMPLES;
-            for (k = 0; k < N_SAMPLES; k++, p++) {
-                const double sk = start + (k + 0.5) * ds, h = tail_depth(inst, sk);
-                const double wet = wetted_depth(inst, sk);
-                const double mu_struct = depth_integral > 0.0 ? V(inst, m_tail) * h / depth_integral
-                                                              : V(inst, m_tail) / L;
-                tail_map(inst, sk, s->b[p]);
-                add_outer(s->M, s->b[p], (mu_struct + added_mass_per_length(inst, wet)) * ds);
-                s->drag[p] = half_rho_cd * wet * ds;
-            }
-            start += Lj;
-        }
+    for (i = N_Q - 1; i >= 0; i--) {
+        for (k = i + 1; k < N_Q; k++) x[i] -= L[k][i] * x[k];
+        x[i] /= L[i][i];
     }
-    tail_map(inst, L, s->b_tip);
-    s->m_surge = V(inst, m_head) + V(inst, m_tail) + V(inst, m_added_surge);
-    return invert((const double(*)[N_LAT])s->M, s->M_inv);
 }
 
 /* Channel volumes [m^3] at bend angles theta. */
 static void channel_volumes(const Instance *inst, const double y[], double vol[2]) {
-    const double bend = V(inst, G_1) * y[TH_1] + V(inst, G_2) * y[TH_2];
+    double bend = 0.0;
+    int j;
+    for (j = 0; j < N_PIECES; j++) bend += piece_G(inst, j) * y[Q_TH + j];
     vol[0] = V(inst, V_0) + bend;
     vol[1] = V(inst, V_0) - bend;
 }
@@ -232,54 +372,122 @@ static int channel_state(const Instance *inst, const double y[], Channels *c) {
     return 1;
 }
 
-static double dot(const double a[N_LAT], const double b[N_LAT]) {
-    double sum = 0.0;
-    int i;
-    for (i = 0; i < N_LAT; i++) sum += a[i] * b[i];
-    return sum;
+/* A piece resting against its mechanical limit and pushed further is held there: constraint
+ * forces lambda on the bend coordinates of the active set A, M q'' = F + sum lambda_c e_c with
+ * theta_c'' = 0, i.e. (M^-1)_AA lambda = -q''_A. They do no work (theta_c' = 0), so the energy
+ * balance holds; the stop itself is the projection in model_after_substep. */
+static void stop_at_limits(const Instance *inst, const double y[], const double L[N_Q][N_Q],
+                           double acc[N_Q]) {
+    const double limit = V(inst, theta_max);
+    double cols[N_PIECES][N_Q], A[N_PIECES][N_PIECES + 1];
+    int active[N_PIECES], n = 0, j, i, r;
+    for (j = 0; j < N_PIECES; j++) {
+        const double th = y[Q_TH + j], rate = y[DQ_TH + j], a = acc[3 + j];
+        if ((th >= limit && rate >= 0.0 && a > 0.0) || (th <= -limit && rate <= 0.0 && a < 0.0))
+            active[n++] = 3 + j;
+    }
+    if (n == 0) return;
+    for (j = 0; j < n; j++) {
+        for (i = 0; i < N_Q; i++) cols[j][i] = i == active[j];
+        cholesky_solve(L, cols[j]);
+    }
+    /* the small SPD system by Gaussian elimination without pivoting */
+    for (r = 0; r < n; r++) {
+        for (j = 0; j < n; j++) A[r][j] = cols[j][active[r]];
+        A[r][n] = -acc[active[r]];
+    }
+    for (r = 0; r < n; r++)
+        for (i = r + 1; i < n; i++) {
+            const double f = A[i][r] / A[r][r];
+            for (j = r; j <= n; j++) A[i][j] -= f * A[r][j];
+        }
+    for (r = n - 1; r >= 0; r--) {
+        double lambda = A[r][n];
+        for (j = r + 1; j < n; j++) lambda -= A[r][j] * A[j][n];
+        A[r][n] = lambda / A[r][r];
+    }
+    for (j = 0; j < n; j++)
+        for (i = 0; i < N_Q; i++) acc[i] += A[j][n] * cols[j][i];
 }
 
-/* A piece resting against its mechanical limit and pushed further is held there: a constraint
- * force lambda on its bend coordinate, M nu' = F + sum lambda_j e_j with theta_j'' = 0, solved
- * exactly on the constant mass matrix (at most two pieces). It does no work (theta_j' = 0), so the
- * energy balance holds; the stop itself is the projection in model_after_substep. */
-static void stop_at_limits(const Instance *inst, const double y[], const double F[N_LAT],
-                           double acc[N_LAT]) {
+/* Generalised forces of gas, elasticity, damping and water on q, and the power they dissipate. */
+static double generalised_forces(const Instance *inst, const double y[], const Channels *c,
+                                 double Q[N_Q]) {
     const State *s = (const State *)inst->state;
-    const double limit = V(inst, theta_max);
-    int active[N_PIECES], n = 0, j, i;
-    (void)F;
-    for (j = 0; j < N_PIECES; j++) {
-        const double th = y[TH_1 + j], rate = y[NU_W1 + j], a = acc[2 + j];
-        if ((th >= limit && rate >= 0.0 && a > 0.0) || (th <= -limit && rate <= 0.0 && a < 0.0))
-            active[n++] = 2 + j;
+    const double *q = &y[Q_X], *dq = &y[DQ_X];
+    double power_res = 0.0;
+    Kinematics k;
+    int i, p;
+    for (i = 0; i < N_Q; i++) Q[i] = 0.0;
+    /* actuation, elasticity and internal damping on the bend coordinates */
+    for (i = 0; i < N_PIECES; i++) {
+        const double rate = dq[3 + i];
+        Q[3 + i] += piece_G(inst, i) * (c->g[0] - c->g[1]) - piece_k(inst, i) * q[3 + i] -
+                    piece_d(inst, i) * rate;
+        power_res += piece_d(inst, i) * rate * rate;
     }
-    if (n == 1) {
-        const int c = active[0];
-        const double lambda = -acc[c] / s->M_inv[c][c];
-        for (i = 0; i < N_LAT; i++) acc[i] += lambda * s->M_inv[i][c];
-    } else if (n == 2) {
-        const int c0 = active[0], c1 = active[1];
-        const double a = s->M_inv[c0][c0], b = s->M_inv[c0][c1], c = s->M_inv[c1][c0],
-                     d = s->M_inv[c1][c1], det = a * d - b * c;
-        const double l0 = (-acc[c0] * d + acc[c1] * b) / det;
-        const double l1 = (-acc[c1] * a + acc[c0] * c) / det;
-        for (i = 0; i < N_LAT; i++) acc[i] += l0 * s->M_inv[i][c0] + l1 * s->M_inv[i][c1];
+    /* resistive-force theory on every section */
+    for (p = 0; p < N_POINTS; p++) {
+        const Point *pt = &s->points[p];
+        point_kinematics(inst, pt, q, dq, &k);
+        {
+            const double complex t = cexp(I * k.phi), n = I * t;
+            const double w = vdot(n, k.v), u_t = vdot(t, k.v);
+            const double complex F =
+                -pt->c_normal * fabs(w) * w * n - pt->c_tangent * fabs(u_t) * u_t * t;
+            add_force(&k, F, Q);
+            power_res -= vdot(F, k.v);
+        }
     }
+    /* form drag of the head in surge, at its centroid */
+    {
+        const double c_surge = 0.5 * V(inst, rho_water) * V(inst, Cd_surge) * V(inst, S_front);
+        head_point(q, dq, V(inst, d_head), &k);
+        {
+            const double complex t = cexp(I * k.phi);
+            const double u = vdot(t, k.v);
+            const double complex F = -c_surge * fabs(u) * u * t;
+            add_force(&k, F, Q);
+            power_res -= vdot(F, k.v);
+        }
+    }
+    /* the reactive force of the caudal fin at the trailing edge (Lighthill 1971) */
+    {
+        const double m_f = added_mass_per_length(inst, V(inst, h_fin));
+        tail_point(inst, q, dq, N_PIECES - 1, 1.0, &k);
+        {
+            const double complex t = cexp(I * k.phi), n = I * t;
+            const double w = vdot(n, k.v), stream = -vdot(t, k.v), U = stream > 0.0 ? stream : 0.0;
+            const double complex F = m_f * (-0.5 * w * w * t - U * w * n);
+            add_force(&k, F, Q);
+            power_res -= vdot(F, k.v);
+        }
+    }
+    return power_res;
+}
+
+/* Accelerations q'' at the state y; 0 if the mass matrix is singular. */
+static int accelerations(const Instance *inst, const double y[], const double Q[N_Q],
+                         double acc[N_Q]) {
+    double M[N_Q][N_Q], L[N_Q][N_Q], h[N_Q];
+    int i;
+    inertia(inst, &y[Q_X], &y[DQ_X], M, h);
+    if (!cholesky((const double(*)[N_Q])M, L)) return 0;
+    for (i = 0; i < N_Q; i++) acc[i] = Q[i] - h[i];
+    cholesky_solve((const double(*)[N_Q])L, acc);
+    stop_at_limits(inst, y, (const double(*)[N_Q])L, acc);
+    return 1;
 }
 
 int model_derivatives(const Instance *inst, const double y[], double dy[]) {
-    const State *s = (const State *)inst->state;
     const double gamma = V(inst, gamma), R = V(inst, R_gas);
     const double cv = R / (gamma - 1.0), cp = gamma * cv;
-    const double *nu = &y[NU_V], u = y[SURGE];
-    const double m_fin = added_mass_per_length(inst, V(inst, h_fin));
-    double Q[N_LAT] = {0}, P[N_LAT], Pdot[N_LAT], X, power_res = 0.0, bend_rate = 0.0;
+    double Q[N_Q], bend_rate = 0.0;
     Channels c;
-    int i, k, side;
+    int i, side;
     if (!channel_state(inst, y, &c)) return 0;
     /* gas */
-    for (i = 0; i < N_PIECES; i++) bend_rate += piece_G(inst, i) * nu[2 + i];
+    for (i = 0; i < N_PIECES; i++) bend_rate += piece_G(inst, i) * y[DQ_TH + i];
     for (side = 0; side < 2; side++) {
         const double in = side == 0 ? V(inst, mdot_in_a) : V(inst, mdot_in_b);
         const double out = side == 0 ? V(inst, mdot_vent_a) : V(inst, mdot_vent_b);
@@ -292,46 +500,9 @@ int model_derivatives(const Instance *inst, const double y[], double dy[]) {
                              m * cv * (T - V(inst, T_wall)) / V(inst, tau_thermal);
     }
     dy[W_GAS] = (c.g[0] - c.g[1]) * bend_rate;
-    /* actuation, elasticity and internal damping on the bend coordinates */
-    for (i = 0; i < N_PIECES; i++) {
-        const double rate = nu[2 + i];
-        Q[2 + i] += piece_G(inst, i) * (c.g[0] - c.g[1]) - piece_k(inst, i) * y[TH_1 + i] -
-                    piece_d(inst, i) * rate;
-        power_res += piece_d(inst, i) * rate * rate;
-    }
-    /* resistive drag of every section */
-    for (k = 0; k < N_POINTS; k++) {
-        const double w = dot(s->b[k], nu), f = -s->drag[k] * fabs(w) * w;
-        for (i = 0; i < N_LAT; i++) Q[i] += f * s->b[k][i];
-        power_res -= f * w;
-    }
-    /* surge drag and the reactive force at the tail tip (Lighthill) */
-    {
-        const double U = u > 0.0 ? u : 0.0, w_t = dot(s->b_tip, nu);
-        const double w = w_t + U * (y[TH_1] + y[TH_2]);
-        const double thrust = m_fin * (w * w_t - 0.5 * w * w), lateral = -m_fin * U * w;
-        const double surge_drag = 0.5 * V(inst, rho_water) * V(inst, Cd_surge) * V(inst, S_front);
-        X = thrust - surge_drag * fabs(u) * u;
-        for (i = 0; i < N_LAT; i++) Q[i] += lateral * s->b_tip[i];
-        power_res += surge_drag * fabs(u) * u * u - (u * thrust + w_t * lateral);
-    }
-    dy[E_RES] = power_res;
-    /* Kirchhoff's equations */
-    for (i = 0; i < N_LAT; i++) P[i] = dot(s->M[i], nu);
-    {
-        const double P_u = s->m_surge * u, v = nu[0], r = nu[1];
-        dy[SURGE] = (X + r * P[0]) / s->m_surge;
-        Pdot[0] = Q[0] - r * P_u;
-        Pdot[1] = Q[1] - u * P[0] + v * P_u;
-        for (i = 2; i < N_LAT; i++) Pdot[i] = Q[i];
-        for (i = 0; i < N_LAT; i++) dy[NU_V + i] = dot(s->M_inv[i], Pdot);
-        stop_at_limits(inst, y, Pdot, &dy[NU_V]);
-        dy[POS_X] = u * cos(y[YAW]) - v * sin(y[YAW]);
-        dy[POS_Y] = u * sin(y[YAW]) + v * cos(y[YAW]);
-        dy[YAW] = r;
-    }
-    for (i = 0; i < N_PIECES; i++) dy[TH_1 + i] = nu[2 + i];
-    return 1;
+    dy[E_RES] = generalised_forces(inst, y, &c, Q);
+    for (i = 0; i < N_Q; i++) dy[Q_X + i] = y[DQ_X + i];
+    return accelerations(inst, y, Q, &dy[DQ_X]);
 }
 
 double model_time_to_event(const Instance *inst) {
@@ -341,8 +512,21 @@ double model_time_to_event(const Instance *inst) {
 
 void model_discrete_update(Instance *inst) { (void)inst; }
 
-static double elastic_energy(const Instance *inst, const double y[]);
-static double kinetic_energy(const State *s);
+static double elastic_energy(const Instance *inst, const double y[]) {
+    double e = 0.0;
+    int j;
+    for (j = 0; j < N_PIECES; j++) e += 0.5 * piece_k(inst, j) * y[Q_TH + j] * y[Q_TH + j];
+    return e;
+}
+
+static double kinetic_energy(const Instance *inst, const double y[]) {
+    double M[N_Q][N_Q], h[N_Q], e = 0.0;
+    int i, l;
+    inertia(inst, &y[Q_X], &y[DQ_X], M, h);
+    for (i = 0; i < N_Q; i++)
+        for (l = 0; l < N_Q; l++) e += 0.5 * y[DQ_X + i] * M[i][l] * y[DQ_X + l];
+    return e;
+}
 
 /* The vented mass is the held input integrated exactly (no solver rounding beyond the sum). A
  * piece past its mechanical limit theta_max is put back on it and stopped (an inelastic stop);
@@ -354,23 +538,23 @@ void model_after_substep(Instance *inst, double dt) {
     const double limit = V(inst, theta_max);
     int j, hit = 0;
     s->m_vented += (V(inst, mdot_vent_a) + V(inst, mdot_vent_b)) * dt;
-    for (j = 0; j < N_PIECES; j++) hit |= fabs(y[TH_1 + j]) > limit;
+    for (j = 0; j < N_PIECES; j++) hit |= fabs(y[Q_TH + j]) > limit;
     if (hit) {
         Channels c;
-        double before = elastic_energy(inst, y) + kinetic_energy(s), vol_before[2], vol_after[2];
-        double gas_work;
+        double before = elastic_energy(inst, y) + kinetic_energy(inst, y), vol_before[2],
+               vol_after[2], gas_work;
         channel_volumes(inst, y, vol_before);
         if (!channel_state(inst, y, &c)) return; /* model_outputs reports it */
         for (j = 0; j < N_PIECES; j++) {
-            const double th = y[TH_1 + j];
+            const double th = y[Q_TH + j];
             if (fabs(th) <= limit) continue;
-            y[TH_1 + j] = th > 0.0 ? limit : -limit;
-            if (y[NU_W1 + j] * th > 0.0) y[NU_W1 + j] = 0.0;
+            y[Q_TH + j] = th > 0.0 ? limit : -limit;
+            if (y[DQ_TH + j] * th > 0.0) y[DQ_TH + j] = 0.0;
         }
         channel_volumes(inst, y, vol_after);
         gas_work = c.g[0] * (vol_after[0] - vol_before[0]) + c.g[1] * (vol_after[1] - vol_before[1]);
         y[W_GAS] += gas_work;
-        y[E_RES] += gas_work + before - elastic_energy(inst, y) - kinetic_energy(s);
+        y[E_RES] += gas_work + before - elastic_energy(inst, y) - kinetic_energy(inst, y);
     }
 }
 
@@ -379,73 +563,58 @@ fmi2Status model_step_start(Instance *inst) {
     return fmi2OK;
 }
 
-static double elastic_energy(const Instance *inst, const double y[]) {
-    double e = 0.0;
-    int j;
-    for (j = 0; j < N_PIECES; j++) e += 0.5 * piece_k(inst, j) * y[TH_1 + j] * y[TH_1 + j];
-    return e;
-}
-
-static double kinetic_energy(const State *s) {
-    const double *nu = &s->y[NU_V];
-    double e = 0.5 * s->m_surge * s->y[SURGE] * s->y[SURGE];
-    int i;
-    for (i = 0; i < N_LAT; i++) e += 0.5 * nu[i] * dot(s->M[i], nu);
-    return e;
-}
-
-/* sin(z) / z, exact near 0. */
-static double sinc(double z) { return fabs(z) < 1e-4 ? 1.0 - z * z / 6.0 : sin(z) / z; }
-
 fmi2Status model_outputs(Instance *inst) {
     State *s = (State *)inst->state;
-    const double *y = s->y;
-    const double yaw = y[YAW], u = y[SURGE], v = y[NU_V], r = y[NU_R], d = V(inst, d_head);
-    double dy[N_STATES], px = y[POS_X], py = y[POS_Y], direction = yaw + PI;
+    const double *y = s->y, *q = &y[Q_X], *dq = &y[DQ_X];
+    const double yaw = q[2];
+    const double complex heading = cexp(I * yaw), joint_v = dq[0] + I * dq[1];
+    double dy[N_STATES];
     Channels c;
+    Kinematics k;
     int j;
     if (!channel_state(inst, y, &c) || !model_derivatives(inst, y, dy)) {
         log_message(inst, fmi2Error,
-                    "no physical channel state (masses %g, %g kg; bend angles %g, %g rad): a gas "
-                    "mass or volume reached zero",
-                    y[M_A], y[M_B], y[TH_1], y[TH_2]);
+                    "no physical channel state (masses %g, %g kg; bend angles %g, %g, %g rad): a "
+                    "gas mass or volume reached zero or the mass matrix is singular",
+                    y[M_A], y[M_B], q[3], q[4], q[5]);
         return fmi2Error;
     }
-    V(inst, x) = px;
-    V(inst, y) = py;
+    V(inst, x) = q[0];
+    V(inst, y) = q[1];
     V(inst, yaw) = yaw;
-    V(inst, x_dot) = dy[POS_X];
-    V(inst, y_dot) = dy[POS_Y];
-    V(inst, yaw_rate) = r;
-    V(inst, surge) = u;
-    V(inst, sway) = v;
+    V(inst, x_dot) = dq[0];
+    V(inst, y_dot) = dq[1];
+    V(inst, yaw_rate) = dq[2];
+    V(inst, surge) = vdot(heading, joint_v);
+    V(inst, sway) = vdot(I * heading, joint_v);
+    head_point(q, dq, V(inst, d_head), &k);
     {
-        /* the head's centroid sits at (d, 0) in the turning body frame */
-        const double ax = dy[SURGE] - r * (v + d * r), ay = dy[NU_V] + d * dy[NU_R] + r * u;
-        V(inst, a_head_x) = ax * cos(yaw) - ay * sin(yaw);
-        V(inst, a_head_y) = ax * sin(yaw) + ay * cos(yaw);
-        V(inst, a_head) = hypot(ax, ay);
+        double complex a = k.acc_vp;
+        int i;
+        for (i = 0; i < N_Q; i++) a += k.J[i] * dy[DQ_X + i];
+        V(inst, a_head_x) = creal(a);
+        V(inst, a_head_y) = cimag(a);
+        V(inst, a_head) = cabs(a);
     }
-    V(inst, theta_1) = y[TH_1];
-    V(inst, theta_2) = y[TH_2];
-    V(inst, kappa_1) = y[TH_1] / V(inst, L_1);
-    V(inst, kappa_2) = y[TH_2] / V(inst, L_2);
-    V(inst, nose_x) = px + V(inst, L_head) * cos(yaw);
-    V(inst, nose_y) = py + V(inst, L_head) * sin(yaw);
-    /* exact PCC chain backwards from the joint: a positive bend turns the tail to the left,
-     * i.e. clockwise while walking from the joint towards the tip */
+    V(inst, theta_1) = q[3];
+    V(inst, theta_2) = q[4];
+    V(inst, theta_3) = q[5];
+    V(inst, kappa_1) = q[3] / V(inst, L_1);
+    V(inst, kappa_2) = q[4] / V(inst, L_2);
+    V(inst, kappa_3) = q[5] / V(inst, L_3);
+    V(inst, nose_x) = q[0] + V(inst, L_head) * cos(yaw);
+    V(inst, nose_y) = q[1] + V(inst, L_head) * sin(yaw);
     for (j = 0; j < N_PIECES; j++) {
-        const double turn = -y[TH_1 + j], L = piece_length(inst, j);
-        const double chord = L * sinc(0.5 * turn);
-        px += chord * cos(direction + 0.5 * turn);
-        py += chord * sin(direction + 0.5 * turn);
-        direction += turn;
+        tail_point(inst, q, dq, j, 1.0, &k);
         if (j == 0) {
-            V(inst, tail_1_x) = px;
-            V(inst, tail_1_y) = py;
+            V(inst, tail_1_x) = creal(k.r);
+            V(inst, tail_1_y) = cimag(k.r);
+        } else if (j == 1) {
+            V(inst, tail_2_x) = creal(k.r);
+            V(inst, tail_2_y) = cimag(k.r);
         } else {
-            V(inst, tail_2_x) = px;
-            V(inst, tail_2_y) = py;
+            V(inst, tail_3_x) = creal(k.r);
+            V(inst, tail_3_y) = cimag(k.r);
         }
     }
     V(inst, p_a) = c.g[0];
@@ -459,25 +628,70 @@ fmi2Status model_outputs(Instance *inst) {
     V(inst, m_vented) = s->m_vented;
     V(inst, W_gas) = y[W_GAS];
     V(inst, E_elastic) = elastic_energy(inst, y);
-    V(inst, E_kinetic) = kinetic_energy(s);
+    V(inst, E_kinetic) = kinetic_energy(inst, y);
     V(inst, E_resistive) = y[E_RES];
     return fmi2OK;
 }
 
+/* Sample points: midpoints on the head and on each tail piece, with their structural mass (the
+ * tail's follows its depth: mu = m_tail h(s) / int h ds), added mass and drag weights. */
+static void place_points(Instance *inst) {
+    State *s = (State *)inst->state;
+    const double L = tail_length(inst), L_head = V(inst, L_head), rho = V(inst, rho_water);
+    const double depth_integral = 0.5 * (V(inst, h_root) + V(inst, h_tip)) * L;
+    double start = 0.0;
+    int j, k, p = 0;
+    for (k = 0; k < N_HEAD_SAMPLES; k++, p++) {
+        const double ds = L_head / N_HEAD_SAMPLES, h = V(inst, h_head);
+        Point *pt = &s->points[p];
+        pt->piece = -1;
+        pt->offset = (k + 0.5) * ds;
+        pt->fraction = 0.0;
+        pt->mass = 0.0; /* the head's mass is m_head at d_head, with I_head */
+        pt->added = added_mass_per_length(inst, h) * ds;
+        pt->c_normal = 0.5 * rho * V(inst, Cd_lateral) * h * ds;
+        pt->c_tangent = rho * V(inst, Cf_tangential) * h * ds;
+    }
+    for (j = 0; j < N_PIECES; j++) {
+        const double Lj = piece_length(inst, j), ds = Lj / N_SAMPLES;
+        for (k = 0; k < N_SAMPLES; k++, p++) {
+            const double sk = start + (k + 0.5) * ds, h = tail_depth(inst, sk);
+            const double wet = wetted_depth(inst, sk);
+            Point *pt = &s->points[p];
+            pt->piece = j;
+            pt->offset = 0.0;
+            pt->fraction = (k + 0.5) / N_SAMPLES;
+            pt->mass = (depth_integral > 0.0 ? V(inst, m_tail) * h / depth_integral
+                                             : V(inst, m_tail) / L) * ds;
+            pt->added = added_mass_per_length(inst, wet) * ds;
+            pt->c_normal = 0.5 * rho * V(inst, Cd_lateral) * wet * ds;
+            pt->c_tangent = rho * V(inst, Cf_tangential) * wet * ds;
+        }
+        start += Lj;
+    }
+}
+
 /* The substep beyond which RK4 diverges on the tail's modes [s]: 2.5 / rate with the rate bounded
- * by sqrt(trace(M^-1 K)) + trace(M^-1 D) (M^-1 K is similar to a positive semidefinite matrix,
- * so its largest eigenvalue is at most its trace), K the bending stiffness plus the gas stiffness
- * gamma p G_j^2 (1 / V_a + 1 / V_b) at up to ten atmospheres in channels down to half V_0. */
-static double tail_stability_limit(const Instance *inst) {
-    const State *s = (const State *)inst->state;
+ * by sqrt(trace(M^-1 K)) + trace(M^-1 D) at the straight tail (M^-1 K is similar to a positive
+ * semidefinite matrix, so its largest eigenvalue is at most its trace), K the bending stiffness
+ * plus the gas stiffness gamma p G_j^2 (1 / V_a + 1 / V_b) at up to ten atmospheres in channels
+ * down to half V_0. The bend changes M by a bounded factor; the default substep keeps a margin. */
+static double tail_stability_limit(const Instance *inst, int *ok) {
     const double p_max = 10.0 * V(inst, p_atm), V_min = 0.5 * V(inst, V_0);
+    double M[N_Q][N_Q], L[N_Q][N_Q], h[N_Q], q[N_Q] = {0}, dq[N_Q] = {0};
     double stiffness = 0.0, damping = 0.0;
     int j;
+    inertia(inst, q, dq, M, h);
+    *ok = cholesky((const double(*)[N_Q])M, L);
+    if (!*ok) return 0.0;
     for (j = 0; j < N_PIECES; j++) {
         const double G = piece_G(inst, j);
         const double k = piece_k(inst, j) + V(inst, gamma) * p_max * G * G * 2.0 / V_min;
-        stiffness += s->M_inv[2 + j][2 + j] * k;
-        damping += s->M_inv[2 + j][2 + j] * piece_d(inst, j);
+        double e[N_Q] = {0};
+        e[3 + j] = 1.0;
+        cholesky_solve((const double(*)[N_Q])L, e); /* column 3 + j of M^-1 */
+        stiffness += e[3 + j] * k;
+        damping += e[3 + j] * piece_d(inst, j);
     }
     return 2.5 / (sqrt(stiffness) + damping);
 }
@@ -485,12 +699,14 @@ static double tail_stability_limit(const Instance *inst) {
 fmi2Status model_initialize(Instance *inst, OdeSystem *ode) {
     State *s = (State *)inst->state;
     const double p_atm = V(inst, p_atm), V0 = V(inst, V_0);
-    int side, j;
-    if (!assemble(inst)) {
+    double G_sum = 0.0;
+    int side, j, ok;
+    place_points(inst);
+    ode->stability_limit = tail_stability_limit(inst, &ok);
+    if (!ok) {
         log_message(inst, fmi2Error, "invalid parameters: the mass matrix is singular (no mass?)");
         return fmi2Error;
     }
-    ode->stability_limit = tail_stability_limit(inst);
     if (V(inst, substep) > ode->stability_limit) {
         log_message(inst, fmi2Error,
                     "invalid parameter substep = %g: beyond the stability limit %g s of the tail "
@@ -498,10 +714,11 @@ fmi2Status model_initialize(Instance *inst, OdeSystem *ode) {
                     V(inst, substep), ode->stability_limit);
         return fmi2Error;
     }
-    if (!(V0 - (V(inst, G_1) + V(inst, G_2)) * V(inst, theta_max) >= 0.25 * V0)) {
+    for (j = 0; j < N_PIECES; j++) G_sum += piece_G(inst, j);
+    if (!(V0 - G_sum * V(inst, theta_max) >= 0.25 * V0)) {
         log_message(inst, fmi2Error,
                     "invalid parameters: at theta_max = %g rad the compressed channel keeps less "
-                    "than a quarter of V_0 = %g m^3 (reduce G_1, G_2 or theta_max)",
+                    "than a quarter of V_0 = %g m^3 (reduce G_1, G_2, G_3 or theta_max)",
                     V(inst, theta_max), V0);
         return fmi2Error;
     }
@@ -511,9 +728,9 @@ fmi2Status model_initialize(Instance *inst, OdeSystem *ode) {
         s->y[M_A + 2 * side] = p_atm * V0 / (V(inst, R_gas) * V(inst, T_wall));
         s->y[U_A + 2 * side] = p_atm * V0 / (V(inst, gamma) - 1.0);
     }
-    s->y[POS_X] = V(inst, x_start);
-    s->y[POS_Y] = V(inst, y_start);
-    s->y[YAW] = V(inst, yaw_start);
+    s->y[Q_X] = V(inst, x_start);
+    s->y[Q_Y] = V(inst, y_start);
+    s->y[Q_PSI] = V(inst, yaw_start);
     s->m_vented = 0.0;
     ode->n = N_STATES;
     ode->y = s->y;

@@ -25,7 +25,7 @@ typedef struct {
 #include "model_variables.h" /* generated: MODEL_IDENTIFIER, MODEL_GUID, VR_*, N_VARIABLES */
 
 /* Continuous states of a model and how the fixed-step solver treats them (see below). */
-#define MAX_STATES 16
+#define MAX_STATES 32
 
 typedef struct {
     size_t n;                   /* number of continuous states, <= MAX_STATES */
