@@ -69,6 +69,8 @@ class TaskSpaceControl:
         self.goal = np.array(self.plan.targets[0]) if self.plan.targets else np.zeros(2)
         self.tracking = False  # path task: on the line (else approaching its start)
         self.path_timing = (0.0, 0.0)  # (duration, ramp) [s] of the current path's traverse
+        self.waypoints: list[np.ndarray] = []  # pipe: the whole-arm plan's configurations
+        self.planned: Any = None  # pipe: the plan (controllers.confined.Plan)
 
     # ------------------------------------------------------------------ the cycle
 
@@ -76,7 +78,9 @@ class TaskSpaceControl:
         self, cycle: int, t: float, estimate: Estimate, drives: Mapping[int, DriveReading]
     ) -> list[Any]:
         tip = kinematics.forward(estimate.kappa, self.lengths, self.base)[-1, :2]
-        if self.phase == PHASE["idle"]:
+        if self.phase == PHASE["idle"] and self.plan.kind == "pipe":
+            self._plan_pipe(t, np.asarray(estimate.kappa, float))
+        elif self.phase == PHASE["idle"]:
             self._begin_leg(t, from_kappa=np.asarray(estimate.kappa, float))
         elif self.phase == PHASE["done"]:  # hold the last target, still closing the loop
             self._correct(self.goal - tip)
@@ -84,7 +88,7 @@ class TaskSpaceControl:
         else:
             self._advance(t, tip)
         frames = self.curvature.command(cycle, self.reference, estimate, drives)
-        index = min(self.leg, self.plan.legs() - 1)
+        index = self.leg if self.waypoints else min(self.leg, self.plan.legs() - 1)
         frames.append(
             TaskState(index, self.phase, float(self.goal[0]), float(self.goal[1]), cycle % 256)
         )
@@ -94,7 +98,13 @@ class TaskSpaceControl:
         tau = t - self.leg_start
         if self.phase == PHASE["moving"] and self.move is not None:
             self.reference = self.move.value(tau)
-            if tau >= self.move.duration:
+            if tau >= self.move.duration and self.waypoints and self.leg + 1 < len(self.waypoints):
+                self.leg += 1  # the next waypoint of the whole-arm plan, without stopping
+                self.leg_start = t
+                self.move = CurvatureMove.plan(
+                    self.reference, self.waypoints[self.leg], self.rates, self.plan.accel_time
+                )
+            elif tau >= self.move.duration:
                 self.phase = PHASE["settling"]
                 self.on_target_since = None
         elif self.phase == PHASE["tracking"]:
@@ -155,7 +165,38 @@ class TaskSpaceControl:
         self.move = CurvatureMove.plan(start, self.solution, self.rates, self.plan.accel_time)
         self.phase = PHASE["moving"]
 
+    def _plan_pipe(self, t: float, estimated: np.ndarray) -> None:
+        """Confined space: plan the whole arm's way through the channel from the estimated
+        configuration (controllers.confined), then track its waypoints by curvature moves and
+        settle on the goal."""
+        from controllers.confined import Channel, plan_whole_arm
+
+        start = np.clip(estimated, self.lower, self.upper)
+        channel = Channel(self.plan.walls, self.plan.centreline)
+        self.goal = np.array(self.plan.targets[0])
+        result = plan_whole_arm(
+            start,
+            self.goal,
+            self.lengths,
+            self.base,
+            self.lower,
+            self.upper,
+            channel,
+            width=self.plan.width,
+            margin=self.plan.clearance,
+        )
+        self.planned = result
+        self.waypoints = [np.asarray(k, float) for k in result.configurations[1:]] or [start]
+        self.reference = start.copy()
+        self.solution = self.waypoints[-1].copy()
+        self.leg, self.leg_start = 0, t
+        self.move = CurvatureMove.plan(start, self.waypoints[0], self.rates, self.plan.accel_time)
+        self.phase = PHASE["moving"]
+
     def _next_leg(self, t: float) -> None:
+        if self.waypoints:  # the pipe's one goal is settled (or given up on)
+            self.phase = PHASE["done"]
+            return
         if self.plan.kind == "path" and not self.tracking and self.leg < self.plan.legs():
             # the start is reached: traverse the line
             self.tracking = True

@@ -25,7 +25,7 @@ from controllers import kinematics
 from controllers.protocol import TASK_PHASES
 
 PHASE = {name: code for code, name in enumerate(TASK_PHASES)}
-TASK_KINDS = ("point_to_point", "path")
+TASK_KINDS = ("point_to_point", "path", "pipe")
 CANDIDATES_PER_TARGET = 32
 PATH_ATTEMPTS = 200
 PATH_CHECKS = 21  # points along a drawn path that must each have an IK solution
@@ -55,6 +55,11 @@ class TaskPlan:
     accel_time: float = 0.2  # [s] ramp of a curvature move from rest to its rate limit
     task_gain: float = 1.0  # [1/s] integral gain on the estimated tip error
     correction_limit: float = 5e-3  # [m] bound of the integrated task-space correction
+    # confined spaces (kind "pipe"): the channel the controller plans through, its map
+    walls: tuple[tuple[tuple[float, float], ...], ...] = ()
+    centreline: tuple[tuple[float, float], ...] = ()
+    width: float = 0.0  # [m] the arm's backbone width
+    clearance: float = 2e-3  # [m] kept beyond width / 2 by the plan
 
     def legs(self) -> int:
         return len(self.targets)

@@ -154,6 +154,11 @@ class TaskSpec:
     acceleration: float = 0.02  # path acceleration [m/s^2]
     task_gain: float = 1.0  # integral gain on the estimated tip error [1/s]
     band: float = 2e-3  # settling band of the time_to_settle metric
+    # confined spaces (kind "pipe"): the goal deep in the channel of [robot.environment] walls,
+    # the centreline the tip follows, and the clearance the plan keeps beyond the arm's width
+    goal: tuple[float, float] | None = None
+    centreline: tuple[tuple[float, float], ...] = ()
+    clearance: float = 2e-3
 
     def profile(self) -> CurvatureProfile:
         """The reference profile that the controller tracks and the plant scores against."""

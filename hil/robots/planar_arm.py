@@ -595,7 +595,24 @@ class PlanarArm:
         base = scenario.robot.base
         rng = np.random.default_rng([scenario.seed, TASK_STREAM])
         ends: tuple[tuple[float, float], ...] = ()
-        if task.kind == "point_to_point":
+        walls: tuple[tuple[tuple[float, float], ...], ...] = ()
+        width = 0.0
+        if task.kind == "pipe":
+            assert task.goal is not None  # checked
+            targets = (task.goal,)
+            walls = tuple(
+                tuple((float(x), float(y)) for x, y in wall)
+                for wall in scenario.robot.environment.get("walls", [])
+            )
+            width = max(
+                environment.parameters(
+                    scenario,
+                    self.parameters(scenario, "segment"),
+                    ACTUATOR_WIDTH[scenario.robot.actuator],
+                )[f"width_{n}"]
+                for n in range(1, scenario.robot.segments + 1)
+            )
+        elif task.kind == "point_to_point":
             targets = task.targets or tuple(
                 draw_targets(rng, lengths, base, lower, upper, task.count, task.margin)
             )
@@ -622,6 +639,10 @@ class PlanarArm:
             speed=task.speed,
             acceleration=task.acceleration,
             task_gain=task.task_gain,
+            walls=walls,
+            centreline=task.centreline,
+            width=width,
+            clearance=task.clearance,
         )
 
     def _check_task_space(self, s: Scenario) -> None:
@@ -646,6 +667,25 @@ class PlanarArm:
             raise fail(file, "task.targets", "a path task takes task.paths ([x0, y0, x1, y1])")
         if task.kind == "point_to_point" and task.paths:
             raise fail(file, "task.paths", "a point_to_point task takes task.targets ([x, y])")
+        if task.kind == "pipe":
+            if task.goal is None:
+                raise fail(file, "task.goal", "a pipe task needs its goal [x, y]")
+            if len(task.centreline) < 2:
+                raise fail(file, "task.centreline", "a pipe task needs the channel's centreline")
+            if not s.robot.environment.get("walls"):
+                raise fail(file, "robot.environment.walls", "a pipe task needs the channel's walls")
+            if task.clearance < 0:
+                raise fail(file, "task.clearance", "must not be negative")
+            from controllers.confined import Channel
+
+            try:
+                Channel(
+                    tuple(tuple(map(tuple, w)) for w in s.robot.environment["walls"]),
+                    task.centreline,
+                )
+            except ValueError as exc:
+                raise fail(file, "robot.environment.walls", str(exc)) from None
+            points = [("task.goal", np.array(task.goal))]
         if task.kind == "path" and task.path_length <= 0:
             raise fail(file, "task.path_length", "must be positive")
         from controllers.ik import solve_ik
@@ -654,6 +694,8 @@ class PlanarArm:
         mid, half = 0.5 * (lower + upper), 0.5 * (upper - lower) * IK_RANGE_SHARE
         lengths = [p["length"] for p in self.parameters(s, "segment")]
         points = [(f"task.targets[{i}]", np.array(p)) for i, p in enumerate(task.targets)]
+        if task.kind == "pipe" and task.goal is not None:
+            points.append(("task.goal", np.array(task.goal)))
         for i, path in enumerate(task.paths):
             a, b = np.array(path[:2]), np.array(path[2:])
             if np.linalg.norm(b - a) == 0.0:

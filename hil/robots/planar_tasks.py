@@ -53,7 +53,42 @@ def task_space_metrics(
     task = scenario.task
     if plan.kind == "point_to_point":
         return _point_to_point(plan.targets, t, tips, index, phase, task)
+    if plan.kind == "pipe":
+        return _pipe(plan.targets[0], scenario.robot.segments, t, tips, signals, task)
     return _paths(plan.targets, plan.ends, t, tips, index, phase, task)
+
+
+def _pipe(
+    goal: tuple[float, float],
+    segments: int,
+    t: np.ndarray,
+    tips: np.ndarray,
+    signals: Mapping[str, Any],
+    task: Any,
+) -> dict[str, Any]:
+    """Confined space: how deep the arm went into the walls (the Environment FMU's penetration
+    of every segment), the contact impulse, and whether and when the true tip reached the goal
+    (within `band` of it, and stayed)."""
+    penetration = np.column_stack([signals[f"penetration_{n}"] for n in range(1, segments + 1)])
+    error = np.linalg.norm(tips - np.array(goal), axis=1)
+    finite = np.isfinite(error)
+    outside = np.nonzero(~(error[finite] <= task.band))[0]
+    times = t[finite]
+    if outside.size == 0:
+        reached_at: float | None = float(times[0]) if times.size else None
+    elif outside[-1] + 1 < times.size:
+        reached_at = float(times[outside[-1] + 1])
+    else:
+        reached_at = None
+    impulse = np.asarray(signals["contact_impulse"])
+    return {
+        "penetration_max": float(np.nanmax(penetration)),
+        "contact_impulse": float(impulse[np.isfinite(impulse)][-1]) if impulse.size else 0.0,
+        "goal_reached": reached_at is not None,
+        "time_to_goal": reached_at,
+        "goal_error": float(error[finite][-1]) if finite.any() else None,
+        "success": reached_at is not None,
+    }
 
 
 def _point_to_point(
@@ -173,7 +208,12 @@ def draw_arm(robot: PlanarArm, scenario: Scenario, signals: Mapping[str, Any], p
         shape = kinematics.backbone(kappas[row], lengths, base)  # settled shapes, bold
         ax.plot(shape[:, 0], shape[:, 1], color=colours((t[row] - t[0]) / span), lw=2.2)
     ax.plot(tips[:, 0], tips[:, 1], color="grey", lw=0.8, label="tip (true)")
-    if plan.kind == "point_to_point":
+    for k, wall in enumerate(plan.walls):
+        xy = np.array(wall)
+        ax.plot(xy[:, 0], xy[:, 1], color="saddlebrown", lw=3, label="walls" if k == 0 else None)
+    if plan.kind == "pipe":
+        ax.plot(*plan.targets[0], "r*", ms=14, label="goal")
+    elif plan.kind == "point_to_point":
         for k, (x, y) in enumerate(plan.targets):
             ax.plot(x, y, "rx", ms=9, mew=2, label="targets" if k == 0 else None)
             ax.annotate(str(k), (x, y), textcoords="offset points", xytext=(5, 5), color="red")
