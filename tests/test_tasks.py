@@ -143,10 +143,16 @@ def _run_ideal(plan: TaskPlan, cycles: int) -> tuple[list[TaskState], IdealArm, 
     control = TaskSpaceControl(config, Protocol())
     arm = IdealArm(6)
     states, tips = [], []
+    previous = None
     for cycle in range(cycles):
         t = cycle * config.control_period
         frames = control.compute(cycle, t, arm.estimate(), {})
         assert sum(isinstance(f, DriveCommand) for f in frames) == 6
+        refs = np.array([f.kappa_ref for f in frames if isinstance(f, ControllerState)])
+        if previous is not None:  # every reference within its segment's rate limit, always
+            limit = np.array(plan.kappa_rate) * config.control_period
+            assert np.all(np.abs(refs - previous) <= limit * (1 + 1e-6) + 2e-3), cycle
+        previous = refs
         states.append(next(f for f in frames if isinstance(f, TaskState)))
         arm.follow(frames, config.control_period)
         tips.append(kinematics.forward(arm.kappa, LENGTHS, BASE)[-1, :2])
@@ -229,3 +235,17 @@ def test_correction_integrates_only_near_the_target() -> None:
     for _ in range(10_000):  # bounded however long the error persists
         control._correct(np.array([0.004, 0.0]))
     assert np.linalg.norm(control.correction) == pytest.approx(config.plan.correction_limit)
+
+
+def test_closing_the_loop_never_steps_a_reference_beyond_its_rate() -> None:
+    """However far the IK solution of a corrected goal lies, one cycle moves each curvature
+    reference by at most its rate limit times the control period."""
+    from controllers.task_space import TaskSpaceControl
+
+    config, _ = _config(_plan(kappa_rate=(1.0, 2.0, 3.0, 4.0, 5.0, 6.0)))
+    control = TaskSpaceControl(config, Protocol())
+    before = control.reference.copy()
+    control._solve(np.array([0.2, 0.1]), iterations=None)  # far from the straight arm's tip
+    step = np.abs(control.reference - before)
+    assert np.all(step <= np.array(config.plan.kappa_rate) * config.control_period + 1e-12)
+    assert np.all(step > 0.0)  # and it does move, towards the solution
