@@ -115,6 +115,26 @@ class SegmentModel:
         )
         return theta / self.length
 
+    def piston_for_curvature(self, kappa: float) -> float:
+        """The piston position [m] whose static equilibrium is curvature `kappa` [1/m] (the
+        inverse of equilibrium_curvature, which rises with x); ValueError beyond the reachable
+        range."""
+        lo, hi = self.reachable_curvature()
+        if not lo <= kappa <= hi:
+            raise ValueError(
+                f"curvature {kappa:g} 1/m is outside the reachable [{lo:.4g}, {hi:.4g}]"
+            )
+        if self.equilibrium_curvature(0.0) == kappa:
+            return 0.0
+        return float(
+            brentq(
+                lambda x: self.equilibrium_curvature(x) - kappa,
+                0.0,
+                self.stroke,
+                xtol=1e-12,
+            )
+        )
+
     def reachable_curvature(self) -> tuple[float, float]:
         """(kappa_min, kappa_max) [1/m]: the equilibria with the piston at x = 0 and x = stroke,
         the segment's whole static range."""

@@ -233,6 +233,10 @@ class PlanarArm:
                     f"{stroke:g} m is beyond the {piston_max:g} m that DriveStatus/DriveCommand "
                     "can carry",
                 )
+        try:
+            self.start_pistons(s)
+        except ValueError as exc:
+            raise fail(file, "robot.segment.theta_start", f"no piston holds it: {exc}") from None
         if environment.present(s):
             environment.parameters(s, self.parameters(s, "segment"), ACTUATOR_WIDTH[r.actuator])
         self._check_task(s)
@@ -297,6 +301,25 @@ class PlanarArm:
             )
         return ports
 
+    def start_pistons(self, scenario: Scenario) -> list[float]:
+        """Where each piston starts [m]: at the cylinder's x_start, where the circuit was sealed
+        with the segment straight, unless the segment starts bent (theta_start): then at the
+        piston position whose static equilibrium is that bend, so that the arm starts at rest
+        in its bent configuration instead of springing back."""
+        pistons = []
+        for model, segment, cylinder in zip(
+            self.segment_models(scenario),
+            self.parameters(scenario, "segment"),
+            self.parameters(scenario, "cylinder"),
+            strict=True,
+        ):
+            theta = segment.get("theta_start", 0.0)
+            if theta == 0.0:
+                pistons.append(cylinder["x_start"])
+            else:
+                pistons.append(model.piston_for_curvature(theta / segment["length"]))
+        return pistons
+
     def reach(self, scenario: Scenario) -> float:
         """Farthest a marker can be from the base [m]: the arm's length."""
         return sum(p["length"] for p in self.parameters(scenario, "segment"))
@@ -320,11 +343,12 @@ class PlanarArm:
             n for n, p in _interface(scenario, "segment").items() if p.causality == "parameter"
         }
         timeout_ticks = round(scenario.safety.command_timeout / scenario.timing.step)
+        pistons = self.start_pistons(scenario)
         drives = [
             DriveNode(
                 n,
-                cylinders[n - 1]["x_start"],
-                cylinders[n - 1]["x_start"],
+                pistons[n - 1],
+                pistons[n - 1],
                 scenario.safety.max_pressure,
                 timeout_ticks,
                 position_range=protocol.signal_range("DriveStatus1", "piston_position"),
@@ -354,6 +378,8 @@ class PlanarArm:
         try:
             for n in range(1, r.segments + 1):
                 cylinder_values = dict(cylinders_given[n - 1])
+                if pistons[n - 1] != cylinders[n - 1]["x_start"]:
+                    cylinder_values["x_start"] = pistons[n - 1]  # a segment that starts bent
                 cylinder = FmuSlave(
                     fmu_ref(scenario.source, r.cylinder_fmu), f"cylinder{n}", cylinder_values
                 )
