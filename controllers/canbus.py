@@ -26,7 +26,7 @@ import can
 DEFAULT_CHANNEL = "softhil"
 DEFAULT_LOOPBACK_PORT = 29536
 HUB_KINDS = ("softhil", "loopback")  # the hub's two protocols: binary records, socketcand
-OUR_KINDS = (*HUB_KINDS, "virtual", "config")
+OUR_KINDS = ("loopback", "virtual", "config", "softhil")
 KINDS = (*OUR_KINDS, *sorted(can.interfaces.VALID_INTERFACES - set(OUR_KINDS)))
 
 
@@ -66,8 +66,8 @@ class BusSpec:
             return cls("config", None)
         if kind not in can.interfaces.VALID_INTERFACES:
             raise ValueError(
-                f"bus spec {text!r}: {kind!r} is neither softhil, loopback, virtual, config nor a "
-                f"python-can interface ({', '.join(sorted(can.interfaces.VALID_INTERFACES))})"
+                f"bus spec {text!r}: {kind!r} is neither loopback, virtual, config nor a "
+                f"python-can interface ({', '.join(KINDS[3:])})"
             )
         channel, *pairs = rest.split(",") if rest else [""]
         options = []
