@@ -80,16 +80,24 @@ def parse_channel(channel: object) -> tuple[str, int]:
 
 
 def _read_exactly(sock: socket.socket, n: int, what: str) -> bytes:
-    """``n`` bytes from a socket with a timeout set; CanInitializationError if it closes first."""
+    """``n`` bytes from a socket with a timeout set, or a whole ``< error ... >`` line that the
+    hub sends instead; CanInitializationError if the connection closes first."""
     data = b""
-    while len(data) < n:
-        chunk = sock.recv(n - len(data))
+    while len(data) < n or (data.startswith(b"< err") and b">" not in data[:256]):
+        chunk = sock.recv(max(1, n - len(data)))
         if not chunk:
+            if data.startswith(b"< err"):
+                break
             raise can.CanInitializationError(f"the hub closed the connection during {what}")
         data += chunk
-        if data.startswith(b"<") and b">" in data and not data.startswith(GREETING):
-            break  # an "< error ... >" line is shorter or longer than what we expected
     return data
+
+
+def _refusal(answer: bytes) -> str | None:
+    """The reason in a hub's ``< error REASON >``, or None."""
+    if not answer.startswith(b"< error"):
+        return None
+    return answer[len(b"< error") :].partition(b">")[0].decode("ascii", "replace").strip()
 
 
 class SofthilBus(can.BusABC):
@@ -146,6 +154,9 @@ class SofthilBus(can.BusABC):
         try:
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
             greeting = _read_exactly(sock, len(GREETING), "the greeting")
+            reason = _refusal(greeting)
+            if reason is not None:
+                raise can.CanInitializationError(f"the hub at {where} refused: {reason}")
             if greeting != GREETING:
                 raise can.CanInitializationError(
                     f"{where} is not a softhil hub (it said {greeting[:40]!r})"
@@ -155,7 +166,7 @@ class SofthilBus(can.BusABC):
             if answer != ack():
                 raise can.CanInitializationError(
                     f"the hub at {where} refused the binary client: "
-                    f"{answer.decode('ascii', 'replace')}"
+                    f"{_refusal(answer) or answer.decode('ascii', 'replace')}"
                 )
             sock.settimeout(None)  # blocking sends; receives poll first (see _recv_internal)
         except TimeoutError:
