@@ -17,6 +17,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import tomllib
 from collections.abc import Iterator
 from importlib import import_module
@@ -165,6 +166,23 @@ def test_records_are_the_documented_wire_format(hub: LoopbackHub, buses: list[ca
         size, can_id, flags, dlc, stamp = wire.HEADER.unpack_from(record)
         assert (size, can_id, flags, dlc, record[16:]) == (15, 0x123, 0, 1, b"\x05")
         assert stamp > 1e9  # the hub's receive time, seconds since the epoch, as socketcand
+        # a binary sender's frames reach a socketcand client in socketcand's own text
+        text = socket.create_connection(("127.0.0.1", hub.port), timeout=TIMEOUT)
+        text.sendall(b"< open softhil >< rawmode >")
+        received = b""
+        while received.count(b">") < 3:
+            received += text.recv(100)
+        assert received == b"< hi >< ok >< ok >"
+        joined(hub, 3)
+        raw.sendall(wire.encode_record(0x1ABCDE, True, b"\x01\xff", 0.0))
+        raw.sendall(wire.encode_record(0x0F, False, b"", 0.0))
+        received = b""
+        while received.count(b">") < 2:
+            received += text.recv(200)
+        text.close()
+        first, second = (line.split() for line in received.split(b">")[:2])
+        assert first[:3] == [b"<", b"frame", b"001ABCDE"] and first[4:] == [b"01FF"]
+        assert second[:3] == [b"<", b"frame", b"00F"] and len(second) == 4  # no data field
     finally:
         raw.close()
 
@@ -173,7 +191,7 @@ def test_records_are_the_documented_wire_format(hub: LoopbackHub, buses: list[ca
     ("bad", "why"),
     [
         (bytes.fromhex("1200230100000003") + bytes(11), "bad record"),  # size != 14+dlc
-        (bytes.fromhex("1600230100000009") + bytes(17), "bad record"),  # dlc 9
+        (bytes.fromhex("1700230100000009") + bytes(17), "bad record"),  # dlc 9, size 14+9
         (bytes.fromhex("0e00000800000000") + bytes(8), "bad record"),  # std id 0x800
         (bytes.fromhex("0e00230100000200") + bytes(8), "bad record"),  # unknown flag
     ],
@@ -285,6 +303,34 @@ def test_receive_times_out_and_a_closed_hub_is_an_error_not_silence() -> None:
     finally:
         bus.shutdown()
         hub.stop()
+
+
+def test_a_malformed_record_from_the_hub_is_an_error_not_skipped() -> None:
+    with socket.socket() as fake:  # greets and acknowledges like a hub, then sends a bad record
+        fake.bind(("127.0.0.1", 0))
+        fake.listen()
+        fake.settimeout(TIMEOUT)
+        server: list[socket.socket] = []
+
+        def serve() -> None:
+            conn, _ = fake.accept()
+            server.append(conn)
+            conn.sendall(b"< hi >")
+            conn.recv(100)  # the hello
+            bad = bytes.fromhex("1000230100000001") + bytes(8) + b"xy"  # size 16, dlc 1
+            conn.sendall(wire.ack() + bad)
+
+        thread = threading.Thread(target=serve)
+        thread.start()
+        bus = SofthilBus(f"127.0.0.1:{fake.getsockname()[1]}")
+        thread.join()
+        try:
+            with pytest.raises(can.CanOperationError, match="malformed record"):
+                bus.recv(TIMEOUT)
+            assert connection_closed(bus)
+        finally:
+            bus.shutdown()
+            server[0].close()
 
 
 def test_connect_failures_name_the_address() -> None:
