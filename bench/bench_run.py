@@ -15,10 +15,15 @@ of the pure-C loop. Then the closed loop on the default task for 1, 2, 4 and 6 s
   hil run --inprocess             plant and controller in one thread, direct bus
   hil run (separate process)      controller as a separate process over the loopback hub
 with the kernel (and, for 1 segment, with SOFTHIL_KERNEL=0), as real-time factors and ratios
-to the pure-C loop of the same segments.
+to the pure-C loop of the same segments. The separate process speaks softhil's binary records
+to a hub in a child process (the default); a row "hub thread" runs the hub as a thread of the
+plant instead (SOFTHIL_HUB=thread), the alternative it was chosen over.
+Before all that, the transport alone: the round trip of one frame from this process through the
+hub (a child process) to an echoing peer process and back, for socketcand's ASCII and for the
+binary records, in microseconds (median of --repeat batches).
 
 Run from the checkout: PYTHONPATH=. python bench/bench_run.py [--repeat 3] [--seconds 2]
-[--no-closed-loop] [--json out.json]
+[--no-closed-loop] [--no-transport] [--json out.json]
 """
 
 from __future__ import annotations
@@ -31,6 +36,7 @@ import json
 import os
 import statistics
 import subprocess
+import sys
 import tempfile
 import time
 from collections.abc import Callable, Iterator
@@ -39,6 +45,8 @@ from pathlib import Path
 
 import numpy as np
 
+from controllers.canbus import BusSpec, open_bus
+from hil.bus.loopback import HubProcess
 from hil.fmu.build import CFLAGS, cache_root, compiler
 from hil.fmu.slave import FmuSlave
 from hil.master import Connection, FmuParticipant, Master
@@ -46,6 +54,20 @@ from hil.run import RunOptions, run_scenario
 from hil.scenario import Scenario, load_scenario
 
 PURE_LOOP = Path(__file__).with_name("pure_loop.c")
+ROOT = Path(__file__).resolve().parents[1]
+TRANSPORTS = {"socketcand": "loopback", "binary": "softhil"}  # name: bus spec kind
+ECHO = """
+import sys
+from controllers.canbus import BusSpec, open_bus
+bus = open_bus(BusSpec(sys.argv[1], "softhil", "127.0.0.1", int(sys.argv[2])))
+print("ready", flush=True)
+while True:
+    message = bus.recv(10.0)
+    if message is None or message.arbitration_id == 0x7FF:
+        break
+    bus.send(message)
+bus.shutdown()
+"""
 SEGMENTS = (1, 2, 4, 6)
 X_REF = 0.03  # [m] constant setpoint: the pistons move, the pressures build
 LAYERS = ("pure C", "kernel", "python", "fmpy")
@@ -166,9 +188,10 @@ def fmpy_alone(segments: int, ticks: int, h: float) -> float:
         return time.perf_counter() - start
 
 
-def full_run(scenario: Scenario, inprocess: bool, kernel: bool) -> float:
+def full_run(scenario: Scenario, inprocess: bool, kernel: bool, hub: str = "process") -> float:
     previous = os.environ.get("SOFTHIL_KERNEL")
     os.environ["SOFTHIL_KERNEL"] = "1" if kernel else "0"
+    os.environ["SOFTHIL_HUB"] = hub
     try:
         with tempfile.TemporaryDirectory() as out:
             result = run_scenario(
@@ -180,6 +203,49 @@ def full_run(scenario: Scenario, inprocess: bool, kernel: bool) -> float:
             del os.environ["SOFTHIL_KERNEL"]
         else:
             os.environ["SOFTHIL_KERNEL"] = previous
+        del os.environ["SOFTHIL_HUB"]
+
+
+def round_trip(kind: str, frames: int, repeat: int) -> float:
+    """Median over ``repeat`` batches of the round trip of one 8-byte frame [us]: this process
+    -> hub (a child process) -> an echoing peer process -> hub -> this process."""
+    import can
+
+    hub = HubProcess()
+    path = os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])
+    env = {**os.environ, "PYTHONPATH": path}
+    peer = subprocess.Popen(
+        [sys.executable, "-c", ECHO, kind, str(hub.port)],
+        stdout=subprocess.PIPE,
+        env=env,
+        text=True,
+    )
+    bus = None
+    try:
+        assert peer.stdout is not None and peer.stdout.readline().strip() == "ready"
+        bus = open_bus(BusSpec(kind, "softhil", "127.0.0.1", hub.port))
+        message = can.Message(arbitration_id=0x181, is_extended_id=False, data=bytes(8))
+        for _ in range(50):  # the socketcand client's handshake grace holds the first frames
+            bus.send(message)
+            if bus.recv(0.2) is not None:
+                break
+        while bus.recv(0.05) is not None:
+            pass
+        batches = []
+        for _ in range(repeat):
+            start = time.perf_counter()
+            for _ in range(frames):
+                bus.send(message)
+                if bus.recv(5.0) is None:
+                    raise RuntimeError(f"{kind}: the echo did not come back")
+            batches.append((time.perf_counter() - start) / frames * 1e6)
+        bus.send(can.Message(arbitration_id=0x7FF, is_extended_id=False, data=b""))
+        return statistics.median(batches)
+    finally:
+        if bus is not None:
+            bus.shutdown()
+        peer.wait(timeout=10)
+        hub.stop()
 
 
 def median(repeat: int, f: Callable[[], float]) -> float:
@@ -193,6 +259,9 @@ def main() -> int:
     parser.add_argument("--repeat", type=int, default=3, help="runs per layer (median taken)")
     parser.add_argument("--seconds", type=float, default=2.0, help="simulated time per run [s]")
     parser.add_argument("--no-closed-loop", action="store_true", help="skip the hil run rows")
+    parser.add_argument(
+        "--no-transport", action="store_true", help="skip the transport round-trip rows"
+    )
     parser.add_argument("--json", type=Path, help="also write the figures as JSON")
     args = parser.parse_args()
     scenario = load_scenario()
@@ -201,6 +270,14 @@ def main() -> int:
     sync_ticks = scenario.control_ticks
     ticks = round(args.seconds / h) // sync_ticks * sync_ticks
     syncs = ticks // sync_ticks
+    transport: dict[str, float] = {}
+    if not args.no_transport:
+        print("transport: round trip of one frame through the hub process to a peer process [us]")
+        for name, kind in TRANSPORTS.items():
+            transport[name] = round_trip(kind, 500, max(args.repeat, 3))
+            print(f"{name:>12s} {transport[name]:9.1f} us")
+        ratio = transport["socketcand"] / transport["binary"]
+        print(f"{'':>12s} binary is {ratio:.2f}x faster")
     library = pure_loop_library()
     fmpy_alone(1, 10, h)  # warm up: build/load the FMUs once
     layers: dict[str, Callable[[int], float]] = {
@@ -253,12 +330,14 @@ def main() -> int:
             task = replace(scenario.task, sine=replace(scenario.task.sine, start=duration))
             arm = replace(scenario, robot=robot, duration=duration, task=task)
             base = rows[str(n)]["pure C"]["wall_time"] / ticks  # per macro step, n segments
-            for inprocess in (True, False):
-                for kernel in (True, False) if n == 1 else (True,):
+            for inprocess, hub in ((True, "process"), (False, "process"), (False, "thread")):
+                for kernel in (True, False) if n == 1 and hub == "process" else (True,):
                     name = "hil run --inprocess" if inprocess else "hil run (separate process)"
                     name += "" if kernel else " SOFTHIL_KERNEL=0"
+                    name += ", hub thread" if hub == "thread" else ""
                     wall = median(
-                        args.repeat, lambda i=inprocess, k=kernel, a=arm: full_run(a, i, k)
+                        args.repeat,
+                        lambda i=inprocess, k=kernel, a=arm, b=hub: full_run(a, i, k, b),
                     )
                     ratio = wall / (base * round(duration / h))
                     closed[f"{name} / {n}"] = {
@@ -269,7 +348,14 @@ def main() -> int:
                     }
                     print(f"{name:44s} {n:8d} {wall:9.3f} {duration / wall:7.1f} {ratio:9.2f}")
     if args.json:
-        report = {"ticks": ticks, "segments": rows, "slopes": slopes, "closed_loop": closed}
+        report = {
+            "machine": {"cpus": os.cpu_count(), "load_average": os.getloadavg()},
+            "transport_round_trip_us": transport,
+            "ticks": ticks,
+            "segments": rows,
+            "slopes": slopes,
+            "closed_loop": closed,
+        }
         args.json.write_text(json.dumps(report, indent=2) + "\n")
     return 0
 

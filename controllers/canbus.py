@@ -1,8 +1,11 @@
 """Opening a CAN bus through python-can from a short spec string, the same way on both sides.
 
 Specs:
-- `loopback[:[HOST:]PORT]`: the inter-process hub that `hil` serves on 127.0.0.1, reached with
-  python-can's `socketcand` client (no kernel CAN support needed). The default.
+- `softhil[:[HOST:]PORT]`: the inter-process hub that `hil` serves on 127.0.0.1, reached with
+  softhil's binary records (`hil.bus.binary`, python-can interface `softhil`); what `hil run`
+  gives its plant and controller.
+- `loopback[:[HOST:]PORT]`: the same hub, reached with python-can's `socketcand` client (ASCII;
+  what tools that know only socketcand use). No kernel CAN support needed for either.
 - `virtual[:CHANNEL]`: python-can's in-process bus (one process only).
 - `INTERFACE:CHANNEL[,key=value...]`: any python-can interface by name (socketcan:vcan0,
   pcan:PCAN_USBBUS1, kvaser:0, slcan:/dev/ttyACM0,bitrate=1000000, udp_multicast:224.0.0.1...),
@@ -22,8 +25,9 @@ import can
 
 DEFAULT_CHANNEL = "softhil"
 DEFAULT_LOOPBACK_PORT = 29536
-OUR_KINDS = ("loopback", "virtual", "config")
-KINDS = (*OUR_KINDS, *sorted(can.interfaces.VALID_INTERFACES - {"virtual"}))
+HUB_KINDS = ("softhil", "loopback")  # the hub's two protocols: binary records, socketcand
+OUR_KINDS = ("loopback", "virtual", "config", "softhil")
+KINDS = (*OUR_KINDS, *sorted(can.interfaces.VALID_INTERFACES - set(OUR_KINDS)))
 
 
 class BusOpenError(ConnectionError):
@@ -32,7 +36,7 @@ class BusOpenError(ConnectionError):
 
 @dataclass(frozen=True)
 class BusSpec:
-    kind: str = "virtual"  # "loopback", "virtual", "config" or a python-can interface name
+    kind: str = "virtual"  # "softhil", "loopback", "virtual", "config" or a python-can interface
     channel: str | None = DEFAULT_CHANNEL
     host: str = "127.0.0.1"
     port: int = DEFAULT_LOOPBACK_PORT
@@ -46,7 +50,7 @@ class BusSpec:
         kind, _, rest = text.partition(":")
         if kind == "virtual":
             return cls("virtual", rest or DEFAULT_CHANNEL)
-        if kind == "loopback":
+        if kind in HUB_KINDS:
             host, _, port_text = rest.rpartition(":")
             if not port_text:
                 port = DEFAULT_LOOPBACK_PORT
@@ -57,13 +61,13 @@ class BusSpec:
                     raise ValueError(f"bus spec {text!r}: port must be an integer") from None
             if not 1 <= port <= 65535:
                 raise ValueError(f"bus spec {text!r}: port must be 1..65535, got {port}")
-            return cls("loopback", DEFAULT_CHANNEL, host or "127.0.0.1", port)
+            return cls(kind, DEFAULT_CHANNEL, host or "127.0.0.1", port)
         if kind == "config":
             return cls("config", None)
         if kind not in can.interfaces.VALID_INTERFACES:
             raise ValueError(
                 f"bus spec {text!r}: {kind!r} is neither loopback, virtual, config nor a "
-                f"python-can interface ({', '.join(sorted(can.interfaces.VALID_INTERFACES))})"
+                f"python-can interface ({', '.join(KINDS[3:])})"
             )
         channel, *pairs = rest.split(",") if rest else [""]
         options = []
@@ -75,8 +79,8 @@ class BusSpec:
         return cls(kind, channel or None, options=tuple(options))
 
     def __str__(self) -> str:
-        if self.kind == "loopback":
-            return f"loopback:{self.host}:{self.port}"
+        if self.kind in HUB_KINDS:
+            return f"{self.kind}:{self.host}:{self.port}"
         if self.kind == "config":
             return "config"
         extra = "".join(f",{k}={v}" for k, v in self.options)
@@ -99,6 +103,14 @@ def open_bus(spec: BusSpec, timeout: float = 2.0) -> can.BusABC:
     try:
         if spec.kind == "virtual":
             return can.Bus(interface="virtual", channel=spec.channel, receive_own_messages=False)
+        if spec.kind == "softhil":
+            # imported here, not through can.Bus(interface="softhil"): the run must not depend
+            # on the installed entry point's metadata being current
+            from hil.bus.binary import SofthilBus
+
+            return SofthilBus(
+                f"{spec.host}:{spec.port}", bus_name=spec.channel, connect_timeout=timeout
+            )
         if spec.kind == "loopback":
             # the client logs a warning each time a TCP read ends inside a frame (not news), and
             # a traceback when the hub goes away (the caller reports that in one line)
@@ -169,6 +181,8 @@ def connection_closed(bus: can.BusABC) -> bool:
     spinning. It reads only public state: the hub's address from `channel_info` ("socketcand
     on CHANNEL@HOST:PORT"), probed by a new connection that the hub either greets or refuses."""
     info = getattr(bus, "channel_info", "")
+    if isinstance(info, str) and info.startswith("softhil binary on "):
+        return bool(bus.closed)  # it knows: a closed connection is a receive of zero bytes
     if not isinstance(info, str) or not info.startswith("socketcand on "):
         return False
     host, _, port = info.rpartition("@")[2].rpartition(":")

@@ -32,7 +32,7 @@ from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from filterpy.kalman import KalmanFilter, MerweScaledSigmaPoints, UnscentedKalmanFilter
+from filterpy.kalman import KalmanFilter, MerweScaledSigmaPoints
 from scipy.linalg import expm
 from scipy.stats import chi2
 
@@ -377,10 +377,11 @@ class ArmUnscentedEstimator(_LatencyFilter):
     on six segments) over the whole arm, state (theta_1..N, omega_1..N), measuring the visible
     segment-end markers through the PCC forward kinematics; any subset of markers updates what
     it can. The base marker carries no information on the state (the base is fixed) and is not
-    used. The
-    dynamics are linear, so the prediction is the exact linear one; the unscented transform is
-    used for the measurement. Each marker is gated on its own 2 x 2 block of the innovation
-    covariance, and the accepted markers update together."""
+    used. The dynamics are linear, so the prediction is the exact linear one; the unscented
+    transform is used for the measurement (filterpy's sigma points and weights; its update
+    inlined over the sigma points already carried through the kinematics for the gate, for
+    speed). Each marker is gated on its own 2 x 2 block of the innovation covariance, and the
+    accepted markers update together."""
 
     name = "ukf"
 
@@ -398,10 +399,10 @@ class ArmUnscentedEstimator(_LatencyFilter):
         self.points_fn = MerweScaledSigmaPoints(
             2 * n, alpha=1.0, beta=2.0, kappa=0.0, sqrt_method=_robust_sqrt
         )
-        self.ukf = UnscentedKalmanFilter(
-            dim_x=2 * n, dim_z=2 * n, dt=0.0, hx=None, fx=None, points=self.points_fn
-        )
         self.gate = float(chi2.ppf(GATE_PROBABILITY, 2))
+        # (lambda + n) of the Merwe points: the scale of P whose square root spreads the sigmas
+        lambda_ = self.points_fn.alpha**2 * (2 * n + self.points_fn.kappa) - 2 * n
+        self._spread = lambda_ + 2 * n  # as filterpy computes it
         self._arm_cache: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
 
     def _initial(self) -> tuple[np.ndarray, np.ndarray]:
@@ -449,6 +450,17 @@ class ArmUnscentedEstimator(_LatencyFilter):
         """Positions of the markers `which` (indices 1..N) for one state, flattened [m]."""
         return self._segment_ends(state[np.newaxis])[0, which - 1].ravel()
 
+    def _sigma_points(self, x: np.ndarray, P: np.ndarray) -> np.ndarray:
+        """filterpy's `MerweScaledSigmaPoints.sigma_points` without its loop over the state:
+        the same square root and the same sums (x - (-U[k]) is x + U[k] exactly)."""
+        n = 2 * self.segments
+        U = _robust_sqrt(self._spread * P)
+        sigmas = np.empty((2 * n + 1, n))
+        sigmas[0] = x
+        sigmas[1 : n + 1] = x + U
+        sigmas[n + 1 :] = x - U
+        return sigmas
+
     def _correct(
         self, x: np.ndarray, P: np.ndarray, points: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray, int, int]:
@@ -456,36 +468,40 @@ class ArmUnscentedEstimator(_LatencyFilter):
         visible = np.flatnonzero(seen[1:]) + 1
         if visible.size == 0:
             return x, P, 0, 0
-        ukf = self.ukf
-        sigmas = self.points_fn.sigma_points(x, P)
+        Wm, Wc = self.points_fn.Wm, self.points_fn.Wc
+        sigmas = self._sigma_points(x, P)
         predicted = self._segment_ends(sigmas)[:, visible - 1].reshape(len(sigmas), -1)
-        zp = self.points_fn.Wm @ predicted
-        deviation = predicted - zp
-        R_marker = self.sigma**2 * np.eye(2)
-        accepted = []
-        for k, m in enumerate(visible):
-            block = deviation[:, 2 * k : 2 * k + 2]
-            S = (block.T * self.points_fn.Wc) @ block + R_marker
-            y = points[m] - zp[2 * k : 2 * k + 2]
-            if float(y @ np.linalg.solve(S, y)) <= self.gate:
-                accepted.append(m)
-        gated = visible.size - len(accepted)
-        if not accepted:
+        zp = Wm @ predicted
+        # each marker gated on its own 2 x 2 block of the innovation covariance, all markers at
+        # once: the blocks' entries and the Mahalanobis distance in closed form
+        d = (predicted - zp).reshape(len(sigmas), visible.size, 2)
+        weighted = d * Wc[:, np.newaxis, np.newaxis]
+        s00 = np.einsum("sk,sk->k", weighted[..., 0], d[..., 0]) + self.sigma**2
+        s01 = np.einsum("sk,sk->k", weighted[..., 0], d[..., 1])
+        s11 = np.einsum("sk,sk->k", weighted[..., 1], d[..., 1]) + self.sigma**2
+        r = points[visible] - zp.reshape(visible.size, 2)
+        distance = (s11 * r[:, 0] ** 2 - 2.0 * s01 * r[:, 0] * r[:, 1] + s00 * r[:, 1] ** 2) / (
+            s00 * s11 - s01 * s01
+        )
+        keep = distance <= self.gate
+        gated = int(visible.size - np.count_nonzero(keep))
+        if not keep.any():
             return x, P, gated, 0
-        which = np.array(accepted)
-        # the sigma points were already carried through the kinematics for the gate: hx looks
-        # them up (by value) and computes only a point it has not seen
-        columns = np.concatenate([[2 * k, 2 * k + 1] for k, m in enumerate(visible) if m in which])
-        known = {s.tobytes(): row for s, row in zip(sigmas, predicted[:, columns], strict=True)}
-
-        def hx(state: np.ndarray) -> np.ndarray:
-            row = known.get(state.tobytes())
-            return self._markers(state, which) if row is None else row
-
-        ukf.x, ukf.P, ukf.sigmas_f = x.copy(), P.copy(), sigmas
-        ukf.update(points[which].ravel(), R=self.sigma**2 * np.eye(2 * which.size), hx=hx)
-        self.innovation, self.innovation_covariance = ukf.y.copy(), ukf.S.copy()
-        return ukf.x.copy(), 0.5 * (ukf.P + ukf.P.T), gated, which.size
+        which = visible[keep]
+        # filterpy's UnscentedKalmanFilter.update, inlined on the sigma points already carried
+        # through the kinematics for the gate: the unscented transform as filterpy computes it,
+        # its cross variance as one product instead of a sum of outer products
+        sigmas_h = predicted[:, np.repeat(keep, 2)]
+        zp = np.dot(Wm, sigmas_h)
+        dz = sigmas_h - zp[np.newaxis, :]
+        S = np.dot(dz.T, np.dot(np.diag(Wc), dz)) + self.sigma**2 * np.eye(2 * which.size)
+        Pxz = ((sigmas - x) * Wc[:, np.newaxis]).T @ dz
+        K = Pxz @ np.linalg.inv(S)
+        y = points[which].ravel() - zp
+        x = x + K @ y
+        P = P - K @ (S @ K.T)
+        self.innovation, self.innovation_covariance = y, S
+        return x, 0.5 * (P + P.T), gated, which.size
 
     def _read(self, x: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         n = self.segments

@@ -1,7 +1,8 @@
 """Running a scenario: the plant, the bus, the controller as a separate program, the results.
 
 `run_scenario` builds the FMUs and the co-simulation, opens the bus (by default it serves its own
-loopback hub on 127.0.0.1), starts the controller (a separate process by default, or a thread on
+loopback hub on 127.0.0.1, in a child process, and plant and controller speak its binary
+records), starts the controller (a separate process by default, or a thread on
 the virtual bus with `inprocess`), serves SYNCs until the end, and writes one folder:
 `signals.csv`, `can.log` (candump, simulation time), `controller.json` (what the controller was
 told), `controller.log` (its stderr), plots (`*.png`) and `summary.json`. If anything stops the
@@ -26,7 +27,7 @@ from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
-from controllers.canbus import BusOpenError, BusSpec, open_bus
+from controllers.canbus import HUB_KINDS, BusOpenError, BusSpec, open_bus
 from controllers.node import (
     ControllerConfig,
     ControllerError,
@@ -36,7 +37,7 @@ from controllers.node import (
 )
 from controllers.protocol import Protocol
 from hil.bus.direct import direct_pair
-from hil.bus.loopback import LoopbackHub
+from hil.bus.loopback import HubProcess, LoopbackHub
 from hil.devices import HEARTBEAT_PERIOD
 from hil.errors import BusError, HilError, Terminated
 from hil.plant import Plant
@@ -291,11 +292,30 @@ def _bus_specs(
         spec = BusSpec(b.kind, b.channel, b.host, b.port or 0)
     if spec.kind == "virtual":
         raise HilError("a virtual bus only joins one process: use --inprocess, or --bus loopback")
-    if spec.kind == "loopback" and (options.bus is None and scenario.bus.port == 0):
-        hub = LoopbackHub(spec.host).start()
-        stack.callback(hub.stop)
-        spec = replace(spec, port=hub.port)
+    if spec.kind in HUB_KINDS and (options.bus is None and scenario.bus.port == 0):
+        # our own hub: plant and controller speak its binary records (the ASCII socketcand
+        # protocol stays open on the same port for tools); the hub runs where SOFTHIL_HUB says
+        port = _serve_hub(spec.host, os.environ.get("SOFTHIL_HUB", "process"), stack)
+        spec = replace(spec, kind="softhil", port=port)
     return spec, spec
+
+
+HUB_MODES = ("process", "thread")
+
+
+def _serve_hub(host: str, mode: str, stack: ExitStack) -> int:
+    """Start a hub for this run and return its port. ``process`` (the default): a child
+    process, which never waits for the plant's GIL (measured in bench/bench_run.py);
+    ``thread``: a thread of this process, the reference."""
+    if mode == "process":
+        child = HubProcess(host)
+        stack.callback(child.stop)
+        return child.port
+    if mode == "thread":
+        hub = LoopbackHub(host).start()
+        stack.callback(hub.stop)
+        return hub.port
+    raise HilError(f"SOFTHIL_HUB={mode!r}: must be one of {', '.join(HUB_MODES)}")
 
 
 class _Peer:
@@ -404,7 +424,10 @@ def _start_controller(
     if options.realtime:
         command.append("--realtime")
     log = stack.enter_context(peer.log.open("wb"))
-    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    # the controller's matrices are at most 2N x 2N (N segments): BLAS threads would only spin
+    # against the plant and the hub on the cores they share (6 segments: RTF 0.63 -> 0.80 on a
+    # loaded 2-core machine); a user's own setting wins
+    env = {"OPENBLAS_NUM_THREADS": "1", **os.environ, "PYTHONUNBUFFERED": "1"}
     peer.process = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, env=env)
     stack.callback(peer.stop)
     write_file(folder.claim("controller.pid"), f"{peer.process.pid}\n")

@@ -4,12 +4,14 @@ and outliers, latency compensation helps, and every estimator is deterministic."
 
 from __future__ import annotations
 
+import contextlib
 import json
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from hil.bus.loopback import LoopbackHub
 from hil.estimation import estimation_report, measured_cycles, score
 from hil.replay import config_beside
 from hil.run import RunOptions, run_scenario
@@ -33,9 +35,9 @@ def scenario(tmp_path: Path, name: str, *edits: tuple[str, str]) -> Path:
     return path
 
 
-def run(path: Path, out: Path, process: bool = False):  # noqa: ANN201
+def run(path: Path, out: Path, process: bool = False, bus: str | None = None):  # noqa: ANN201
     return run_scenario(
-        load_scenario(path), RunOptions(out=out, inprocess=not process, progress=False)
+        load_scenario(path), RunOptions(out=out, inprocess=not process, progress=False, bus=bus)
     )
 
 
@@ -137,9 +139,15 @@ def test_latency_compensation_measurably_helps(tmp_path: Path) -> None:
     assert holds[1] > holds[0]
 
 
-@pytest.mark.parametrize("estimator", ["raw", "kf", "ukf"])
+@pytest.mark.parametrize(
+    ("estimator", "transport"),
+    # each estimator's separate-process run takes another transport (no extra runs): the
+    # binary records on hil run's own hub (a child process), the binary records on a hub
+    # thread of the plant, socketcand's ASCII on an external hub
+    [("raw", "socketcand"), ("kf", "binary-thread-hub"), ("ukf", "binary")],
+)
 def test_every_estimator_is_deterministic_in_process_and_across_processes(
-    tmp_path: Path, estimator: str
+    tmp_path: Path, estimator: str, transport: str, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     path = scenario(
         tmp_path,
@@ -149,7 +157,15 @@ def test_every_estimator_is_deterministic_in_process_and_across_processes(
     )
     first = run(path, tmp_path / "a")
     again = run(path, tmp_path / "b")
-    other = run(path, tmp_path / "c", process=True)
+    with contextlib.ExitStack() as stack:
+        bus = None
+        if transport == "socketcand":
+            hub = stack.enter_context(LoopbackHub())
+            bus = f"loopback:127.0.0.1:{hub.port}"
+        elif transport == "binary-thread-hub":
+            monkeypatch.setenv("SOFTHIL_HUB", "thread")
+        other = run(path, tmp_path / "c", process=True, bus=bus)
+    assert other.summary["bus"].startswith("loopback:" if bus else "softhil:")
     for name in ("can.log", "signals.csv"):
         data = (first.out / name).read_bytes()
         assert (again.out / name).read_bytes() == data

@@ -31,6 +31,7 @@
  * energy relative to the atmosphere (-m R T ln V + p_atm V isothermal, p V / (n - 1) + p_atm V
  * polytropic), E_dissipated = damping + heat to the walls + impacts at the limit. */
 #include <math.h>
+#include <string.h>
 
 #include "glue.h"
 
@@ -45,6 +46,10 @@ typedef struct {
     double x;           /* piston position applied in this step [m] */
     double W_piston;    /* work done by the piston on the gas [J] */
     double E_impact;    /* kinetic energy lost at the mechanical limit [J] */
+    /* the stored energy model_outputs computed, and at which (x, y) exactly: the next step's
+     * isentropic-compression work starts from it instead of solving the same gas state again */
+    double cached_y[N_STATES], cached_x, cached_energy;
+    int cached;
 } State;
 
 size_t model_state_size(void) { return sizeof(State); }
@@ -101,10 +106,15 @@ static int gas_pressure(const Instance *inst, double V0, double sign, double the
                 *gauge = g;
                 return 1;
             }
+            const double G_a = V(inst, G_a), beta = V(inst, vacuum_factor);
+            const double pc = V(inst, p_collapse), slope = G_a * (1.0 - beta) / pc;
             for (iteration = 0; iteration < 30; iteration++) {
-                const double p = p_atm + g, vol = side_volume(inst, V0, sign, theta, g);
-                const double dG = V(inst, G_a) * (1.0 - V(inst, vacuum_factor)) /
-                                  V(inst, p_collapse) * exp(g / V(inst, p_collapse));
+                /* one exp per iteration serves G(g) and G'(g): the same expressions as
+                 * side_volume and bend_sensitivity, so the same bits */
+                const double e = exp(g / pc);
+                const double G = g >= 0.0 ? G_a : G_a * (beta + (1.0 - beta) * e);
+                const double p = p_atm + g, vol = V0 + sign * G * theta + C * g;
+                const double dG = slope * e;
                 const double dF = vol + p * (C + sign * dG * theta);
                 double step;
                 if (!(p > 0.0) || !(vol > 0.0) || !(dF > 0.0)) break;
@@ -214,16 +224,14 @@ int model_derivatives(const Instance *inst, const double y[], double dy[]) {
     return 1;
 }
 
-/* Energy stored in gas, membranes, bending spring and motion at piston position x [J]. */
-static int stored_energy(const Instance *inst, double x, const double y[], double *energy) {
+/* Energy stored in gas, membranes, bending spring and motion [J], given the gas state of y. */
+static double energy_of(const Instance *inst, const double y[], const GasState *gas) {
     const double n = V(inst, n_poly), p_atm = V(inst, p_atm);
-    GasState gas;
     double total = 0.5 * V(inst, k_bend) * y[THETA] * y[THETA] +
                    0.5 * bending_inertia(inst) * y[OMEGA] * y[OMEGA];
     int side;
-    if (!gas_state(inst, x, y, &gas)) return 0;
     for (side = 0; side < 2; side++) {
-        const double g = gas.g[side], vol = gas.V[side], m = y[M_A + side];
+        const double g = gas->g[side], vol = gas->V[side], m = y[M_A + side];
         const double gas_energy =
             n == 1.0 ? -m * V(inst, R_gas) * y[S_A + side] * log(vol) + p_atm * vol
                      : (p_atm + g) * vol / (n - 1.0) + p_atm * vol;
@@ -232,7 +240,14 @@ static int stored_energy(const Instance *inst, double x, const double y[], doubl
             SIGN[side] * y[THETA] * (g * bend_sensitivity(inst, g) - channel_torque(inst, g));
         total += gas_energy + membrane;
     }
-    *energy = total;
+    return total;
+}
+
+/* Energy stored at piston position x [J]; 0 if no physical gas state exists there. */
+static int stored_energy(const Instance *inst, double x, const double y[], double *energy) {
+    GasState gas;
+    if (!gas_state(inst, x, y, &gas)) return 0;
+    *energy = energy_of(inst, y, &gas);
     return 1;
 }
 
@@ -283,7 +298,12 @@ fmi2Status model_step_start(Instance *inst) {
     double x, before, after;
     if (!applied_piston_position(inst, &x)) return fmi2Error;
     if (x == s->x) return fmi2OK;
-    if (!stored_energy(inst, s->x, s->y, &before) || !stored_energy(inst, x, s->y, &after)) {
+    if (s->cached && s->cached_x == s->x && memcmp(s->cached_y, s->y, sizeof s->y) == 0) {
+        before = s->cached_energy; /* bit for bit what stored_energy would return */
+    } else if (!stored_energy(inst, s->x, s->y, &before)) {
+        before = NAN;
+    }
+    if (!isfinite(before) || !stored_energy(inst, x, s->y, &after)) {
         log_message(inst, fmi2Error, "no physical gas state at piston position %g m", x);
         return fmi2Error;
     }
@@ -293,11 +313,11 @@ fmi2Status model_step_start(Instance *inst) {
 }
 
 fmi2Status model_outputs(Instance *inst) {
-    const State *s = (const State *)inst->state;
+    State *s = (State *)inst->state;
     const double *y = s->y;
     GasState gas;
     double energy;
-    if (!gas_state(inst, s->x, y, &gas) || !stored_energy(inst, s->x, y, &energy)) {
+    if (!gas_state(inst, s->x, y, &gas)) {
         log_message(inst, fmi2Error,
                     "no physical gas state (bend angle %g rad, piston %g m): a volume collapsed",
                     y[THETA], s->x);
@@ -310,6 +330,11 @@ fmi2Status model_outputs(Instance *inst) {
     V(inst, p_b) = gas.g[1];
     V(inst, v_a) = gas.V[0];
     V(inst, v_b) = gas.V[1];
+    energy = energy_of(inst, y, &gas); /* the gas state just solved: one solve, not two */
+    s->cached = 1;
+    s->cached_x = s->x;
+    s->cached_energy = energy;
+    memcpy(s->cached_y, y, sizeof s->y);
     V(inst, E_stored) = energy;
     V(inst, W_piston) = s->W_piston;
     V(inst, W_ext) = y[W_EXT];
@@ -389,6 +414,7 @@ fmi2Status model_initialize(Instance *inst, OdeSystem *ode) {
     s->y[THETA] = V(inst, theta_start);
     s->W_piston = 0.0;
     s->E_impact = 0.0;
+    s->cached = 0;
     if (!applied_piston_position(inst, &s->x)) return fmi2Error;
     ode->n = N_STATES;
     ode->y = s->y;

@@ -1,4 +1,4 @@
-"""Loopback CAN hub: an inter-process CAN bus over TCP speaking the socketcand protocol.
+"""Loopback CAN hub: an inter-process CAN bus over TCP speaking socketcand and softhil's binary.
 
 The kernel softhil runs on has no SocketCAN, so processes share a CAN bus through this hub
 instead. It implements the server side of the socketcand ASCII protocol (rawmode only), which
@@ -9,6 +9,12 @@ is exactly what python-can's client needs::
 
 Every frame a client sends on a channel is forwarded to every *other* rawmode client that
 opened the same channel (no echo to the sender, like a CAN socket without RECV_OWN_MSGS).
+
+The same port also serves softhil's binary transport (`hil.bus.binary`, python-can interface
+``softhil``): a connection whose first bytes are the binary hello instead of ``< open NAME >``
+joins the named channel and exchanges length-prefixed records. Both kinds of client share the
+channels: each frame is encoded once per protocol that some receiver speaks. The limits below
+(clients, buffer shares, warnings) count both kinds alike.
 
 Key invariant: the bus is **ordered, lossless and loopback-only**.
 
@@ -67,9 +73,16 @@ from collections.abc import Callable
 from types import FrameType, TracebackType
 from typing import Self
 
+from hil.bus.wire import FLAG_EXTENDED as _FLAG_EXTENDED
+from hil.bus.wire import HEADER as _RECORD_HEADER
+from hil.bus.wire import HELLO_MAGIC as _HELLO_MAGIC
+from hil.bus.wire import SIZE_FIELD as _SIZE_FIELD
+from hil.bus.wire import VERSION as _BINARY_VERSION
+from hil.bus.wire import ack as _binary_ack
+from hil.bus.wire import encode_record
 from hil.errors import BusError, HilError
 
-__all__ = ["DEFAULT_PORT", "HubSettingError", "LoopbackHub", "main"]
+__all__ = ["DEFAULT_PORT", "HubProcess", "HubSettingError", "LoopbackHub", "main"]
 
 log = logging.getLogger(__name__)
 
@@ -101,6 +114,8 @@ _MAX_LOGGED_TEXT = 200
 _MAX_STD_ID = 0x7FF
 _MAX_EXT_ID = 0x1FFFFFFF
 _MAX_DLC = 8
+
+_HELLO_FIXED = len(_HELLO_MAGIC) + 2  # magic, version, name length
 
 _HEX_TOKEN = re.compile(rb"[0-9A-Fa-f]{1,2}")
 _HEX_ID = re.compile(rb"[0-9A-Fa-f]{3}|[0-9A-Fa-f]{8}")
@@ -253,6 +268,7 @@ class _Client:
 
     __slots__ = (
         "addr",
+        "binary",
         "channel",
         "closed",
         "held",
@@ -273,7 +289,8 @@ class _Client:
         self.held: bytearray | None = None
         self.hold_until = 0.0
         self.channel: bytes | None = None
-        self.rawmode = False
+        self.rawmode = False  # joined a channel (socketcand rawmode, or a binary hello)
+        self.binary = False  # speaks softhil's binary records (hil.bus.binary)
         self.want_write = False
         self.closed = False
 
@@ -666,6 +683,9 @@ class LoopbackHub:
             return
         buf = client.inbuf
         buf += data
+        if client.binary or (not client.rawmode and buf[:1] == b"\0"):
+            self._on_binary_input(client)
+            return
         pos = 0
         n = len(buf)
         while pos < n:
@@ -792,19 +812,107 @@ class LoopbackHub:
             self._reject(client, body, "invalid send: length mismatch")
             return
         data = bytes(int(t, 16) for t in byte_toks)
+        self._forward(client, can_id, extended, data)
+
+    def _forward(self, client: _Client, can_id: int, extended: bool, data: bytes) -> None:
+        """Queue one frame for every other member of ``client``'s channel, each in its protocol.
+
+        Each encoding is built once per frame and only if some member needs it.
+        """
         now = time.time_ns()
-        sec, nsec = divmod(now, 1_000_000_000)
-        # Same layout as socketcand: "%03X"/"%08X" id, "%ld.%06ld" time, "%02X" per byte.
-        frame = b"< frame %s %d.%06d %s >" % (
-            id_tok.upper(),
-            sec,
-            nsec // 1000,
-            data.hex().upper().encode(),
-        )
+        text = record = None
         self._frames_forwarded += 1
-        for other in self._channels.get(client.channel, ()):
-            if other is not client:
-                self._queue(other, frame)
+        for other in self._channels.get(client.channel, ()):  # type: ignore[arg-type]
+            if other is client:
+                continue
+            if other.binary:
+                if record is None:
+                    record = encode_record(can_id, extended, data, now / 1e9)
+                self._queue(other, record)
+            else:
+                if text is None:
+                    sec, nsec = divmod(now, 1_000_000_000)
+                    # As socketcand: "%03X"/"%08X" id, "%ld.%06ld" time, "%02X" per byte.
+                    text = b"< frame %s %d.%06d %s >" % (
+                        b"%08X" % can_id if extended else b"%03X" % can_id,
+                        sec,
+                        nsec // 1000,
+                        data.hex().upper().encode(),
+                    )
+                self._queue(other, text)
+
+    # ------------------------------------------------------------------ binary protocol
+
+    def _on_binary_input(self, client: _Client) -> None:
+        """Handle a binary client's input: its hello, then whole records (hil.bus.binary).
+
+        A binary stream cannot be resynchronised, so anything malformed is logged and the
+        client disconnected (unlike socketcand text, where the hub skips to the next '<').
+        """
+        buf = client.inbuf
+        if not client.binary:
+            if len(buf) < _HELLO_FIXED:
+                if not _HELLO_MAGIC.startswith(bytes(buf[: len(_HELLO_MAGIC)])):
+                    self._binary_failure(client, bytes(buf), "not a binary hello")
+                return
+            name_len = buf[_HELLO_FIXED - 1]
+            if len(buf) < _HELLO_FIXED + name_len:
+                return
+            self._on_hello(client, bytes(buf[: _HELLO_FIXED + name_len]))
+            del buf[: _HELLO_FIXED + name_len]
+            if client.closed:
+                return
+        pos = 0
+        n = len(buf)
+        header = _RECORD_HEADER
+        while n - pos >= header.size:
+            size, can_id, flags, dlc, _ = header.unpack_from(buf, pos)
+            if (
+                size != header.size - _SIZE_FIELD + dlc
+                or dlc > _MAX_DLC
+                or flags & ~_FLAG_EXTENDED
+                or can_id > (_MAX_EXT_ID if flags else _MAX_STD_ID)
+            ):
+                self._binary_failure(
+                    client,
+                    bytes(buf[pos : pos + header.size]),
+                    f"bad record (size {size}, id 0x{can_id:X}, flags 0x{flags:02X}, dlc {dlc})",
+                )
+                return
+            end = pos + _SIZE_FIELD + size
+            if end > n:
+                break
+            self._forward(client, can_id, bool(flags), bytes(buf[end - dlc : end]))
+            pos = end
+        del buf[:pos]
+
+    def _on_hello(self, client: _Client, hello: bytes) -> None:
+        version, name = hello[len(_HELLO_MAGIC)], hello[_HELLO_FIXED:]
+        if not hello.startswith(_HELLO_MAGIC):
+            self._binary_failure(client, hello, "not a binary hello")
+        elif version != _BINARY_VERSION:
+            self._binary_failure(client, hello, f"binary protocol version {version} unsupported")
+        elif client.channel is not None:
+            self._binary_failure(client, hello, "binary hello after open")
+        elif not _CHANNEL_NAME.fullmatch(name):
+            self._binary_failure(client, hello, "invalid channel name")
+        else:
+            client.channel = name
+            client.binary = client.rawmode = True
+            self._rawmode_clients += 1
+            self._channels.setdefault(name, []).append(client)
+            self._queue(client, _binary_ack())
+            log.debug("binary client %s joined channel %s", client.addr, name.decode())
+
+    def _binary_failure(self, client: _Client, text: bytes, why: str) -> None:
+        """Log malformed binary input and disconnect its sender (after a one-line reason if
+        it has not joined yet: SofthilBus raises it as its handshake failure)."""
+        self._malformed(client, text, why)
+        if not client.binary:
+            with contextlib.suppress(OSError):
+                client.sock.send(b"< error " + why.encode("ascii") + b" >")
+        client.closed = True
+        self._doomed.append(client)
 
     # ------------------------------------------------------------------ output
 
@@ -921,6 +1029,80 @@ class LoopbackHub:
             log.debug("client %s disconnected", client.addr)
 
 
+class HubProcess:
+    """A loopback hub in a child process of its own, so it never waits for its parent's GIL.
+
+    ``python -m hil.bus.loopback --port 0 --exit-with-stdin``: the child prints its port, and
+    stops when its standard input (a pipe held by this object) closes, so it cannot outlive a
+    parent that is killed. It runs in a session of its own: a Ctrl-C at the terminal reaches
+    the parent, which then stops the hub after its own clean-up.
+
+    Parameters
+    ----------
+    host
+        Loopback address to bind.
+    timeout
+        Seconds to wait for the child to report its port.
+
+    Raises
+    ------
+    BusError
+        The child did not start or did not report a port in time (its last words included).
+    """
+
+    def __init__(self, host: str = "127.0.0.1", timeout: float = 10.0) -> None:
+        import subprocess
+
+        _check_host(host, allow_remote=False)
+        self._process = subprocess.Popen(
+            [sys.executable, "-m", "hil.bus.loopback", "--host", host, "--port", "0"]
+            + ["--exit-with-stdin"],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            start_new_session=True,
+        )
+        assert self._process.stdout is not None
+        ready = selectors.DefaultSelector()
+        ready.register(self._process.stdout, selectors.EVENT_READ)
+        found = ready.select(timeout)
+        ready.close()
+        line = self._process.stdout.readline() if found else b""
+        match = re.search(rb" on ([0-9.]+):(\d+) ", line)
+        if match is None:
+            self.stop()
+            raise BusError(
+                f"the loopback hub process did not start within {timeout:g} s "
+                f"(it said {line.decode(errors='replace').strip()!r})"
+            )
+        self.address = (match[1].decode(), int(match[2]))
+        self._process.stdout.close()
+
+    @property
+    def port(self) -> int:
+        """The hub's TCP port."""
+        return self.address[1]
+
+    @property
+    def pid(self) -> int:
+        """The child's process id."""
+        return self._process.pid
+
+    def stop(self, timeout: float = 5.0) -> None:
+        """Close the child's standard input (it stops), then wait; SIGKILL after ``timeout`` s.
+        Idempotent."""
+        import subprocess
+
+        process = self._process
+        if process.stdin is not None and not process.stdin.closed:
+            with contextlib.suppress(OSError):
+                process.stdin.close()
+        try:
+            process.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait()
+
+
 _SIZE_SUFFIXES = {"": 1, "K": 1024, "M": 1024**2, "G": 1024**3}
 
 
@@ -973,6 +1155,12 @@ def main(argv: list[str] | None = None) -> int:
         "may use an equal share and is disconnected when it stops reading beyond it "
         "(default 64M)",
     )
+    parser.add_argument(
+        "--exit-with-stdin",
+        action="store_true",
+        help="stop when standard input closes (how a parent process that spawned the hub "
+        "takes it down with itself, even if the parent is killed)",
+    )
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     try:
@@ -994,10 +1182,21 @@ def main(argv: list[str] | None = None) -> int:
     previous: dict[int, Callable[[int, FrameType | None], object] | int | None] = {}
     for sig in (signal.SIGINT, signal.SIGTERM):
         previous[sig] = signal.signal(sig, on_signal)
+    if args.exit_with_stdin:
+
+        def watch_parent() -> None:
+            # blocks in read() without the GIL; EOF: the parent closed the pipe or died
+            with contextlib.suppress(OSError, ValueError):
+                while sys.stdin.buffer.read1(4096):
+                    pass
+            hub.stop()
+
+        threading.Thread(target=watch_parent, name="parent-watch", daemon=True).start()
     try:
         host, port = hub.address
         print(
-            f"softhil loopback CAN hub listening on {host}:{port} (socketcand protocol)",
+            f"softhil loopback CAN hub listening on {host}:{port} "
+            "(socketcand and softhil binary protocols)",
             flush=True,
         )
         hub.serve_forever()
