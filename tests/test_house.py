@@ -26,7 +26,7 @@ START = 1433116800.0  # 2015-06-01T00:00:00Z, the documented default log start
 SIX = """
 name = "six"
 seed = 3
-duration = 0.5
+duration = 0.2
 [robot]
 kind = "planar_arm"
 segments = 6
@@ -87,6 +87,7 @@ def test_unknown_robot_kind_in_a_scenario_is_one_line(tmp_path: Path) -> None:
 
 
 def test_six_segments_of_three_lengths_and_stiffnesses_each_get_their_own(tmp_path: Path) -> None:
+    # SIX runs 0.2 s: the step at 0.1 s is in; what is checked is where every parameter went
     scenario = load_scenario(write(tmp_path, SIX))
     lengths = [0.06, 0.05, 0.04, 0.06, 0.05, 0.04]
     stiffness = [0.025, 0.035, 0.045, 0.025, 0.035, 0.045]
