@@ -1,4 +1,10 @@
-"""Shared fixtures: FMUs built once per session into the user cache; the checkout untouched."""
+"""Shared fixtures: FMUs built once per session into the user cache; the checkout untouched.
+
+The suite runs on every core with pytest-xdist (`-n auto --dist loadgroup`, pyproject.toml).
+Invariant: an expensive run shared by a module-scoped fixture runs once per session, as it
+does serially: every test using a module-scoped fixture joins its module's xdist group, so
+they all land on one worker; the other tests are spread one by one.
+"""
 
 from __future__ import annotations
 
@@ -13,6 +19,17 @@ from hil.fmu.build import BuiltFmu, build_fmu
 
 ROOT = Path(__file__).resolve().parents[1]
 CACHES = ("__pycache__", ".pytest_cache", ".ruff_cache", ".mypy_cache")
+
+
+@pytest.hookimpl(tryfirst=True)  # before xdist's own hook reads the groups into node ids
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Tests sharing a module-scoped fixture join their module's xdist group (see above)."""
+    for item in items:
+        info = getattr(item, "_fixtureinfo", None)
+        if info is None:
+            continue
+        if any(defs[-1].scope == "module" for defs in info.name2fixturedefs.values() if defs):
+            item.add_marker(pytest.mark.xdist_group(item.nodeid.split("::")[0]))
 
 
 @pytest.fixture(scope="session")

@@ -156,3 +156,27 @@ def test_two_processes_building_at_once(cache: Path) -> None:
     procs = [subprocess.Popen([sys.executable, "-c", script], cwd=ROOT, env=env) for _ in range(2)]
     assert [p.wait(300) for p in procs] == [0, 0]
     assert len(list((cache / "fmus").iterdir())) == 1
+
+
+def test_a_build_finishing_second_keeps_the_sound_entry_in_place(
+    cache: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Two workers building the same FMU into an empty cache (parallel tests, two `hil run`):
+    the one finishing second drops its build, so the entry the first one loads stays put."""
+    real_build_into = build_module._build_into
+    first: list[int] = []
+
+    def build_into_while_another_installs(work: Path, *args: object) -> None:
+        real_build_into(work, *args)  # type: ignore[arg-type]
+        if not first:  # the "other process" installs its build while ours compiles
+            first.append(0)
+            other = build_fmu("FeaSegment")
+            first[0] = (other.unzipdir / "modelDescription.xml").stat().st_ino
+
+    monkeypatch.setattr(build_module, "_build_into", build_into_while_another_installs)
+    ours = build_fmu("FeaSegment")
+    assert (ours.unzipdir / "modelDescription.xml").stat().st_ino == first[0]
+    assert [p.name for p in ours.path.parent.parent.iterdir()] == [ours.path.parent.name]
+    assert cache_damage(ours.path.parent) is None
+    with FmuSlave(ours, "kept") as slave:
+        slave.do_step(0.0, 1e-3)

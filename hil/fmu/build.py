@@ -4,7 +4,10 @@ A model folder (`fmus/NAME`) plus the glue (`fmus/common`) and headers (`fmus/in
 `<cache>/fmus/NAME-<digest>/NAME.fmu` and its extracted folder beside it. The digest hashes every
 source file, this generator and the compiler command, so a build is reused until a source changes
 and two processes building at once never see a half-written FMU (each builds in a private folder
-and renames it into place). The zip is byte-reproducible (fixed timestamps, sorted entries).
+and renames it into place). A build that finds a sound entry in place when it is done (another
+process installed its identical build meanwhile) drops its own and keeps that one, unless
+`force`: a process already loading the entry (a parallel test worker, a second `hil run`) must
+not see its files vanish. The zip is byte-reproducible (fixed timestamps, sorted entries).
 
 Each cache entry records the SHA-256 of every file it holds in `manifest.sha256` (the format of
 `sha256sum`, so `cd <entry> && sha256sum -c manifest.sha256` checks it by hand). `build_fmu`
@@ -120,19 +123,23 @@ def build_fmu(name: str, *, force: bool = False) -> BuiltFmu:
     try:
         _build_into(work, folder, spec, model_guid)
         _write_manifest(work)
-        _install(work, target)
+        _install(work, target, replace_sound=force)
     finally:
         shutil.rmtree(work, ignore_errors=True)
     return built
 
 
-def _install(work: Path, target: Path) -> None:
-    """Rename the complete build `work` into place as `target`, replacing what is there.
+def _install(work: Path, target: Path, *, replace_sound: bool = False) -> None:
+    """Rename the complete build `work` into place as `target`, replacing a damaged entry there.
 
     Every step is a rename, so a reader finds either a complete entry or none (and then builds
     its own); it never finds a half-written one. A replaced entry is renamed away first and
-    deleted afterwards.
+    deleted afterwards. A sound entry found at `target` (another process installed its identical
+    build while this one compiled) is kept and `work` dropped, unless `replace_sound`: replacing
+    it would pull its files from under that process, which may be loading them already.
     """
+    if not replace_sound and target.exists() and cache_damage(target) is None:
+        return  # the caller's finally removes `work`
     old = None
     if target.exists():
         old = Path(tempfile.mkdtemp(prefix=f".{target.name}-old-", dir=target.parent))
