@@ -303,7 +303,15 @@ def hil_process(*argv: str) -> subprocess.Popen[str]:
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
+        preexec_fn=_interruptible,
     )
+
+
+def _interruptible() -> None:
+    """SIGINT at its default in the child, as in a terminal: a shell without job control starts
+    background jobs (pytest on CI, say) with SIGINT ignored, and Python keeps an inherited
+    'ignored' instead of installing its KeyboardInterrupt handler."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
 def test_injected_commands_on_the_hub_from_a_second_client(tmp_path: Path) -> None:
