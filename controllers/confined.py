@@ -8,11 +8,13 @@ curvatures whose objective pulls the tip towards a point a little ahead along th
 centreline (so it follows the pipe instead of cutting corners) with a smoothness term on the
 change, under the constraints that every sampled backbone point keeps `width / 2 + margin` from
 the walls and that no curvature changes by more than a trust region. Where the clearance
-constraints cannot be met the step is solved again with a slack variable under a heavy penalty
-(the collision is tolerated and reported) instead of failing. The waypoints are then tracked by
-the curvature controllers as synchronised curvature moves (controllers.tasks.CurvatureMove),
-which interpolate the curvatures linearly; so each step is also checked along that interpolation
-and its trust region halved until the body stays clear of the walls between waypoints too.
+constraints cannot be met, or can be met only by not advancing (a pipe narrower than the arm
+plus its margins), the step is solved again with a penalised slack on the clearance (the
+collision is tolerated and reported in `Plan.slack_steps`) instead of failing or stalling.
+The waypoints are then tracked by the curvature controllers as synchronised curvature moves
+(controllers.tasks.CurvatureMove), which interpolate the curvatures linearly; so each step is
+also checked along that interpolation and its trust region halved until the body stays clear
+of the walls between waypoints too.
 
 Why SLSQP: the problem is small (six curvatures, about fifty smooth inequality constraints with
 analytic Jacobians, box bounds) and warm-started from the previous waypoint, where SQP's
@@ -357,7 +359,7 @@ def plan_whole_arm(
     tolerance: float = 1e-3,
     lookahead: float = 0.02,
     smoothness: float = 0.05,
-    slack_penalty: float = 1e4,
+    slack_penalty: float = 100.0,
 ) -> Plan:
     """Plan a sequence of curvature configurations that advances the tip to `goal` through
     `channel`, one constrained optimisation (SLSQP) per step; see the module.
@@ -392,8 +394,11 @@ def plan_whole_arm(
         Weight of the squared change of the bend angles [1/rad^2] against the squared tip
         error in units of `lookahead`.
     slack_penalty
-        Weight of the squared slack [1/m^2 times lookahead^-2 units] when the clearance
-        constraints are infeasible.
+        Weight of the squared slack [m] against the squared tip error (both in units of
+        `lookahead`) when the clearance constraints are relaxed: the slack is what a step adds
+        to the shortfall the body already has (a tolerated collision may persist at no cost,
+        deepening it costs). Relaxed only when the constraints are infeasible or the feasible
+        step does not advance the tip.
 
     Returns
     -------
@@ -570,9 +575,15 @@ def _optimise(
             gradient[n] = 2.0 * slack_penalty * scale * x[n]
         return value, gradient
 
+    # a tolerated collision may stay as deep as it already is at no cost; the slack is what
+    # the step adds to it
+    shortfall = max(0.0, -float(np.min(evaluate(kappa)[2] - problem.required)))
+
     def constraint(x: np.ndarray) -> np.ndarray:
-        slack = x[n] if len(x) > n else 0.0
-        return evaluate(x[:n])[2] - problem.required + slack
+        return evaluate(x[:n])[2] - problem.required
+
+    def relaxed_constraint(x: np.ndarray) -> np.ndarray:
+        return constraint(x) + shortfall + x[n]
 
     def constraint_jacobian(x: np.ndarray) -> np.ndarray:
         jacobian = evaluate(x[:n])[3]
@@ -581,6 +592,7 @@ def _optimise(
         return jacobian
 
     constraints = {"type": "ineq", "fun": constraint, "jac": constraint_jacobian}
+    relaxed_constraints = {"type": "ineq", "fun": relaxed_constraint, "jac": constraint_jacobian}
     result = minimize(
         objective,
         kappa,
@@ -591,20 +603,28 @@ def _optimise(
         options={"maxiter": 100, "ftol": 1e-10},
     )
     candidate = np.clip(result.x, lower, upper)
-    if float(np.min(constraint(candidate))) >= -FEASIBLE:
+    feasible = float(np.min(constraint(candidate))) >= -FEASIBLE
+    distance = float(np.linalg.norm(evaluate(kappa)[0] - target))
+    advance = distance - float(np.linalg.norm(evaluate(candidate)[0] - target))
+    if feasible and (advance >= STALL_PROGRESS or distance <= STALL_PROGRESS):
         return candidate, False
-    # infeasible: tolerate the collision, as little of it as the penalty buys
-    shortfall = max(0.0, -float(np.min(evaluate(kappa)[2] - problem.required)))
+    # infeasible, or feasible only by not advancing (the body kept clear of a pipe narrower
+    # than width + 2 margin by staying out of it): tolerate the collision, as little of it as
+    # the penalty buys
     result = minimize(
         objective,
-        np.append(kappa, shortfall),
+        np.append(kappa, 0.0),
         jac=True,
         method="SLSQP",
         bounds=[*zip(lower, upper, strict=True), (0.0, None)],
-        constraints=[constraints],
+        constraints=[relaxed_constraints],
         options={"maxiter": 100, "ftol": 1e-10},
     )
-    return np.clip(result.x[:n], lower, upper), True
+    relaxed = np.clip(result.x[:n], lower, upper)
+    relaxed_advance = distance - float(np.linalg.norm(evaluate(relaxed)[0] - target))
+    if feasible and relaxed_advance < advance + STALL_PROGRESS:
+        return candidate, False  # the collision would buy no advance
+    return relaxed, float(np.min(constraint(relaxed))) < -FEASIBLE
 
 
 # ---------------------------------------------------------------------- the four pipe sections
