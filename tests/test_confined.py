@@ -20,6 +20,7 @@ from controllers.confined import (
     WIDTH,
     Channel,
     Plan,
+    _target,
     plan_penetration,
     plan_whole_arm,
     sample_backbone,
@@ -65,8 +66,9 @@ def plans() -> dict[str, Plan]:
 
 def test_clearance_of_a_straight_wall_is_the_distance_signed_by_the_side() -> None:
     channel = corridor(half=0.02)
-    y = np.linspace(-0.05, 0.05, 21)
-    points = np.stack((np.full_like(y, 0.5), y), axis=1)
+    y = np.tile(np.linspace(-0.05, 0.05, 21), 3)
+    x = np.repeat([0.03, 0.5, 0.98], 21)  # near both ends of the walls and between
+    points = np.stack((x, y), axis=1)
     clearance, gradient = channel.clearance_and_gradient(points)
     # inside: the distance to the nearer wall; beyond a wall: minus the distance to it
     np.testing.assert_allclose(clearance, 0.02 - np.abs(y), atol=1e-15)
@@ -135,6 +137,40 @@ def test_progress_is_arc_length_along_the_centreline() -> None:
         point, tangent = channel.point_at(s)
         assert channel.progress(point[None])[0] == pytest.approx(s, abs=1e-12)
         assert np.linalg.norm(tangent) == pytest.approx(1.0)
+    # beyond the ends the progress clamps; beside the line it is that of the foot point
+    end, tangent = channel.point_at(channel.length)
+    normal = np.array([-tangent[1], tangent[0]])
+    beyond = np.array(
+        [end + 0.05 * tangent, line[0] - [0.05, 0.0], end - 0.01 * tangent + 0.005 * normal]
+    )
+    np.testing.assert_allclose(
+        channel.progress(beyond), [channel.length, 0.0, channel.length - 0.01], atol=1e-12
+    )
+
+
+def test_the_step_target_lies_a_lookahead_ahead_on_the_centreline() -> None:
+    channel = PIPES["planar-pipe-4"].channel
+    goal = np.array(PIPES["planar-pipe-4"].goal)
+    goal_s = float(channel.progress(goal[None])[0])
+    tip = channel.point_at(0.2)[0] + [0.0, 0.004]
+    np.testing.assert_allclose(
+        _target(channel, tip, goal, 0.2, goal_s, 0.02), channel.point_at(0.22)[0], atol=0
+    )
+    near = channel.point_at(goal_s - 0.01)[0]
+    np.testing.assert_array_equal(_target(channel, near, goal, goal_s - 0.01, goal_s, 0.02), goal)
+
+
+@pytest.mark.parametrize("name", sorted(PIPES))
+def test_pipe_walls_are_parallel_to_the_centreline(name: str) -> None:
+    """Past the mouth the walls are the centreline offset both ways: every centreline point,
+    vertices included (the walls' miter joints), is equally far from both walls."""
+    channel = PIPES[name].channel
+    line = np.array(channel.centreline)
+    pipe = line[line[:, 0] > 0.25 + 1e-9]
+    pipe = pipe[channel.progress(pipe) < channel.length - 0.05]  # clear of the far opening
+    dense = np.array([channel.point_at(s)[0] for s in np.linspace(0.26, 0.4, 57)])
+    clearance = channel.clearance(np.vstack((pipe, dense)))
+    np.testing.assert_allclose(clearance, clearance[0], atol=1e-9)
 
 
 # ---------------------------------------------------------------------- the backbone
@@ -223,6 +259,21 @@ def test_curvature_moves_between_waypoints_keep_the_body_inside(
         move = CurvatureMove.plan(start, goal, rates, accel_time=0.2)
         for tau in np.linspace(0.0, move.duration, 25):
             points, _ = sample_backbone(move.value(tau), section.lengths, section.base, 16)
+            worst = min(worst, float(np.min(section.channel.clearance(points))))
+    assert worst >= 0.5 * WIDTH
+
+
+def test_large_steps_are_halved_until_the_move_between_waypoints_keeps_clear() -> None:
+    """With a trust region of 8 1/m a waypoint's neighbours are far apart in curvature; the
+    interpolation check halves the step until the body stays clear between them."""
+    section = PIPES["planar-pipe-4"]
+    plan = plan_pipe("planar-pipe-4", step=8.0, lookahead=0.08)
+    assert plan.reached, plan.reason
+    worst = math.inf
+    for start, goal in zip(plan.configurations[:-1], plan.configurations[1:], strict=True):
+        for f in np.linspace(0.0, 1.0, 21):
+            kappa = start + f * (goal - start)
+            points, _ = sample_backbone(kappa, section.lengths, section.base, SAMPLES)
             worst = min(worst, float(np.min(section.channel.clearance(points))))
     assert worst >= 0.5 * WIDTH
 
