@@ -34,7 +34,7 @@ from controllers import kinematics
 from controllers.estimation import DriveReading, Estimate
 from controllers.ik import solve_ik
 from controllers.planar_arm import CurvatureControl
-from controllers.protocol import Protocol, TaskState
+from controllers.protocol import ControllerState, DriveCommand, Protocol, TaskState
 from controllers.tasks import PHASE, CurvatureMove, path_timing, trapezoid_fraction
 
 if TYPE_CHECKING:
@@ -78,10 +78,16 @@ class TaskSpaceControl:
         self, cycle: int, t: float, estimate: Estimate, drives: Mapping[int, DriveReading]
     ) -> list[Any]:
         tip = kinematics.forward(estimate.kappa, self.lengths, self.base)[-1, :2]
+        if self.phase == PHASE["idle"] and t < self.plan.acquire_time - 1e-9:
+            # the estimator is still acquiring the arm (its prior is the straight arm): hold every
+            # piston where it is, and report the estimate as the reference
+            return self._hold(cycle, estimate, drives)
         if self.phase == PHASE["idle"] and self.plan.kind == "pipe":
             self._plan_pipe(t, np.asarray(estimate.kappa, float))
         elif self.phase == PHASE["idle"]:
             self._begin_leg(t, from_kappa=np.asarray(estimate.kappa, float))
+        elif self.phase == PHASE["done"] and self.waypoints:
+            pass  # a pipe's last waypoint stays the reference
         elif self.phase == PHASE["done"]:  # hold the last target, still closing the loop
             self._correct(self.goal - tip)
             self._solve(self.goal + self.correction, iterations=TRACK_IK_ITERATIONS)
@@ -92,6 +98,22 @@ class TaskSpaceControl:
         frames.append(
             TaskState(index, self.phase, float(self.goal[0]), float(self.goal[1]), cycle % 256)
         )
+        return frames
+
+    def _hold(
+        self, cycle: int, estimate: Estimate, drives: Mapping[int, DriveReading]
+    ) -> list[Any]:
+        frames: list[Any] = []
+        for i in range(self.config.segments):
+            node = i + 1
+            reading = drives.get(node)
+            piston = reading.piston_position if reading is not None else self.config.x_mid[i]
+            lo, hi = self.curvature.shown_range  # an estimate still settling may exceed it
+            kappa = min(max(float(estimate.kappa[i]), lo), hi)
+            frames.append(DriveCommand(node, piston, True, cycle))
+            frames.append(ControllerState(node, kappa, kappa, cycle))
+        goal = self.plan.targets[0]
+        frames.append(TaskState(0, PHASE["idle"], goal[0], goal[1], cycle % 256))
         return frames
 
     def _advance(self, t: float, tip: np.ndarray) -> None:
@@ -122,8 +144,10 @@ class TaskSpaceControl:
     def _settle(self, t: float, tip: np.ndarray) -> None:
         """Close the loop on the estimated tip until it stays on target for settle_time."""
         error = self.goal - tip
-        self._correct(error)
-        self._solve(self.goal + self.correction, iterations=None)
+        if not self.waypoints:  # in a pipe the plan's last waypoint is held: an unconstrained
+            # IK correction would move the body into the walls the plan keeps it from
+            self._correct(error)
+            self._solve(self.goal + self.correction, iterations=None)
         if np.linalg.norm(error) <= self.plan.tolerance:
             if self.on_target_since is None:
                 self.on_target_since = t

@@ -55,6 +55,7 @@ class TaskPlan:
     accel_time: float = 0.2  # [s] ramp of a curvature move from rest to its rate limit
     task_gain: float = 1.0  # [1/s] integral gain on the estimated tip error
     correction_limit: float = 5e-3  # [m] bound of the integrated task-space correction
+    acquire_time: float = 0.2  # [s] the pistons held while the estimator acquires the arm
     # confined spaces (kind "pipe"): the channel the controller plans through, its map
     walls: tuple[tuple[tuple[float, float], ...], ...] = ()
     centreline: tuple[tuple[float, float], ...] = ()

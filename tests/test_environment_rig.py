@@ -125,3 +125,20 @@ def test_cylindrical_set_applies_under_the_scenario_values(tmp_path: Path) -> No
     params = ROBOT.parameters(load_scenario(write(tmp_path, text)), "segment")
     assert params[0]["theta_max"] == 1.2 and params[0]["G_a"] == 7.0e-7  # from the set
     assert params[0]["k_bend"] == 0.05  # the scenario's value wins
+
+
+@pytest.mark.parametrize("pipe", [2, 4])
+def test_pipe_is_traversed_to_its_goal_without_penetrating(tmp_path: Path, pipe: int) -> None:
+    """Whole-arm planning through a shipped pipe section (one bend; the tight bend) with the
+    realistic camera: the tip reaches the goal, the walls are never penetrated by 2 mm."""
+    from hil.scenario import resolve_scenario
+
+    text = resolve_scenario(f"planar-pipe-{pipe}").read_text()
+    path = write(tmp_path, text.replace("duration = 8.0", "duration = 5.5"))
+    summary = run_scenario(
+        load_scenario(path), RunOptions(out=tmp_path / "run", inprocess=True, progress=False)
+    ).summary
+    assert summary["goal_reached"] is True and summary["time_to_goal"] < 5.0
+    assert summary["goal_error"] < 2e-3
+    assert summary["penetration_max"] < 2e-3
+    assert summary["contact_impulse"] >= 0.0

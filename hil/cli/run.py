@@ -133,6 +133,14 @@ def task_line(s: dict[str, object]) -> str:
             f"{_shown(s['tip_error_max'], 1e3, '.2f', ' mm')}; settled {s['targets_settled']} of "
             f"{s['targets']} targets, time to settle {_shown(s['time_to_settle'], 1, '.2f', ' s')}"
         )
+    if "penetration_max" in s:
+        return (
+            f"goal {'reached' if s['goal_reached'] else 'not reached'} (time to goal "
+            f"{_shown(s['time_to_goal'], 1, '.2f', ' s')}, final error "
+            f"{_shown(s['goal_error'], 1e3, '.2f', ' mm')}); penetration max "
+            f"{_shown(s['penetration_max'], 1e3, '.2f', ' mm')}, contact impulse "
+            f"{_shown(s['contact_impulse'], 1, '.3f', ' N s')}"
+        )
     if "path_rms" in s:
         return (
             f"path error rms {_shown(s['path_rms'], 1e3, '.2f', ' mm')}, max "

@@ -395,6 +395,10 @@ class PlanarArm:
                     **{k: v for k, v in geometry.items() if k in segment_names},
                     **segments_given[n - 1],
                 }
+                # its connected input as it will be at t = 0, so that its initial outputs (the
+                # pressures of a segment that starts bent) are those of the start, not of the
+                # input's declared default
+                segment_values["x_piston"] = pistons[n - 1]
                 segment = FmuSlave(
                     fmu_ref(scenario.source, r.segment_fmu), f"segment{n}", segment_values
                 )
@@ -418,7 +422,11 @@ class PlanarArm:
                 world_values = environment.parameters(
                     scenario, segments, ACTUATOR_WIDTH[r.actuator]
                 )
-                world = FmuSlave(environment.FMU, "environment", world_values)
+                start_inputs = {  # the arm's start shape, as above
+                    f"kappa_{i}": s.get("theta_start", 0.0) / s["length"]
+                    for i, s in enumerate(segments, start=1)
+                }
+                world = FmuSlave(environment.FMU, "environment", {**world_values, **start_inputs})
                 fmus.append(FmuParticipant(world, 1))
                 parameters["environment"] = world_values
                 for source, target in environment.connections(r.segments):
