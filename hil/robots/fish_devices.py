@@ -33,7 +33,7 @@ class ValveNode:
     90 % of it (fault 16); a supply below `p_set` - 1 % sets fault 1 (the canister is empty)."""
 
     node: int
-    step: float  # the plant's tick [s]
+    tick_length: float  # the plant's tick [s]
     p_set: float  # the regulator's set pressure [Pa abs]
     max_pressure: float  # [Pa gauge]
     pressure_range: tuple[float, float] = (-math.inf, math.inf)  # ValveStatus.p_channel
@@ -64,7 +64,7 @@ class ValveNode:
         """Inputs are read at SYNC through `act`."""
 
     def step(self, time: float, step: float) -> None:
-        self.tick = round(time / self.step) + 1  # the tick this step ends at
+        self.tick = round(time / self.tick_length) + 1  # the tick this step ends at
 
     def get_outputs(self) -> dict[str, float]:
         return {"open": 1.0 if self._open() else 0.0, "state": float(self.state)}
@@ -97,7 +97,7 @@ class ValveNode:
         if command is not None and int(command.signals["counter"]) == expected:
             self.vent_requested = bool(int(command.signals["vent"]))
             open_time = 0.0 if self.vent_requested else float(command.signals["open_time"])
-            ticks = round(open_time / self.step)
+            ticks = round(open_time / self.tick_length)
             if ticks > 0 and not self._open():
                 self.pulses += 1
             self.close_tick = sync.tick + ticks
