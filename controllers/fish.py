@@ -40,6 +40,7 @@ IDLE, ESCAPE, SWIM, TURN, HOLD, VENTING, NO_GAS = range(len(MODES))
 VALVE_CLOSED = 0  # ValveStatus.state: closed and vented
 FAULT_NO_SUPPLY = 1
 MARKERS = 3  # nose, joint, tail tip
+STALE_AFTER = 0.1  # [s] without a usable picture the estimate is no longer valid
 GATE_CHI2 = 16.0  # Mahalanobis gate of a camera measurement (3 dof: p < 0.2 %)
 
 # The fish's kept heading change [rad] after an escape turn against the valve-open time [s]
@@ -202,8 +203,11 @@ class HeadKalman:
             return FishEstimate(0.0, 0.0, 0.0, 0.0, False)
         x = self.kf.x.copy()
         dt = max(0.0, t - self.time)
-        x[0:3] += dt * x[3:6]
-        return FishEstimate(float(x[0]), float(x[1]), float(x[2]), float(x[5]), True)
+        # out of the camera's view the estimate is not dead-reckoned beyond STALE_AFTER: a
+        # constant-velocity guess of a swimming fish's yaw diverges within a beat
+        x[0:3] += min(dt, STALE_AFTER) * x[3:6]
+        valid = dt <= STALE_AFTER
+        return FishEstimate(float(x[0]), float(x[1]), float(x[2]), float(x[5]), valid)
 
 
 class FishControl:
@@ -342,6 +346,8 @@ class FishControl:
     ) -> None:
         c = self.config
         if not estimate.valid or at < c.start:
+            if self.turned and not busy:
+                self.mode = HOLD  # out of view: no strokes, the fish glides on its heading
             return
         half = 0.5 / c.frequency
         # the yaw averaged over about one beat: the strokes rock the head about its mean
