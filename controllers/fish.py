@@ -246,7 +246,9 @@ class FishControl:
             for n in (1, 2)
             if ("ValveStatus", n) in readings
         )
-        if not supplied or faults:
+        if not supplied or faults or self.mode == NO_GAS:
+            # latched: a canister does not refill (a channel pushing gas back through an open
+            # valve can lift the supply for a moment, not the budget)
             self.left = 0
             return False
         return True

@@ -210,7 +210,13 @@ def test_dbc_names_and_ids_agree(protocol: Protocol) -> None:
         "ValveCommand": 0x210,
         "ValveStatus": 0x190,
     }
-    singles = {"SYNC": 0x080, "CameraFrame": 0x27F, "CanisterStatus": 0x1A0, "TaskState": 0x3F0, "FishState": 0x3F1}
+    singles = {
+        "SYNC": 0x080,
+        "CameraFrame": 0x27F,
+        "CanisterStatus": 0x1A0,
+        "TaskState": 0x3F0,
+        "FishState": 0x3F1,
+    }
     database = protocol.database
     assert len(database.messages) == 5 * 8 + 2 * 16 + 2 * 4 + len(singles)
     ids = [m.frame_id for m in database.messages]
