@@ -56,7 +56,24 @@ def sweep(tmp_path_factory: pytest.TempPathFactory) -> list[dict]:
     assert code == 0
     trials = json.loads((out / "batch.json").read_text())["trials"]
     assert [t["overrides"]["robot.valve.open_time"] for t in trials] == list(OPEN_TIMES)
-    return [json.loads((out / t["folder"] / "summary.json").read_text()) for t in trials]
+    summaries = []
+    for t in trials:
+        summary = json.loads((out / t["folder"] / "summary.json").read_text())
+        signals = np.genfromtxt(out / t["folder"] / "signals.csv", delimiter=",", names=True)
+        summaries.append({**summary, "signals": signals})
+    return summaries
+
+
+def test_stage_one_ends_where_the_yaw_rate_first_returns_to_zero(sweep) -> None:
+    for s in sweep:
+        signals, t = s["signals"], s["signals"]["time"]
+        rate = signals["yaw_rate"]
+        start = int(np.argmax(signals["open_1"] > 0.5))
+        onset = start + int(np.argmax(np.abs(rate[start:]) > 0.01 * np.abs(rate).max()))
+        end = onset + round(s["turn_time"] / (t[1] - t[0]))
+        assert rate[end] <= 0.0 < rate[end - 1] and np.all(rate[onset:end] > 0.0)
+        change = np.degrees(signals["yaw"][end] - signals["yaw"][start])
+        assert s["heading_change"] == pytest.approx(change, rel=1e-9)
 
 
 def test_sweep_heading_change_rises_with_open_time_beyond_100_degrees(sweep) -> None:
@@ -238,3 +255,31 @@ def test_scenario_errors_name_the_key(tmp_path: Path, replace, extra, key) -> No
         load_scenario(path)
     message = str(error.value)
     assert f": {key}: " in message and "\n" not in message
+
+
+def test_heading_hold_lengthens_the_strokes_that_turn_towards_the_reference() -> None:
+    """In the hold, a heading below the reference (error > 0, turn left) lengthens valve 1's
+    strokes (channel a turns the head left) and shortens valve 2's, and the reverse."""
+    from controllers.fish import FishControl, FishEstimate
+    from controllers.protocol import Protocol
+
+    config = controller_config(load_scenario(resolve_scenario("fish-heading")))
+    vented = {
+        ("ValveStatus", n): GenericFrame("ValveStatus", n, {"state": 0, "fault": 0}) for n in (1, 2)
+    }
+    strokes = {}
+    for offset in (-0.1, 0.1):  # the fish points 0.1 rad right of / left of the reference
+        control = FishControl(config, Protocol())
+        control.turned, control.mode = True, 4  # after the first turn: holding
+        control.mean_yaw = config.heading + offset
+        estimate = FishEstimate(0.0, 0.0, config.heading + offset, 0.0, True)
+        opened = []
+        for cycle in range(300, 300 + round(1.0 / config.frequency / config.control_period)):
+            t = cycle * config.control_period
+            for frame in control.compute(cycle, t, estimate, vented):
+                if frame.kind == "ValveCommand" and frame.signals["open_time"] > 0:
+                    opened.append((frame.index, frame.signals["open_time"]))
+        first = {n: max(o for i, o in opened if i == n) for n in (1, 2)}
+        strokes[offset] = first
+    assert strokes[-0.1][1] > strokes[-0.1][2]  # right of the reference: turn left (valve 1)
+    assert strokes[0.1][2] > strokes[0.1][1]
