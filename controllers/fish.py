@@ -9,8 +9,8 @@ right) every cycle with the time the supply is still to stay open from the next 
 ends on the valve driver's clock and a silent controller leaves the valves vented.
 
 Turn angle to valve time: by a calibration table of the heading the fish keeps after an escape
-turn against the valve-open time, measured on the FishBody model by `hil sweep fish-escape` (see
-`CALIBRATION` and README, "The soft fish"); the controller interpolates it (it is monotonic), and
+turn against the valve-open time, measured offline on the three fish FMUs (see `CALIBRATION`
+and README, "The soft fish"), not by the controller itself; the controller interpolates it (it is monotonic), and
 in the heading task corrects what remains with the swimming strokes. Gas budget: manoeuvres left
 = usable gas (gas left minus the mass at which the canister can no longer hold the regulator's
 set pressure) over the gas per manoeuvre, measured from CanisterStatus as the fish goes (a model
@@ -45,7 +45,8 @@ GATE_CHI2 = 16.0  # Mahalanobis gate of a camera measurement (3 dof: p < 0.2 %)
 
 # The fish's kept heading change [rad] after an escape turn against the valve-open time [s]
 # (FishBody defaults, 1.8 mm nozzle, 400 kPa supply; the yaw 0.8 s after the pulse, when the
-# fish has come to rest in yaw), measured by `hil sweep fish-escape` (README, "The soft fish").
+# fish has nearly come to rest in yaw), measured offline with the FMUs coupled at 1 ms as in
+# tests/test_fish_fmus.py (its `escape` helper); it does not follow other body or valve values.
 CALIBRATION: tuple[tuple[float, float], ...] = tuple(
     (t, math.radians(degrees))
     for t, degrees in (
