@@ -8,15 +8,15 @@ camera's markers (0 the nose, 1 the head-tail joint, 2 the tail tip). It command
 right) every cycle with the time the supply is still to stay open from the next SYNC, so a pulse
 ends on the valve driver's clock and a silent controller leaves the valves vented.
 
-Turn angle to valve time: by a calibration table of the heading the fish keeps after an escape
-turn against the valve-open time, measured offline on the three fish FMUs (see `CALIBRATION`
-and README, "The soft fish"), not by the controller itself; the controller interpolates it (it is monotonic), and
-in the heading task corrects what remains with the swimming strokes. Gas budget: manoeuvres left
-= usable gas (gas left minus the mass at which the canister can no longer hold the regulator's
-set pressure) over the gas per manoeuvre, measured from CanisterStatus as the fish goes (a model
-estimate before the first manoeuvre). Invariant: no pulse starts while a channel is still
-venting from the previous manoeuvre (except the alternating strokes of swimming, where the other
-side vents as one fills), and none once the supply has fallen below the set pressure.
+Turn angle to valve time: by a calibration table of the heading the fish keeps after an escape turn
+against the valve-open time, measured offline on the three fish FMUs (see `CALIBRATION` and README,
+"The soft fish"), not by the controller itself; the controller interpolates it (it is monotonic),
+and in the heading task corrects what remains with the swimming strokes. Gas budget: manoeuvres left
+= usable gas (gas left minus the mass at which the canister can no longer hold the regulator's set
+pressure) over the gas per manoeuvre, measured from CanisterStatus as the fish goes (a model
+estimate before the first manoeuvre). Invariant: no pulse starts while a channel is still venting
+from the previous manoeuvre (except the alternating strokes of swimming, where the other side vents
+as one fills), and none once the supply has fallen below the set pressure.
 """
 
 from __future__ import annotations
