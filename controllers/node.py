@@ -34,7 +34,6 @@ from controllers.estimation import (
     BendModel,
     CameraNoise,
     Controller,
-    DriveReading,
     Estimator,
     MarkerFrame,
 )
@@ -44,13 +43,15 @@ from controllers.protocol import (
     CameraMarker,
     ControllerState,
     DriveCommand,
-    DriveStatus,
     Emcy,
     FrameError,
+    GenericFrame,
     Heartbeat,
     Protocol,
     Sync,
     TaskState,
+    frame_key,
+    frame_signals,
 )
 from controllers.tasks import TaskPlan
 from controllers.trajectories import CurvatureProfile, Sine
@@ -62,6 +63,7 @@ OWN_FRAMES = (
     ControllerState,
     TaskState,
 )  # the frames only the controller sends
+OWN_KINDS = ("ValveCommand", "FishState")  # and those of kinds with no registered type
 ESTIMATORS = ("raw", "kf", "ukf")
 
 
@@ -140,6 +142,34 @@ class ControllerConfig:
         if config.plan is not None:
             _check_plan(config.plan, n)
         return config
+
+
+# The robot kinds' controller sides: each module provides its config class (`config_class`,
+# with `from_json` and `to_json`), `make_estimator(config)`, `make_controller(config, protocol)`,
+# `expected(config)` (the (DBC kind, index) of the status frames every cycle must bring) and
+# `readings(status)` (what the estimator and controller see of those frames).
+ROBOT_MODULES = {"planar_arm": "controllers.planar_arm", "fish": "controllers.fish"}
+
+
+def robot_module(robot: str) -> Any:
+    """The controller-side module of robot kind `robot`; ValueError naming the known kinds."""
+    import importlib
+
+    if robot not in ROBOT_MODULES:
+        raise ValueError(f"robot: {robot!r} is not one of {', '.join(ROBOT_MODULES)}")
+    return importlib.import_module(ROBOT_MODULES[robot])
+
+
+def read_config(text: str) -> Any:
+    """A controller configuration of any robot kind, by its `robot` key (default planar_arm);
+    ValueError naming the key otherwise."""
+    data = json.loads(text)
+    if not isinstance(data, dict):
+        raise ValueError("must be a JSON object")
+    robot = data.get("robot", "planar_arm")
+    if not isinstance(robot, str):
+        raise ValueError(f"robot: must be a string, got {robot!r}")
+    return robot_module(robot).config_class.from_json(text)
 
 
 # The ranges `hil run` validates a scenario against (hil/scenario.py), for a config written by
@@ -380,17 +410,20 @@ class ControllerNode:
     ) -> None:
         if config.policy not in POLICIES:
             raise ControllerError(f"policy {config.policy!r}: must be one of {POLICIES}")
-        from controllers.planar_arm import make_controller, make_estimator
+        module = robot_module(config.robot)
 
         self.config = config
+        self.module = module
         self.bus = bus
         self.clock = clock or LockstepClock()
         self.protocol = protocol or Protocol()
         self.report = ControllerReport(realtime=self.clock.realtime)
         self.camera = CameraAssembler(config.camera_timing.markers)
-        self.estimator = estimator or make_estimator(config)
-        self.controller = controller or make_controller(config, self.protocol)
-        self.status: dict[int, DriveStatus] = {}
+        self.estimator = estimator or module.make_estimator(config)
+        self.controller = controller or module.make_controller(config, self.protocol)
+        self.expected: set[tuple[str, int | None]] = module.expected(config)
+        self.status: dict[tuple[str, int | None], Any] = {}
+        self._status_kinds = {kind for kind, _ in self.expected}
         self._frames_taken = 0  # camera frames 0 .. _frames_taken - 1 are done with
 
     def _send(self, frame: Any, sim_time: float) -> None:
@@ -415,10 +448,7 @@ class ControllerNode:
             self.report.cycles = cycle
             if cycle == self.config.cycles:
                 break  # the final SYNC lets the plant reach the end time; nothing acts after it
-            readings = {
-                node: DriveReading(s.piston_position, s.p_a, s.p_b, s.fault)
-                for node, s in self.status.items()
-            }
+            readings = self.module.readings(self.status)
             estimate = self.estimator.update(t, readings, frames)
             for frame in self.controller.compute(cycle, t, estimate, readings):
                 self._send(frame, t)
@@ -440,7 +470,7 @@ class ControllerNode:
         """Receive until the cycle holds every status frame echoing it and every camera frame
         due by this SYNC; returns the camera frames completed, oldest first."""
         config = self.config
-        needed = set(range(1, config.segments + 1))
+        needed = set(self.expected)
         due = config.camera_timing.frames_due(cycle)
         deadline = time.monotonic() + config.timeout
         counter = cycle % COUNTER_MODULO
@@ -451,7 +481,7 @@ class ControllerNode:
         while needed or not camera_complete():
             remaining = deadline - time.monotonic()
             if remaining <= 0.0:
-                missing = [f"DriveStatus{n}" for n in sorted(needed)]
+                missing = [_name(key) for key in sorted(needed, key=_name)]
                 missing += [
                     f"camera frame {j}"
                     for j in range(self._frames_taken, due)
@@ -486,30 +516,34 @@ class ControllerNode:
                     raise ControllerError(f"at SYNC {cycle}: {exc}") from exc
                 self.report.unknown_frames += 1
                 continue
-            if isinstance(frame, DriveStatus):
-                if frame.counter == counter and frame.node not in needed:
+            key = frame_key(frame)
+            if key[0] in self._status_kinds:
+                echo = int(frame_signals(frame)["counter"])
+                if echo == counter and key not in needed:
                     self._intrusion(
-                        f"a second DriveStatus{frame.node} for SYNC {cycle}: another node "
-                        "sends in the drive's name"
+                        f"a second {_name(key)} for SYNC {cycle}: another node "
+                        f"sends in the {_SENDER.get(key[0], 'device')}'s name"
                     )
                     continue
-                if frame.counter != counter or frame.node not in needed:
+                if echo != counter or key not in needed:
                     if config.policy == "strict":
                         raise ControllerError(
-                            f"stale DriveStatus{frame.node} (counter {frame.counter}) while "
+                            f"stale {_name(key)} (counter {echo}) while "
                             f"waiting for SYNC {cycle} (counter {counter})"
                         )
                     self.report.stale_frames += 1
                     continue
-                self.status[frame.node] = frame
-                needed.discard(frame.node)
+                self.status[key] = frame
+                needed.discard(key)
             elif isinstance(frame, CameraMarker | CameraFrame):
                 self.camera.add(frame)
             elif isinstance(frame, Emcy):
                 self.report.emcy.append({"cycle": cycle, **asdict(frame)})
             elif isinstance(frame, Heartbeat):
                 continue
-            elif isinstance(frame, OWN_FRAMES):
+            elif isinstance(frame, OWN_FRAMES) or (
+                isinstance(frame, GenericFrame) and frame.kind in OWN_KINDS
+            ):
                 # no bus echoes a sender's own frames: these come from another node
                 self._intrusion(
                     f"{type(frame).__name__} 0x{message.arbitration_id:03X} at SYNC {cycle} from "
@@ -531,6 +565,14 @@ class ControllerNode:
                 self.report.camera_frames_incomplete += 1
         self._frames_taken = max(self._frames_taken, due)
         return frames
+
+
+_SENDER = {"DriveStatus": "drive", "ValveStatus": "valve", "CanisterStatus": "canister"}
+
+
+def _name(key: tuple[str, int | None]) -> str:
+    """The DBC message name of (kind, index): DriveStatus3, CanisterStatus."""
+    return f"{key[0]}{'' if key[1] is None else key[1]}"
 
 
 def write_report(report: ControllerReport, path: Path) -> None:

@@ -18,6 +18,29 @@ if TYPE_CHECKING:
     from controllers.node import ControllerConfig
 
 
+def __getattr__(name: str) -> Any:
+    """`config_class`: the arm's ControllerConfig (controllers.node imports this module)."""
+    if name == "config_class":
+        from controllers.node import ControllerConfig
+
+        return ControllerConfig
+    raise AttributeError(name)
+
+
+def expected(config: ControllerConfig) -> set[tuple[str, int | None]]:
+    """The status frames every cycle must bring: each drive's."""
+    return {("DriveStatus", n) for n in range(1, config.segments + 1)}
+
+
+def readings(status: Mapping[tuple[str, int | None], Any]) -> dict[int, DriveReading]:
+    """Each drive's reading by node, from the cycle's DriveStatus frames."""
+    return {
+        key[1]: DriveReading(s.piston_position, s.p_a, s.p_b, s.fault)
+        for key, s in status.items()
+        if key[0] == "DriveStatus" and key[1] is not None
+    }
+
+
 def make_estimator(config: ControllerConfig) -> Any:
     """The estimator the configuration names (controllers.estimators)."""
     from controllers import estimators

@@ -189,7 +189,9 @@ def _run(
         "this thread" if direct else "thread" if options.inprocess else "process"
     )
     summary["parameters"] = {name: dict(values) for name, values in rig.parameters.items()}
-    if recording.can_log.endswith((".log", ".blf", ".asc", ".trc")):
+    if recording.can_log.endswith((".log", ".blf", ".asc", ".trc")) and getattr(
+        robot, "estimation_report", True
+    ):  # the curvature estimators' report: the planar arm's
         from hil.estimation import estimation_report
 
         folder.claim("estimation.png")

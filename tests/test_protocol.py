@@ -210,7 +210,13 @@ def test_dbc_names_and_ids_agree(protocol: Protocol) -> None:
         "ValveCommand": 0x210,
         "ValveStatus": 0x190,
     }
-    singles = {"SYNC": 0x080, "CameraFrame": 0x27F, "CanisterStatus": 0x1A0, "TaskState": 0x3F0}
+    singles = {
+        "SYNC": 0x080,
+        "CameraFrame": 0x27F,
+        "CanisterStatus": 0x1A0,
+        "TaskState": 0x3F0,
+        "FishState": 0x3F1,
+    }
     database = protocol.database
     assert len(database.messages) == 5 * 8 + 2 * 16 + 2 * 4 + len(singles)
     ids = [m.frame_id for m in database.messages]
@@ -534,6 +540,24 @@ GOLDEN: list[tuple[Frame, int, str]] = [
     # counter 0x9C, target 0x0102 (little endian), phase 5 (tracking), x 0.1234 m = 6170
     # (0x181A), y -0.0567 m = -2835 (0xF4ED)
     (TaskState(0x0102, 5, 0.1234, -0.0567, 0x9C), 0x3F0, "9C0201051A18EDF4"),
+    # fish state: mode 4 (hold), manoeuvre 0x12, heading_ref 1.0472 rad = 10472 (0x28E8),
+    # heading_est -0.5 rad = -5000 (0xEC78), 200 manoeuvres left (0xC8), counter 0x9D
+    (
+        GenericFrame(
+            "FishState",
+            None,
+            {
+                "mode": 4,
+                "manoeuvre": 0x12,
+                "heading_ref": 1.0472,
+                "heading_est": -0.5,
+                "manoeuvres_left": 200,
+                "counter": 0x9D,
+            },
+        ),
+        0x3F1,
+        "0412E82878ECC89D",
+    ),
 ]
 
 

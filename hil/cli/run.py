@@ -154,4 +154,14 @@ def task_line(s: dict[str, object]) -> str:
             f"{_shown(s['settling_time'], 1, '.2f', ' s')}, steady-state error "
             f"{_shown(s['steady_state_error'], 1, '.4f', ' 1/m')}"
         )
+    if "heading_change" in s:  # the soft fish
+        return (
+            f"heading change {_shown(s['heading_change'], 1, '.1f', ' deg')} in "
+            f"{_shown(s['turn_time'], 1e3, '.0f', ' ms')}, peak yaw rate "
+            f"{_shown(s['peak_yaw_rate'], 1, '.0f', ' deg/s')}, peak acceleration "
+            f"{_shown(s['peak_acceleration'], 1, '.1f', ' m/s^2')}, forward speed "
+            f"{_shown(s['forward_speed'], 1, '.3f', ' m/s')}, gas used "
+            f"{_shown(s['gas_used'], 1e6, '.0f', ' mg')}, {s['manoeuvres_left']} manoeuvres left; "
+            f"{s['end_reason']}"
+        )
     return "no task metrics"

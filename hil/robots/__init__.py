@@ -28,7 +28,7 @@ if TYPE_CHECKING:
     from controllers.protocol import Protocol as CanProtocol
     from hil.scenario import Scenario
 
-KINDS = {"planar_arm": "hil.robots.planar_arm:ROBOT"}
+KINDS = {"planar_arm": "hil.robots.planar_arm:ROBOT", "fish": "hil.robots.fish:ROBOT"}
 
 
 @dataclass(frozen=True)

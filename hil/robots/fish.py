@@ -1,0 +1,493 @@
+"""The soft fish (PHYSICS.md section 7, issue 13) as a robot kind: a GasSource FMU (the CO2
+canister and its regulator), two FishValve FMUs (one per tail channel) and a FishBody FMU (head
+free in the plane, tapered three-piece tail), a valve driver per valve and the canister's monitor
+on the bus, and the overhead camera seeing the nose, the head-tail joint and the tail tip.
+
+`[robot]` keys: `base` (start x [m], y [m], yaw [rad]); per-FMU parameter tables `source`,
+`valve` (both valves; `[robot.valve.1]`/`[robot.valve.2]` override one, as the arm's per-actuator
+tables) and `body`. The task: `[task] kind` = "escape" | "swim" | "heading", with the fish's own
+task keys in `[robot]` (`start`, `side`, `turn_angle` [deg], `frequency`, `duty`, `heading`
+[deg]) so that `[task]` stays the arm's. The escape's valve-open time is `[robot.valve]
+open_time` [s] (so `hil sweep fish-escape --set valve.open_time=...` sweeps it): it goes to the
+controller, never to the FMUs; 0 or absent takes it from the calibration for `turn_angle`.
+
+Invariant: gas moves only through the valves' published flows (the three FMUs conserve its mass
+to rounding, tests/test_fish_fmus.py); metrics are computed from the true signals, never from
+what the controller estimated.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from controllers.fish import CALIBRATION, TASKS, FishConfig
+from controllers.node import CameraTiming
+from controllers.protocol import Protocol
+from hil.devices import HEARTBEAT_PERIOD, CameraNode
+from hil.master import Connection, FmuParticipant, Participant
+from hil.robots import PlotSpec, Rig, SignalSpec, fmu_ref
+from hil.robots.fish_devices import CanisterNode, ValveNode
+from hil.vision import Camera
+
+if TYPE_CHECKING:
+    from hil.scenario import Scenario
+
+TABLES = {"source": "GasSource", "valve": "FishValve", "body": "FishBody"}
+VALVES = 2
+CONTROLLER_KEYS = ("open_time",)  # keys of [robot.valve] for the controller, not the FMU
+CAMERA_MARKERS = (("nose_x", "nose_y"), ("x", "y"), ("tail_3_x", "tail_3_y"))
+STAGE_ONE_ONSET = 0.01  # of the peak yaw rate: the head has started to turn
+
+
+@dataclass(frozen=True)
+class FishSpec:
+    """The `[robot]` section of the soft fish (module docstring)."""
+
+    kind: str = "fish"
+    base: tuple[float, float, float] = (0.0, 0.0, 0.0)  # start x [m], y [m], yaw [rad]
+    source: dict[str, Any] = field(default_factory=dict)
+    valve: dict[str, Any] = field(default_factory=dict)
+    body: dict[str, Any] = field(default_factory=dict)
+    start: float = 0.05  # first manoeuvre [s]
+    side: int = 1  # escape: valve 1 (channel a, turn left) or 2 (channel b, right)
+    turn_angle: float = 60.0  # escape: kept heading change wanted [deg] (without open_time)
+    frequency: float = 2.0  # swim, heading: tail beats per second
+    duty: float = 0.1  # swim, heading: share of each half beat a valve is open
+    heading: float = 60.0  # heading task: commanded heading [deg]
+    max_channel_pressure: float = 300e3  # the valve driver vents beyond it [Pa gauge]: the
+    # top of ValveStatus.p_channel, above the 400 kPa abs supply (a fault, not a working limit)
+
+
+SIGNALS: tuple[tuple[str, str, str, str], ...] = (
+    ("x", "m", "head-tail joint x", "body.x"),
+    ("y", "m", "head-tail joint y", "body.y"),
+    ("yaw", "rad", "heading of the head (unwrapped)", "body.yaw"),
+    ("yaw_rate", "rad/s", "yaw rate of the head", "body.yaw_rate"),
+    ("surge", "m/s", "velocity of the joint along the heading", "body.surge"),
+    ("a_head", "m/s^2", "acceleration of the head's centroid", "body.a_head"),
+    ("nose_x", "m", "nose x", "body.nose_x"),
+    ("nose_y", "m", "nose y", "body.nose_y"),
+    *(
+        (f"tail_{j}_{c}", "m", f"end of tail piece {j}, {c}", f"body.tail_{j}_{c}")
+        for j in (1, 2, 3)
+        for c in ("x", "y")
+    ),
+    *((f"theta_{j}", "rad", f"bend angle of tail piece {j}", f"body.theta_{j}") for j in (1, 2, 3)),
+    ("p_a", "Pa", "gauge pressure of channel a (valve 1)", "body.p_a"),
+    ("p_b", "Pa", "gauge pressure of channel b (valve 2)", "body.p_b"),
+    ("opening_1", "", "valve 1 spool position (1 open to the supply)", "valve1.opening"),
+    ("opening_2", "", "valve 2 spool position", "valve2.opening"),
+    ("open_1", "", "valve 1 commanded open by its driver", "valve_driver1.open"),
+    ("open_2", "", "valve 2 commanded open by its driver", "valve_driver2.open"),
+    ("valve_state_1", "", "valve 1 state (ValveStatus)", "valve_driver1.state"),
+    ("valve_state_2", "", "valve 2 state (ValveStatus)", "valve_driver2.state"),
+    ("p_supply", "Pa", "regulated supply pressure (absolute)", "source.p_supply"),
+    ("p_canister", "Pa", "canister pressure (absolute)", "source.p_canister"),
+    ("m_canister", "kg", "gas in the canister", "source.m_canister"),
+    ("empty", "", "1 once the canister cannot hold the set pressure", "source.empty"),
+    ("m_vented", "kg", "gas vented to the water so far", "body.m_vented"),
+    ("W_gas", "J", "work done by the gas on the tail so far", "body.W_gas"),
+    ("E_elastic", "J", "elastic energy stored in the tail", "body.E_elastic"),
+    ("E_kinetic", "J", "kinetic energy of fish and entrained water", "body.E_kinetic"),
+    ("E_resistive", "J", "energy dissipated so far (drag, wake, damping)", "body.E_resistive"),
+)
+STATE_SIGNALS: tuple[tuple[str, str, str], ...] = (
+    ("mode", "", "controller mode (FishState: idle, escape, swim, turn, hold, venting, no gas)"),
+    ("manoeuvre", "", "manoeuvres commanded so far, as the controller reported it"),
+    ("heading_ref", "rad", "commanded heading, as the controller reported it"),
+    ("heading_est", "rad", "controller's heading estimate (wrapped), as it reported it"),
+    ("manoeuvres_left", "", "manoeuvres the gas left allows, as the controller reported it"),
+)
+
+
+class Fish:
+    name = "fish"
+    spec_class = FishSpec
+    estimation_report = False  # `hil estimate` scores the arm's curvature estimators
+
+    # ------------------------------------------------------------------ parameters
+
+    def given(self, scenario: Scenario, table: str, index: int = 1) -> dict[str, float]:
+        """FMU parameters the scenario sets for `table` ("source", "valve" with the valve's
+        index, "body"), without the controller's keys."""
+        return {k: v for k, (v, _) in self._given(scenario, table, index).items()}
+
+    def _given(self, scenario: Scenario, table: str, index: int) -> dict[str, tuple[float, str]]:
+        from hil.robots.planar_arm import _number
+        from hil.scenario import fail
+
+        raw: dict[str, Any] = getattr(scenario.robot, table)
+        out: dict[str, tuple[float, str]] = {}
+        for name, value in raw.items():
+            key = f"robot.{table}.{name}"
+            if name in CONTROLLER_KEYS and table == "valve":
+                continue
+            if table == "valve" and name.isdigit():
+                if int(name) not in range(1, VALVES + 1):
+                    raise fail(scenario.source, key, f"no valve {name} (the fish has {VALVES})")
+                if not isinstance(value, dict):
+                    raise fail(scenario.source, key, "must be a table of parameters")
+                continue
+            out[name] = (_number(scenario.source, key, value), key)
+        if table == "valve":
+            per = raw.get(str(index), {})
+            for name, value in per.items():
+                sub = f"robot.valve.{index}.{name}"
+                out[name] = (_number(scenario.source, sub, value), sub)
+        return out
+
+    def parameters(self, scenario: Scenario, table: str, index: int = 1) -> dict[str, float]:
+        """Every parameter: what the scenario sets, else the FMU's default."""
+        from hil.scenario import fmu_interface
+
+        defaults = {
+            name: port.start
+            for name, port in fmu_interface(
+                scenario.source, f"robot.{table}", TABLES[table]
+            ).items()
+            if port.causality == "parameter" and port.start is not None
+        }
+        return {**defaults, **self.given(scenario, table, index)}
+
+    def open_time(self, scenario: Scenario) -> float:
+        """`[robot.valve] open_time` [s], 0 where not given."""
+        value = scenario.robot.valve.get("open_time", 0.0)
+        return float(value)
+
+    def body_length(self, scenario: Scenario) -> float:
+        body = self.parameters(scenario, "body")
+        return float(body["L_head"] + body["L_1"] + body["L_2"] + body["L_3"])
+
+    # ------------------------------------------------------------------ checks
+
+    def check(self, scenario: Scenario) -> None:
+        from hil.robots.planar_arm import _number
+        from hil.scenario import check_parameter, fail, fmu_interface
+
+        s, file, r = scenario, scenario.source, scenario.robot
+        if s.task.kind not in TASKS:
+            raise fail(file, "task.kind", f"unknown fish task {s.task.kind!r} (known: {TASKS})")
+        for table, model in TABLES.items():
+            interface = fmu_interface(file, f"robot.{table}", model)
+            for index in range(1, (VALVES if table == "valve" else 1) + 1):
+                for name, (value, key) in self._given(s, table, index).items():
+                    if name in ("x_start", "y_start", "yaw_start"):
+                        raise fail(file, key, "the start pose is robot.base")
+                    check_parameter(file, key, interface, name, value)
+        if "open_time" in r.valve:
+            t_open = _number(file, "robot.valve.open_time", r.valve["open_time"])
+            high = Protocol().signal_range("ValveCommand1", "open_time")[1]
+            if not 0.0 <= t_open <= high:
+                raise fail(file, "robot.valve.open_time", f"must be in [0, {high:g}] s")
+        if r.side not in (1, 2):
+            raise fail(file, "robot.side", f"must be 1 (turn left) or 2 (turn right), got {r.side}")
+        if not 0.0 < r.duty <= 1.0:
+            raise fail(file, "robot.duty", f"must be in (0, 1], got {r.duty}")
+        if r.frequency <= 0.0:
+            raise fail(file, "robot.frequency", f"must be positive, got {r.frequency}")
+        if not 0.0 <= r.start < s.duration:
+            raise fail(file, "robot.start", "must be within the run")
+        if not 0.0 < r.turn_angle <= math.degrees(CALIBRATION[-1][1]):
+            raise fail(
+                file,
+                "robot.turn_angle",
+                f"must be in (0, {math.degrees(CALIBRATION[-1][1]):.0f}] deg (the calibration)",
+            )
+        if not -180.0 <= r.heading <= 180.0:
+            raise fail(file, "robot.heading", "must be in [-180, 180] deg")
+        if r.max_channel_pressure <= 0:
+            raise fail(file, "robot.max_channel_pressure", "must be positive")
+        if s.timing.step > 1e-3 + 1e-12:
+            raise fail(file, "timing.step", "the fish's valves need a step of at most 1 ms")
+        if s.camera and s.camera.rate and len(CAMERA_MARKERS) > Protocol().count("CameraMarker"):
+            raise fail(file, "camera", "more markers than the DBC's CameraMarker frames")
+
+    def ports(self, scenario: Scenario) -> dict[str, tuple[set[str], set[str]]]:
+        from hil.scenario import fmu_interface
+
+        ports: dict[str, tuple[set[str], set[str]]] = {
+            "camera": (set(), {f"{m}_{c}" for m in ("nose", "joint", "tip") for c in "xy"})
+        }
+        names = {"source": ["source"], "valve": ["valve1", "valve2"], "body": ["body"]}
+        for table, model in TABLES.items():
+            interface = fmu_interface(scenario.source, f"robot.{table}", model)
+            for name in names[table]:
+                ports[name] = (
+                    {n for n, v in interface.items() if v.causality == "output"},
+                    {n for n, v in interface.items() if v.causality == "input"},
+                )
+        for n in (1, 2):
+            ports[f"valve_driver{n}"] = ({"open", "state"}, {"opening", "p_channel", "p_supply"})
+        ports["canister"] = (set(), {"p_canister", "p_supply", "m_canister"})
+        return ports
+
+    def reach(self, scenario: Scenario) -> float:
+        """Farthest a marker can be from the head-tail joint (the start point, `base`) [m]: the
+        head or the tail, whichever is longer. (Swimming takes the fish further: a marker out of
+        the camera's view is not seen, see `build`.)"""
+        body = self.parameters(scenario, "body")
+        return float(max(body["L_head"], body["L_1"] + body["L_2"] + body["L_3"]))
+
+    # ------------------------------------------------------------------ the rig
+
+    def build(self, scenario: Scenario) -> Rig:
+        """GasSource -> two FishValves -> FishBody by pressures, temperatures and mass flows
+        (FishValve/model.c); the drivers set the valves' commands and read the channel and
+        supply pressures; the canister monitor reads the source; the camera sees the nose, the
+        joint and the tail tip (out of the camera's view: not seen)."""
+        from hil.fmu.slave import FmuSlave
+
+        r: FishSpec = scenario.robot
+        protocol = Protocol()
+        source_p = self.parameters(scenario, "source")
+        body_given = {
+            **self.given(scenario, "body"),
+            "x_start": r.base[0],
+            "y_start": r.base[1],
+            "yaw_start": r.base[2],
+        }
+        drivers = [
+            ValveNode(
+                n,
+                scenario.timing.step,
+                source_p["p_set"],
+                r.max_channel_pressure,
+                protocol.signal_range("ValveStatus1", "p_channel"),
+                heartbeat_node=n,
+            )
+            for n in (1, 2)
+        ]
+        canister = CanisterNode(
+            {
+                name: protocol.signal_range("CanisterStatus", name)
+                for name in ("p_canister", "p_supply", "gas_left")
+            }
+        )
+        view = protocol.signal_range("CameraMarker0", "x")[1]
+        margin = 5.0 * scenario.camera.noise + (
+            scenario.camera.outlier_distance if scenario.camera.outlier_rate else 0.0
+        )
+
+        def markers(values: list[float]) -> np.ndarray:
+            # a marker beyond the camera's field of view (less its noise and outlier margin,
+            # so that what is seen stays within the DBC's range) is not seen
+            points = np.array(values, dtype=float).reshape(len(CAMERA_MARKERS), 2)
+            points[np.abs(points).max(axis=1) > view - margin] = np.nan
+            return points
+
+        camera_inputs = [f"{m}_{c}" for m in ("nose", "joint", "tip") for c in "xy"]
+        camera = CameraNode(
+            camera_inputs,
+            markers,
+            scenario.latency_ticks,
+            Camera(
+                scenario.camera.effects(),
+                np.random.default_rng(scenario.seed),
+                1.0 / scenario.camera.rate,
+                scenario.timing.step,
+            ),
+        )
+        fmus: list[FmuParticipant] = []
+        parameters: dict[str, Mapping[str, float]] = {}
+        try:
+            source = FmuSlave(
+                fmu_ref(scenario.source, TABLES["source"]), "source", self.given(scenario, "source")
+            )
+            fmus.append(FmuParticipant(source, 1))
+            parameters["source"] = source_p
+            for n in (1, 2):
+                valve = FmuSlave(
+                    fmu_ref(scenario.source, TABLES["valve"]),
+                    f"valve{n}",
+                    self.given(scenario, "valve", n),
+                )
+                fmus.append(FmuParticipant(valve, 1))
+                parameters[f"valve{n}"] = self.parameters(scenario, "valve", n)
+            body = FmuSlave(fmu_ref(scenario.source, TABLES["body"]), "body", body_given)
+            fmus.append(FmuParticipant(body, 1))
+            parameters["body"] = {**self.parameters(scenario, "body"), **body_given}
+        except BaseException:
+            for participant in fmus:
+                participant.close()
+            raise
+        connections: dict[str, Connection] = {}
+        links = [
+            ("valve1.mdot_in", "source.mdot_a"),
+            ("valve2.mdot_in", "source.mdot_b"),
+            ("body.T_a", "valve1.T_channel"),
+            ("body.T_b", "valve2.T_channel"),
+            ("body.p_a", "valve1.p_channel"),
+            ("body.p_b", "valve2.p_channel"),
+            ("valve1.mdot_in", "body.mdot_in_a"),
+            ("valve1.mdot_vent", "body.mdot_vent_a"),
+            ("valve2.mdot_in", "body.mdot_in_b"),
+            ("valve2.mdot_vent", "body.mdot_vent_b"),
+            ("source.T_supply", "body.T_supply"),
+            ("source.p_canister", "canister.p_canister"),
+            ("source.p_supply", "canister.p_supply"),
+            ("source.m_canister", "canister.m_canister"),
+        ]
+        for n, side in ((1, "a"), (2, "b")):
+            links += [
+                ("source.p_supply", f"valve{n}.p_supply"),
+                ("source.T_supply", f"valve{n}.T_supply"),
+                (f"valve_driver{n}.open", f"valve{n}.open"),
+                (f"valve{n}.opening", f"valve_driver{n}.opening"),
+                (f"body.p_{side}", f"valve_driver{n}.p_channel"),
+                ("source.p_supply", f"valve_driver{n}.p_supply"),
+            ]
+        for marker, (cx, cy) in zip(("nose", "joint", "tip"), CAMERA_MARKERS, strict=True):
+            links += [(f"body.{cx}", f"camera.{marker}_x"), (f"body.{cy}", f"camera.{marker}_y")]
+        for source_name, target in links:
+            connections[target] = Connection(source_name, target)
+        for c in scenario.connections:
+            connections[c.target] = Connection(c.source, c.target, c.gain, c.offset)
+        participants: list[Participant] = [*fmus, *drivers, canister, camera]
+        return Rig(
+            participants,
+            list(connections.values()),
+            [*drivers, canister, camera],
+            self.signals(scenario),
+            self.plots(scenario),
+            parameters,
+            [("fish", lambda signals, path: draw_fish(self, scenario, signals, path))],
+        )
+
+    def signals(self, scenario: Scenario) -> list[SignalSpec]:
+        specs = [SignalSpec(c, u, d, source=s) for c, u, d, s in SIGNALS]
+        specs += [SignalSpec(c, u, d, frame=("FishState", None, c)) for c, u, d in STATE_SIGNALS]
+        return specs
+
+    def plots(self, scenario: Scenario) -> list[PlotSpec]:
+        return [
+            PlotSpec(
+                "heading",
+                "heading [deg], yaw rate [deg/s] / 10",
+                ("heading and yaw rate",),
+                (
+                    ("yaw", "heading (true)", 180.0 / math.pi, {"color": "tab:blue"}),
+                    ("heading_est", "estimate (wrapped)", 180.0 / math.pi, {"color": "tab:orange"}),
+                    ("heading_ref", "reference", 180.0 / math.pi, {"color": "black", "ls": "--"}),
+                    ("yaw_rate", "yaw rate / 10", 18.0 / math.pi, {"color": "tab:green"}),
+                ),
+            ),
+            PlotSpec(
+                "pressures",
+                "gauge pressure [kPa]",
+                ("channels",),
+                (
+                    ("p_a", "channel a (valve 1)", 1e-3, {"color": "tab:red"}),
+                    ("p_b", "channel b (valve 2)", 1e-3, {"color": "tab:green"}),
+                ),
+            ),
+            PlotSpec(
+                "valves",
+                "valve state / spool",
+                ("valve 1", "valve 2"),
+                (
+                    ("valve_state_{n}", "state (0 closed .. 3 venting)", 1.0, {"color": "black"}),
+                    ("opening_{n}", "spool position", 1.0, {"color": "tab:purple"}),
+                ),
+            ),
+        ]
+
+    def frame_rates(self, scenario: Scenario, protocol: Protocol) -> dict[str, float]:
+        per_period = 1.0 / scenario.timing.control_period
+        rates: dict[str, float] = {
+            "SYNC": per_period,
+            "CanisterStatus": per_period,
+            "FishState": per_period,
+        }
+        for n in (1, 2):
+            rates[f"ValveStatus{n}"] = per_period
+            rates[f"ValveCommand{n}"] = per_period
+        for n in (1, 2, 3):
+            rates[f"Heartbeat{n}"] = 1.0 / HEARTBEAT_PERIOD
+        rates["CameraFrame"] = scenario.camera.rate
+        for m in range(len(CAMERA_MARKERS)):
+            rates[f"CameraMarker{m}"] = scenario.camera.rate
+        return rates
+
+    # ------------------------------------------------------------------ the controller side
+
+    def controller_config(self, scenario: Scenario) -> FishConfig:
+        r: FishSpec = scenario.robot
+        source = self.parameters(scenario, "source")
+        body = self.parameters(scenario, "body")
+        rt = source["R_gas"] * source["T_canister"]
+        # the mass at which the canister falls below the set pressure (GasSource/model.c)
+        rho_v = source["rho_vapour"]
+        b = (rho_v * rt / source["p_vapour"] - 1.0) / rho_v
+        reserve = source["V_canister"] * source["p_set"] / (rt - b * source["p_set"])
+        return FishConfig(
+            robot=self.name,
+            control_period=scenario.timing.control_period,
+            cycles=scenario.cycles,
+            camera_timing=CameraTiming(
+                period_ticks=scenario.camera_ticks,
+                latency_ticks=scenario.latency_ticks,
+                control_ticks=scenario.control_ticks,
+                markers=len(CAMERA_MARKERS),
+            ),
+            task=scenario.task.kind,
+            start=r.start,
+            side=r.side,
+            turn_angle=math.radians(r.turn_angle),
+            open_time=self.open_time(scenario),
+            frequency=r.frequency,
+            duty=r.duty,
+            heading=math.radians(r.heading),
+            p_set=source["p_set"],
+            gas_reserve=reserve,
+            camera_noise=max(scenario.camera.noise, 1e-5),
+            head_length=body["L_head"],
+            policy=scenario.controller.policy,
+            timeout=scenario.controller.timeout,
+        )
+
+    # ------------------------------------------------------------------ scoring
+
+    def task_metrics(self, scenario: Scenario, signals: Mapping[str, Any]) -> dict[str, Any]:
+        from hil.robots.fish_metrics import fish_metrics
+
+        return fish_metrics(self, scenario, signals)
+
+
+def draw_fish(robot: Fish, scenario: Scenario, signals: Mapping[str, Any], path: Path) -> None:
+    """The body's outline from above (nose, joint, tail pieces) at snapshots over the run."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    t = signals["time"]
+    fig, ax = plt.subplots(figsize=(7, 7))
+    snapshots = np.unique(np.linspace(0, t.size - 1, 12).round().astype(int))
+    colours = plt.cm.viridis(np.linspace(0, 1, snapshots.size))
+    for k, colour in zip(snapshots, colours, strict=True):
+        xs = [signals["nose_x"][k], signals["x"][k]] + [
+            signals[f"tail_{j}_x"][k] for j in (1, 2, 3)
+        ]
+        ys = [signals["nose_y"][k], signals["y"][k]] + [
+            signals[f"tail_{j}_y"][k] for j in (1, 2, 3)
+        ]
+        ax.plot(xs, ys, "-o", color=colour, ms=3, label=f"t = {t[k]:.2f} s")
+        ax.plot(xs[0], ys[0], "^", color=colour, ms=7)
+    ax.plot(signals["x"], signals["y"], ":", color="grey", lw=1, label="joint path")
+    ax.set_aspect("equal")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_title(f"{scenario.name}: the fish from above (triangle: nose)")
+    ax.legend(fontsize=7, loc="best")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+ROBOT = Fish()

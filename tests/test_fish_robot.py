@@ -1,0 +1,285 @@
+"""The soft fish as a robot kind, end to end (issue 13): the escape sweep through `hil sweep`
+against the published and biological figures, the nozzle's effect, the work split, swimming,
+the closed-loop heading with the realistic camera, a canister running down, determinism across
+in-process and process mode; and the pieces: valve driver timing, the controller's dispatch,
+the calibration, the scenario's one-line errors."""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from controllers.fish import CALIBRATION, FishConfig, open_time_for
+from controllers.node import read_config
+from controllers.protocol import GenericFrame
+from hil.cli import main
+from hil.devices import SyncContext
+from hil.robots.fish_devices import CLOSED, OPEN, OPENING, VENTING, ValveNode
+from hil.run import RunOptions, controller_config, run_scenario
+from hil.scenario import ScenarioError, load_scenario, resolve_scenario
+
+OPEN_TIMES = (0.02, 0.04, 0.06, 0.08, 0.10, 0.12)
+
+
+def scenario_file(tmp_path: Path, name: str, replace: dict[str, str], extra: str = "") -> Path:
+    """A built-in fish scenario with some lines replaced (`key = ...` lines, by key)."""
+    text = resolve_scenario(name).read_text()
+    for key, line in replace.items():
+        text, found = re.subn(rf"(?m)^{re.escape(key)} = .*$", line, text, count=1)
+        assert found, key
+    path = tmp_path / f"{name}.toml"
+    path.write_text(text + extra)
+    return path
+
+
+def run(path: Path, out: Path, inprocess: bool = True) -> dict:
+    result = run_scenario(
+        load_scenario(path), RunOptions(out=out, inprocess=inprocess, progress=False)
+    )
+    return result.summary
+
+
+# ------------------------------------------------------------------ the escape sweep
+
+
+@pytest.fixture(scope="module")
+def sweep(tmp_path_factory: pytest.TempPathFactory) -> list[dict]:
+    out = tmp_path_factory.mktemp("fish") / "sweep"
+    values = ",".join(f"{t:g}" for t in OPEN_TIMES)
+    code = main(["sweep", "fish-escape", "--set", f"valve.open_time={values}", "--workers", "2",
+                 "--out", str(out), "--no-progress"])  # fmt: skip
+    assert code == 0
+    trials = json.loads((out / "batch.json").read_text())["trials"]
+    assert [t["overrides"]["robot.valve.open_time"] for t in trials] == list(OPEN_TIMES)
+    summaries = []
+    for t in trials:
+        summary = json.loads((out / t["folder"] / "summary.json").read_text())
+        signals = np.genfromtxt(out / t["folder"] / "signals.csv", delimiter=",", names=True)
+        summaries.append({**summary, "signals": signals})
+    return summaries
+
+
+def test_stage_one_ends_where_the_yaw_rate_first_returns_to_zero(sweep) -> None:
+    for s in sweep:
+        signals, t = s["signals"], s["signals"]["time"]
+        rate = signals["yaw_rate"]
+        start = int(np.argmax(signals["open_1"] > 0.5))
+        onset = start + int(np.argmax(np.abs(rate[start:]) > 0.01 * np.abs(rate).max()))
+        end = onset + round(s["turn_time"] / (t[1] - t[0]))
+        assert rate[end] <= 0.0 < rate[end - 1] and np.all(rate[onset:end] > 0.0)
+        change = np.degrees(signals["yaw"][end] - signals["yaw"][start])
+        assert s["heading_change"] == pytest.approx(change, rel=1e-9)
+
+
+def test_sweep_heading_change_rises_with_open_time_beyond_100_degrees(sweep) -> None:
+    headings = [s["heading_change"] for s in sweep]
+    assert all(b > a for a, b in zip(headings, headings[1:], strict=False)), headings
+    assert headings[-1] > 100.0
+    assert all(s["success"] and s["manoeuvres"] == 1 for s in sweep)
+
+
+def test_sweep_accelerations_and_turn_times_are_biological(sweep) -> None:
+    for s in sweep:
+        assert 16.0 <= s["peak_acceleration"] <= 151.0
+        assert 0.030 <= s["turn_time"] <= 0.210
+    # a longer pulse turns further and so for longer
+    times = [s["turn_time"] for s in sweep]
+    assert all(b > a for a, b in zip(times, times[1:], strict=False))
+
+
+def test_elastic_plus_resistive_work_never_exceeds_the_gas_work(sweep) -> None:
+    for s in sweep:
+        for m in s["work"]:
+            assert m["gas_work"] > 0.0
+            assert m["elastic"] + m["resistive"] <= m["gas_work"] + 1e-9
+            # at the peak of the gas work the split closes (FishBody's energy balance)
+            total = m["elastic"] + m["kinetic"] + m["resistive"]
+            assert total == pytest.approx(m["gas_work"], rel=1e-4)
+        assert s["work_violations"] == 0
+    # more gas, more work, more gas used
+    assert all(
+        b["gas_used"] > a["gas_used"] and b["work"][0]["gas_work"] > a["work"][0]["gas_work"]
+        for a, b in zip(sweep, sweep[1:], strict=False)
+    )
+
+
+def test_larger_nozzle_gives_a_higher_peak_yaw_rate(tmp_path: Path) -> None:
+    rates = []
+    for d in (1.2e-3, 1.8e-3):
+        path = scenario_file(
+            tmp_path, "fish-escape", {"open_time": f"open_time = 0.04\nd_nozzle = {d}"}
+        )
+        rates.append(run(path, tmp_path / f"d{d}")["peak_yaw_rate"])
+    assert rates[1] > 1.1 * rates[0]
+
+
+# ------------------------------------------------------------------ swimming and heading
+
+
+def test_fish_swim_moves_forward(tmp_path: Path) -> None:
+    path = scenario_file(tmp_path, "fish-swim", {"duration": "duration = 1.0"})
+    s = run(path, tmp_path / "swim")
+    assert s["forward_speed"] > 0.05 and s["forward_speed_bl"] > 0.1
+    assert s["manoeuvres"] >= 3 and s["success"] and not s["gas_exhausted"]
+
+
+def test_fish_heading_holds_within_10_degrees_with_the_realistic_camera(tmp_path: Path) -> None:
+    path = resolve_scenario("fish-heading")
+    scenario = load_scenario(path)
+    assert scenario.camera.noise > 0 and scenario.camera.dropout > 0  # the realistic camera
+    assert scenario.camera.outlier_rate > 0
+    s = run(path, tmp_path / "heading")
+    assert s["hold_start"] is not None and s["hold_start"] < 1.0
+    assert s["heading_error_max"] <= 10.0 and s["success"]
+    assert abs(s["final_heading"] - 60.0) <= 10.0
+
+
+def test_running_the_canister_down_ends_in_a_clear_state(tmp_path: Path) -> None:
+    path = scenario_file(
+        tmp_path,
+        "fish-swim",
+        {"duration": "duration = 1.5", "duty": "duty = 0.6", "frequency": "frequency = 4.0"},
+        "\n[robot.source]\nV_canister = 2e-6\nm_initial = 0.5e-3\n",
+    )
+    s = run(path, tmp_path / "empty")
+    assert s["status"] == "completed" and s["gas_exhausted"] and not s["success"]
+    assert "canister ran down" in s["end_reason"] and "reported no gas" in s["end_reason"]
+    assert s["manoeuvres_left"] == 0
+    signals = np.genfromtxt(tmp_path / "empty" / "signals.csv", delimiter=",", names=True)
+    empty_at = signals["time"][np.argmax(signals["empty"] > 0.5)]
+    no_gas = signals["mode"] == 6
+    # once it has told, the controller stays in "no gas" and opens no valve any more
+    told = int(np.argmax(no_gas))
+    assert no_gas[told:-1].all() and signals["time"][told] <= empty_at + 0.01
+    assert not signals["open_1"][told + 2 :].any() and not signals["open_2"][told + 2 :].any()
+
+
+def test_same_seed_same_bytes_in_process_and_process_mode(tmp_path: Path) -> None:
+    path = scenario_file(tmp_path, "fish-heading", {"duration": "duration = 0.2"})
+    run(path, tmp_path / "a", inprocess=True)
+    run(path, tmp_path / "b", inprocess=False)
+    for name in ("can.log", "signals.csv"):
+        assert (tmp_path / "a" / name).read_bytes() == (tmp_path / "b" / name).read_bytes()
+
+
+# ------------------------------------------------------------------ the pieces
+
+
+def sync(cycle: int, ticks: int = 2, heartbeat: bool = False) -> SyncContext:
+    return SyncContext(cycle, cycle * ticks, cycle * ticks * 1e-3, heartbeat)
+
+
+def command(cycle: int, open_time: float, vent: int = 0) -> GenericFrame:
+    signals = {"open_time": open_time, "vent": vent, "counter": (cycle - 1) % 256}
+    return GenericFrame("ValveCommand", 1, signals)
+
+
+def test_valve_driver_opens_for_exactly_the_commanded_ticks_and_vents_on_request() -> None:
+    valve = ValveNode(1, 1e-3, 400e3, 300e3)
+    inputs = {"opening": 0.0, "p_channel": 0.0, "p_supply": 400e3}
+    valve.receive(command(1, 0.005))
+    sent = valve.act(sync(1), inputs)
+    assert sent[-1][1].signals["state"] == OPENING and valve.get_outputs()["open"] == 1.0
+    opened = []
+    for k in range(2, 10):  # the master steps it at ticks 2.. after the SYNC at tick 2
+        valve.step(k * 1e-3, 1e-3)
+        opened.append(valve.get_outputs()["open"])
+    assert opened == [1.0] * 4 + [0.0] * 4  # ticks 2..6: five ticks open
+    assert valve.pulses == 1
+    assert valve.act(sync(4), {**inputs, "p_channel": 50e3})[-1][1].signals["state"] == VENTING
+    assert valve.missed == 1  # SYNC 4 brought no command
+    valve.receive(command(5, 0.5))
+    assert valve.act(sync(5), {**inputs, "opening": 1.0})[-1][1].signals["state"] == OPEN
+    valve.receive(command(6, 0.5, vent=1))  # vent aborts the pulse
+    assert valve.act(sync(6), inputs)[-1][1].signals["state"] == CLOSED
+    assert valve.get_outputs()["open"] == 0.0
+    valve.receive(command(3, 0.5))  # an old counter: stale, not applied
+    valve.act(sync(7), inputs)
+    assert valve.stale == 1 and valve.get_outputs()["open"] == 0.0
+
+
+def test_valve_driver_vents_an_over_pressure_and_flags_a_missing_supply() -> None:
+    valve = ValveNode(2, 1e-3, 400e3, 100e3)
+    valve.receive(GenericFrame("ValveCommand", 2, {"open_time": 0.5, "vent": 0, "counter": 0}))
+    status = valve.act(sync(1), {"opening": 1.0, "p_channel": 120e3, "p_supply": 300e3})
+    assert valve.get_outputs()["open"] == 0.0 and status[-1][1].signals["fault"] == 1 | 16
+
+
+def test_controller_config_dispatches_on_the_robot(tmp_path: Path) -> None:
+    config = controller_config(load_scenario(resolve_scenario("fish-escape")))
+    assert isinstance(config, FishConfig) and config.open_time == 0.06
+    assert read_config(config.to_json()) == config
+    arm = controller_config(load_scenario(resolve_scenario("default")))
+    assert type(read_config(arm.to_json())) is type(arm)
+    bad = json.loads(config.to_json()) | {"robot": "snake"}
+    with pytest.raises(ValueError, match="robot: 'snake' is not one of"):
+        read_config(json.dumps(bad))
+    with pytest.raises(ValueError, match="duty"):
+        read_config(json.dumps(json.loads(config.to_json()) | {"duty": 0.0}))
+
+
+def test_calibration_is_monotonic_and_inverted_by_interpolation() -> None:
+    times = [t for t, _ in CALIBRATION]
+    angles = [a for _, a in CALIBRATION]
+    assert all(b > a for a, b in zip(angles, angles[1:], strict=False))
+    for t, a in CALIBRATION[1:-1]:
+        assert open_time_for(CALIBRATION, a) == pytest.approx(t)
+        assert open_time_for(CALIBRATION, -a) == pytest.approx(t)  # either side
+    mid = 0.5 * (angles[4] + angles[5])
+    assert times[4] < open_time_for(CALIBRATION, mid) < times[5]
+    assert open_time_for(CALIBRATION, math.radians(500)) == times[-1]  # clamped
+
+
+@pytest.mark.parametrize(
+    ("replace", "extra", "key"),
+    [
+        ({"side": "side = 3"}, "", "robot.side"),
+        ({"open_time": "open_time = 2.0"}, "", "robot.valve.open_time"),
+        ({}, "\n[robot.valve.3]\nd_nozzle = 1e-3\n", "robot.valve.3"),
+        ({}, "\n[robot.body]\nx_start = 0.1\n", "robot.body.x_start"),
+        ({'kind = "escape"': 'kind = "dance"'}, "", "task.kind"),
+    ],
+)
+def test_scenario_errors_name_the_key(tmp_path: Path, replace, extra, key) -> None:
+    text = resolve_scenario("fish-escape").read_text()
+    for old, new in replace.items():
+        text = re.sub(rf"(?m)^{re.escape(old)}( = .*)?$", new, text, count=1)
+    path = tmp_path / "bad.toml"
+    path.write_text(text + extra)
+    with pytest.raises(ScenarioError) as error:
+        load_scenario(path)
+    message = str(error.value)
+    assert f": {key}: " in message and "\n" not in message
+
+
+def test_heading_hold_lengthens_the_strokes_that_turn_towards_the_reference() -> None:
+    """In the hold, a heading below the reference (error > 0, turn left) lengthens valve 1's
+    strokes (channel a turns the head left) and shortens valve 2's, and the reverse."""
+    from controllers.fish import FishControl, FishEstimate
+    from controllers.protocol import Protocol
+
+    config = controller_config(load_scenario(resolve_scenario("fish-heading")))
+    vented = {
+        ("ValveStatus", n): GenericFrame("ValveStatus", n, {"state": 0, "fault": 0}) for n in (1, 2)
+    }
+    strokes = {}
+    for offset in (-0.1, 0.1):  # the fish points 0.1 rad right of / left of the reference
+        control = FishControl(config, Protocol())
+        control.turned, control.mode = True, 4  # after the first turn: holding
+        control.mean_yaw = config.heading + offset
+        estimate = FishEstimate(0.0, 0.0, config.heading + offset, 0.0, True)
+        opened = []
+        for cycle in range(300, 300 + round(1.0 / config.frequency / config.control_period)):
+            t = cycle * config.control_period
+            for frame in control.compute(cycle, t, estimate, vented):
+                if frame.kind == "ValveCommand" and frame.signals["open_time"] > 0:
+                    opened.append((frame.index, frame.signals["open_time"]))
+        first = {n: max(o for i, o in opened if i == n) for n in (1, 2)}
+        strokes[offset] = first
+    assert strokes[-0.1][1] > strokes[-0.1][2]  # right of the reference: turn left (valve 1)
+    assert strokes[0.1][2] > strokes[0.1][1]
