@@ -509,7 +509,8 @@ def test_module_cli_serves_and_exits_on_sigterm(make_bus: BusFactory) -> None:
         assert readable, "no listening line printed"
         line = proc.stdout.readline()
         match = re.fullmatch(
-            r"softhil loopback CAN hub listening on 127\.0\.0\.1:(\d+) \(socketcand and softhil binary protocols\)\n",
+            r"softhil loopback CAN hub listening on 127\.0\.0\.1:(\d+) "
+            r"\(socketcand and softhil binary protocols\)\n",
             line,
         )
         assert match, line
