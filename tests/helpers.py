@@ -1,8 +1,10 @@
-"""Helpers shared by the FMU tests."""
+"""Helpers shared by the tests: FMU simulation, socket timeouts."""
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+import contextlib
+import socket
+from collections.abc import Callable, Iterator, Mapping
 
 import numpy as np
 
@@ -39,3 +41,18 @@ def simulate(
             slave.do_step(t, step)
             sample((k + 1) * step)
     return {name: np.asarray(values) for name, values in record.items()}
+
+
+SOCKET_TIMEOUT = 10.0  # [s] upper bound of any single socket wait; never reached when things work
+
+
+@contextlib.contextmanager
+def blocking_sockets_time_out(timeout: float = SOCKET_TIMEOUT) -> Iterator[None]:
+    """python-can's socketcand client has no timeout of its own: make blocking reads time out,
+    so that a broken hub fails a test instead of hanging it."""
+    previous = socket.getdefaulttimeout()
+    socket.setdefaulttimeout(timeout)
+    try:
+        yield
+    finally:
+        socket.setdefaulttimeout(previous)

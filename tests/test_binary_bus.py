@@ -30,6 +30,7 @@ from controllers.canbus import BusSpec, connection_closed, open_bus
 from hil.bus import wire
 from hil.bus.binary import SofthilBus, parse_channel
 from hil.bus.loopback import HubProcess, LoopbackHub
+from tests.helpers import blocking_sockets_time_out
 
 ROOT = Path(__file__).resolve().parents[1]
 TIMEOUT = 10.0  # upper bound of any single wait; never reached when things work
@@ -37,13 +38,8 @@ TIMEOUT = 10.0  # upper bound of any single wait; never reached when things work
 
 @pytest.fixture(autouse=True)
 def _guard_blocking_sockets() -> Iterator[None]:
-    """python-can's socketcand client has no timeout of its own: make its reads time out."""
-    previous = socket.getdefaulttimeout()
-    socket.setdefaulttimeout(TIMEOUT)
-    try:
+    with blocking_sockets_time_out(TIMEOUT):
         yield
-    finally:
-        socket.setdefaulttimeout(previous)
 
 
 @pytest.fixture

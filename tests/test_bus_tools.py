@@ -10,7 +10,6 @@ from __future__ import annotations
 import importlib.util
 import os
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -42,6 +41,7 @@ from hil.bustools.vcan import socketcan_available
 from hil.cli import main
 from hil.errors import BusError, HilError
 from hil.recording import CanLogger
+from tests.helpers import blocking_sockets_time_out
 
 ROOT = Path(__file__).resolve().parents[1]
 TIMEOUT = 10.0
@@ -89,12 +89,8 @@ def run_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 @pytest.fixture(autouse=True)
 def _guard_blocking_sockets() -> Iterator[None]:
-    previous = socket.getdefaulttimeout()
-    socket.setdefaulttimeout(TIMEOUT)
-    try:
+    with blocking_sockets_time_out(TIMEOUT):
         yield
-    finally:
-        socket.setdefaulttimeout(previous)
 
 
 @pytest.fixture

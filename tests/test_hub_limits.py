@@ -22,6 +22,7 @@ import pytest
 
 from hil.bus import loopback
 from hil.bus.loopback import HubSettingError, LoopbackHub, main
+from tests.helpers import blocking_sockets_time_out
 
 ROOT = Path(__file__).resolve().parents[1]
 TIMEOUT = 10.0  # upper bound for any single wait; never reached when things work
@@ -30,13 +31,8 @@ FRAME_RE = re.compile(rb"< frame ([0-9A-F]{3}|[0-9A-F]{8}) (\d+)\.(\d{6}) ([0-9A
 
 @pytest.fixture(autouse=True)
 def _guard_blocking_sockets() -> Iterator[None]:
-    """python-can's client has no timeout of its own: make its blocking reads time out."""
-    previous = socket.getdefaulttimeout()
-    socket.setdefaulttimeout(TIMEOUT)
-    try:
+    with blocking_sockets_time_out(TIMEOUT):
         yield
-    finally:
-        socket.setdefaulttimeout(previous)
 
 
 class Raw:

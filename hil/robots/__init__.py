@@ -20,6 +20,8 @@ from importlib.metadata import entry_points
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
+import numpy as np
+
 from hil.devices import DeviceNode
 from hil.errors import HilError
 from hil.master import Connection, FmuParticipant, Participant
@@ -27,6 +29,7 @@ from hil.master import Connection, FmuParticipant, Participant
 if TYPE_CHECKING:
     from controllers.protocol import Protocol as CanProtocol
     from hil.scenario import Scenario
+    from hil.vision import Camera
 
 KINDS = {"planar_arm": "hil.robots.planar_arm:ROBOT", "fish": "hil.robots.fish:ROBOT"}
 
@@ -115,6 +118,19 @@ def fmu_ref(source: str, fmu: str) -> str:
         return fmu
     path = Path(fmu)
     return str(path if path.is_absolute() else Path(source).parent / path)
+
+
+def scenario_camera(scenario: Scenario) -> Camera:
+    """The scenario's camera model: its imperfections, its rate, the plant's step, and its own
+    random stream seeded by the scenario's seed (apart from every other draw of the run)."""
+    from hil.vision import Camera
+
+    return Camera(
+        scenario.camera.effects(),
+        np.random.default_rng(scenario.seed),
+        1.0 / scenario.camera.rate,
+        scenario.timing.step,
+    )
 
 
 def build_rig(scenario: Scenario) -> Rig:

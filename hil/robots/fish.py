@@ -31,9 +31,8 @@ from controllers.node import CameraTiming
 from controllers.protocol import Protocol
 from hil.devices import HEARTBEAT_PERIOD, CameraNode
 from hil.master import Connection, FmuParticipant, Participant
-from hil.robots import PlotSpec, Rig, SignalSpec, fmu_ref
+from hil.robots import PlotSpec, Rig, SignalSpec, fmu_ref, scenario_camera
 from hil.robots.fish_devices import CanisterNode, ValveNode
-from hil.vision import Camera
 
 if TYPE_CHECKING:
     from hil.scenario import Scenario
@@ -286,12 +285,7 @@ class Fish:
             camera_inputs,
             markers,
             scenario.latency_ticks,
-            Camera(
-                scenario.camera.effects(),
-                np.random.default_rng(scenario.seed),
-                1.0 / scenario.camera.rate,
-                scenario.timing.step,
-            ),
+            scenario_camera(scenario),
         )
         fmus: list[FmuParticipant] = []
         parameters: dict[str, Mapping[str, float]] = {}

@@ -25,8 +25,7 @@ from controllers.protocol import Protocol
 from controllers.tasks import TASK_KINDS, TaskPlan, draw_paths, draw_targets
 from hil.devices import HEARTBEAT_PERIOD, CameraNode, DriveNode
 from hil.master import Connection, FmuParticipant, Participant
-from hil.robots import PlotSpec, Rig, SignalSpec, environment, fmu_ref
-from hil.vision import Camera
+from hil.robots import PlotSpec, Rig, SignalSpec, environment, fmu_ref, scenario_camera
 
 if TYPE_CHECKING:
     from hil.scenario import Scenario
@@ -365,12 +364,7 @@ class PlanarArm:
             [f"kappa_{n}" for n in range(1, r.segments + 1)],
             lambda kappas: kinematics.markers(kappas, lengths, base),
             scenario.latency_ticks,
-            Camera(
-                scenario.camera.effects(),
-                np.random.default_rng(scenario.seed),
-                1.0 / scenario.camera.rate,
-                scenario.timing.step,
-            ),
+            scenario_camera(scenario),
         )
         fmus: list[FmuParticipant] = []
         connections: dict[str, Connection] = {}
