@@ -164,8 +164,19 @@ def test_default_run_writes_every_result(default_run) -> None:
         rows = list(csv.reader(f))
     assert rows[0] == ["time"] + [
         f"{name}_1"
-        for name in ("kappa_ref", "kappa_est", "kappa", "theta", "p_a", "p_b", "x", "x_ref", "v",
-                     "i_motor", "fault")
+        for name in (
+            "kappa_ref",
+            "kappa_est",
+            "kappa",
+            "theta",
+            "p_a",
+            "p_b",
+            "x",
+            "x_ref",
+            "v",
+            "i_motor",
+            "fault",
+        )
     ]
     assert len(rows) == 1 + 1001
 

@@ -102,7 +102,9 @@ def test_out_never_touches_foreign_files(tmp_path: Path, capsys) -> None:
 
 def test_rerun_into_its_own_folder_keeps_the_input_scenario(tmp_path: Path, capsys) -> None:
     out = tmp_path / "run"
-    assert run_cli(capsys, str(scenario_file(tmp_path, 0.2)), "--inprocess", "--out", str(out))[0] == 0  # noqa: E501
+    assert (
+        run_cli(capsys, str(scenario_file(tmp_path, 0.2)), "--inprocess", "--out", str(out))[0] == 0
+    )  # noqa: E501
     recorded = out / "scenario.toml"
     text = recorded.read_bytes()
     (out / "my-notes.md").write_text("keep me\n")
@@ -121,12 +123,16 @@ def test_second_run_into_a_locked_folder_is_refused_and_a_stale_lock_taken_over(
     out = tmp_path / "run"
     out.mkdir()
     (out / hil.results.LOCK).write_text(f"{os.getppid()}\n")  # a live process holds it
-    code, lines = run_cli(capsys, str(scenario_file(tmp_path, 0.2)), "--inprocess", "--out", str(out))  # noqa: E501
+    code, lines = run_cli(
+        capsys, str(scenario_file(tmp_path, 0.2)), "--inprocess", "--out", str(out)
+    )  # noqa: E501
     assert code == 1 and len(lines) == 1 and "in use by another run" in lines[0]
     dead = subprocess.Popen([sys.executable, "-c", "pass"])
     dead.wait()
     (out / hil.results.LOCK).write_text(f"{dead.pid}\n")
-    code, lines = run_cli(capsys, str(scenario_file(tmp_path, 0.2)), "--inprocess", "--out", str(out))  # noqa: E501
+    code, lines = run_cli(
+        capsys, str(scenario_file(tmp_path, 0.2)), "--inprocess", "--out", str(out)
+    )  # noqa: E501
     assert code == 0 and any("stale lock" in line for line in lines)
     assert not (out / hil.results.LOCK).exists()
 
@@ -168,7 +174,9 @@ def disk_full(monkeypatch: pytest.MonkeyPatch, budget: int, only: str = "") -> I
 def test_disk_full(tmp_path: Path, capsys, monkeypatch, budget: int, only: str, where: str) -> None:
     out = tmp_path / "run"
     with disk_full(monkeypatch, budget, only):
-        code, lines = run_cli(capsys, str(scenario_file(tmp_path, 1.0)), "--inprocess", "--out", str(out))  # noqa: E501
+        code, lines = run_cli(
+            capsys, str(scenario_file(tmp_path, 1.0)), "--inprocess", "--out", str(out)
+        )  # noqa: E501
     assert code == 1 and len(lines) == 1, lines
     assert "No space left on device" in lines[0]
     assert not [p for p in out.iterdir() if p.stat().st_size == 0 and p.name != "controller.log"]
@@ -352,12 +360,24 @@ def _listening(port: int) -> bool:
 
 def test_over_pressure_stops_a_strict_run_and_is_counted_under_hold(tmp_path: Path, capsys) -> None:  # noqa: E501
     low = ("max_pressure = 60000.0", "max_pressure = 12000.0")
-    code, lines = run_cli(capsys, str(scenario_file(tmp_path, 1.0, low)), "--inprocess", "--out", str(tmp_path / "strict"))  # noqa: E501
+    code, lines = run_cli(
+        capsys,
+        str(scenario_file(tmp_path, 1.0, low)),
+        "--inprocess",
+        "--out",
+        str(tmp_path / "strict"),
+    )  # noqa: E501
     assert code == 1 and len(lines) == 1 and "EMCY 0xFF01 (over-pressure)" in lines[0]
     s = summary(tmp_path / "strict")
     assert s["status"] == "failed" and "over-pressure" in s["error"]
     readable(tmp_path / "strict")
-    code, _ = run_cli(capsys, str(scenario_file(tmp_path, 1.0, low, HOLD)), "--inprocess", "--out", str(tmp_path / "hold"))  # noqa: E501
+    code, _ = run_cli(
+        capsys,
+        str(scenario_file(tmp_path, 1.0, low, HOLD)),
+        "--inprocess",
+        "--out",
+        str(tmp_path / "hold"),
+    )  # noqa: E501
     assert code == 0
     assert any("EMCY" in w for w in summary(tmp_path / "hold")["warnings"])
 
@@ -377,7 +397,9 @@ def test_a_controller_that_stops_commanding(tmp_path: Path, monkeypatch, capsys,
     monkeypatch.setattr("hil.run.ControllerNode", SilentAfter)
     edits = [HOLD] if policy == "hold" else []
     out = tmp_path / "run"
-    code, lines = run_cli(capsys, str(scenario_file(tmp_path, 1.0, *edits)), "--inprocess", "--out", str(out))  # noqa: E501
+    code, lines = run_cli(
+        capsys, str(scenario_file(tmp_path, 1.0, *edits)), "--inprocess", "--out", str(out)
+    )  # noqa: E501
     s = summary(out)
     readable(out)
     if policy == "strict":
@@ -462,7 +484,9 @@ def test_controller_killed(tmp_path: Path, sig) -> None:
 def test_controller_frozen_times_out(tmp_path: Path) -> None:
     out = tmp_path / "run"
     short_wait = ('policy = "strict"', 'policy = "strict"\ntimeout = 0.5')
-    run = hil_process("run", str(scenario_file(tmp_path, 10.0, short_wait)), "--out", str(out), "--no-progress")  # noqa: E501
+    run = hil_process(
+        "run", str(scenario_file(tmp_path, 10.0, short_wait)), "--out", str(out), "--no-progress"
+    )  # noqa: E501
     wait_for(lambda: rows(out / "signals.csv") > 2 and rows(out / "controller.pid") > 0, "progress")  # noqa: E501
     pid = int((out / "controller.pid").read_text())
     os.kill(pid, signal.SIGSTOP)
@@ -530,7 +554,9 @@ def test_realtime_run_late_on_a_loaded_machine_fails(tmp_path: Path, capsys, mon
         lambda period: RealtimeClock(period, sleep=lambda s: None, monotonic=monotonic),
     )
     out = tmp_path / "run"
-    code, lines = run_cli(capsys, str(scenario_file(tmp_path, 0.3)), "--inprocess", "--realtime", "--out", str(out))  # noqa: E501
+    code, lines = run_cli(
+        capsys, str(scenario_file(tmp_path, 0.3)), "--inprocess", "--realtime", "--out", str(out)
+    )  # noqa: E501
     assert code == 1 and len(lines) == 1 and "real-time run failed" in lines[0]
     s = summary(out)
     assert s["status"] == "failed" and "SYNCs were more than one control period" in s["error"]

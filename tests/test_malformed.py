@@ -41,9 +41,21 @@ def edit(*edits: tuple[str, str]) -> str:
 # (case id, scenario text, the key the one line must name)
 SCENARIOS = [
     ("tiny-step", edit(("step = 0.001", "step = 1e-300")), "timing.step"),
-    ("huge-step", edit(("step = 0.001", "step = 0.5"), ("control_period = 0.01", "control_period = 0.5")), "timing.step"),  # noqa: E501
+    (
+        "huge-step",
+        edit(("step = 0.001", "step = 0.5"), ("control_period = 0.01", "control_period = 0.5")),
+        "timing.step",
+    ),  # noqa: E501
     ("huge-duration", edit(("duration = 10.0", "duration = 1e300")), "duration"),
-    ("too-many-cycles", edit(("duration = 10.0", "duration = 86000.0"), ("step = 0.001", "step = 0.00001"), ("control_period = 0.01", "control_period = 0.00001")), "duration"),  # noqa: E501
+    (
+        "too-many-cycles",
+        edit(
+            ("duration = 10.0", "duration = 86000.0"),
+            ("step = 0.001", "step = 0.00001"),
+            ("control_period = 0.01", "control_period = 0.00001"),
+        ),
+        "duration",
+    ),  # noqa: E501
     ("int-overflow", edit(("duration = 10.0", "duration = 1" + "0" * 40)), "duration"),
     ("infinite-duration", edit(("duration = 10.0", "duration = inf")), "duration"),
     ("megahertz-sine", edit(("frequency = 0.5", "frequency = 1e6")), "task.sine.frequency"),
@@ -52,24 +64,56 @@ SCENARIOS = [
     ("absurd-ki", edit(("crossover = 1.0", "crossover = 1.0\nki = 1e12")), "controller.ki"),
     ("negative-kp", edit(("crossover = 1.0", "crossover = 1.0\nkp = -1.0")), "controller.kp"),
     ("fast-crossover", edit(("crossover = 1.0", "crossover = 1000.0")), "controller.crossover"),
-    ("absurd-pressure", edit(("max_pressure = 60000.0", "max_pressure = 1e9")), "safety.max_pressure"),  # noqa: E501
+    (
+        "absurd-pressure",
+        edit(("max_pressure = 60000.0", "max_pressure = 1e9")),
+        "safety.max_pressure",
+    ),  # noqa: E501
     ("camera-noise", edit(("noise = 0.0", "noise = 1.0")), "camera.noise"),
-    ("any-host", edit(('bitrate = 1000000', 'bitrate = 1000000\nhost = "0.0.0.0"')), "bus.host"),
-    ("unknown-host", edit(('bitrate = 1000000', 'bitrate = 1000000\nhost = "no-such-host.invalid"')), "bus.host"),  # noqa: E501
-    ("channel-space", edit(('bitrate = 1000000', 'bitrate = 1000000\nchannel = "my bus"')), "bus.channel"),  # noqa: E501
-    ("channel-angle", edit(('bitrate = 1000000', 'bitrate = 1000000\nchannel = "<x>"')), "bus.channel"),  # noqa: E501
-    ("port-range", edit(('bitrate = 1000000', 'bitrate = 1000000\nport = 70000')), "bus.port"),
+    ("any-host", edit(("bitrate = 1000000", 'bitrate = 1000000\nhost = "0.0.0.0"')), "bus.host"),
+    (
+        "unknown-host",
+        edit(("bitrate = 1000000", 'bitrate = 1000000\nhost = "no-such-host.invalid"')),
+        "bus.host",
+    ),  # noqa: E501
+    (
+        "channel-space",
+        edit(("bitrate = 1000000", 'bitrate = 1000000\nchannel = "my bus"')),
+        "bus.channel",
+    ),  # noqa: E501
+    (
+        "channel-angle",
+        edit(("bitrate = 1000000", 'bitrate = 1000000\nchannel = "<x>"')),
+        "bus.channel",
+    ),  # noqa: E501
+    ("port-range", edit(("bitrate = 1000000", "bitrate = 1000000\nport = 70000")), "bus.port"),
     ("bad-policy", edit(('policy = "strict"', 'policy = "maybe"')), "controller.policy"),
-    ("huge-timeout", edit(('policy = "strict"', 'policy = "strict"\ntimeout = 1e9')), "controller.timeout"),  # noqa: E501
+    (
+        "huge-timeout",
+        edit(('policy = "strict"', 'policy = "strict"\ntimeout = 1e9')),
+        "controller.timeout",
+    ),  # noqa: E501
     ("wrong-type", edit(("duration = 10.0", 'duration = "ten"')), "duration"),
     ("negative-seed", edit(("seed = 1", "seed = -1")), "seed"),
     ("bad-name", edit(('name = "default"', 'name = "a/b"')), "name"),
     ("unknown-key", edit(("seed = 1", "seed = 1\ncolour = 3")), "colour"),
-    ("not-a-multiple", edit(("control_period = 0.01", "control_period = 0.0105")), "timing.control_period"),  # noqa: E501
+    (
+        "not-a-multiple",
+        edit(("control_period = 0.01", "control_period = 0.0105")),
+        "timing.control_period",
+    ),  # noqa: E501
     ("zero-camera-rate", edit(("rate = 100.0", "rate = 0.0")), "camera.rate"),
     ("steps-not-increasing", edit(("[2.5, -10.0]", "[0.2, -10.0]")), "task.steps"),
-    ("can-log-folder", edit(("[task]", '[recording]\ncan_log = "../x.log"\n\n[task]')), "recording.can_log"),  # noqa: E501
-    ("bad-start", edit(("[task]", '[recording]\nstart = "yesterday"\n\n[task]')), "recording.start"),  # noqa: E501
+    (
+        "can-log-folder",
+        edit(("[task]", '[recording]\ncan_log = "../x.log"\n\n[task]')),
+        "recording.can_log",
+    ),  # noqa: E501
+    (
+        "bad-start",
+        edit(("[task]", '[recording]\nstart = "yesterday"\n\n[task]')),
+        "recording.start",
+    ),  # noqa: E501
     ("not-toml", "name = \n[[[", "not valid TOML"),
     ("empty-file", "", "name"),
 ]
@@ -110,7 +154,11 @@ CLI = [
     ("blank-out", ["run", "--out", "  "], "--out"),
     ("negative-seed", ["run", "--seed", "-1", "--out", "{tmp}/o"], "--seed"),
     ("bus-space", ["run", "--bus", "loop back", "--out", "{tmp}/o"], "bus spec"),
-    ("inprocess-loopback", ["run", "--inprocess", "--bus", "loopback", "--out", "{tmp}/o"], "--inprocess"),  # noqa: E501
+    (
+        "inprocess-loopback",
+        ["run", "--inprocess", "--bus", "loopback", "--out", "{tmp}/o"],
+        "--inprocess",
+    ),  # noqa: E501
     ("bad-start", ["run", "--start", "garbage", "--out", "{tmp}/o"], "--start"),
     ("can-log-suffix", ["run", "--can-log", "x.txt", "--out", "{tmp}/o"], "--can-log"),
     ("can-log-folder", ["run", "--can-log", "../escape.log", "--out", "{tmp}/o"], "--can-log"),
@@ -124,7 +172,9 @@ def test_bad_command_line_is_one_line(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], argv: list[str], word: str
 ) -> None:
     (tmp_path / "file").write_text("the user's\n")
-    code = hil_main([a.replace("{tmp}", str(tmp_path)) for a in argv] + ["--no-progress"] * (argv[0] == "run"))  # noqa: E501
+    code = hil_main(
+        [a.replace("{tmp}", str(tmp_path)) for a in argv] + ["--no-progress"] * (argv[0] == "run")
+    )  # noqa: E501
     line = one_line(capsys, code, "hil: error: ")
     assert word in line
     assert (tmp_path / "file").read_text() == "the user's\n"
@@ -148,14 +198,30 @@ def _set(data: dict, path: str, value: object) -> dict:
 
 
 CONFIGS = [
-    ("wrong-type", lambda: json.dumps(_set(good_config(), "control_period", "fast")), "control_period"),  # noqa: E501
+    (
+        "wrong-type",
+        lambda: json.dumps(_set(good_config(), "control_period", "fast")),
+        "control_period",
+    ),  # noqa: E501
     ("unknown-policy", lambda: json.dumps(_set(good_config(), "policy", "maybe")), "policy"),
     ("unknown-key", lambda: json.dumps({**good_config(), "colour": 1}), "colour"),
-    ("missing-key", lambda: json.dumps({k: v for k, v in good_config().items() if k != "lengths"}), "lengths"),  # noqa: E501
+    (
+        "missing-key",
+        lambda: json.dumps({k: v for k, v in good_config().items() if k != "lengths"}),
+        "lengths",
+    ),  # noqa: E501
     ("absurd-kp", lambda: json.dumps(_set(good_config(), "gains.0.Kp", 1e9)), "Kp"),
-    ("nan", lambda: json.dumps(good_config()).replace('"timeout": 10.0', '"timeout": NaN'), "timeout"),  # noqa: E501
+    (
+        "nan",
+        lambda: json.dumps(good_config()).replace('"timeout": 10.0', '"timeout": NaN'),
+        "timeout",
+    ),  # noqa: E501
     ("too-many-cycles", lambda: json.dumps(_set(good_config(), "cycles", 10**12)), "cycles"),
-    ("tiny-period", lambda: json.dumps(_set(good_config(), "control_period", 1e-300)), "control_period"),  # noqa: E501
+    (
+        "tiny-period",
+        lambda: json.dumps(_set(good_config(), "control_period", 1e-300)),
+        "control_period",
+    ),  # noqa: E501
     ("huge-int", lambda: json.dumps(_set(good_config(), "timeout", 10**400)), "timeout"),
     ("not-json", lambda: "{control_period: fast", "not JSON"),
     ("empty", lambda: "", "empty"),
@@ -240,8 +306,25 @@ def _mutations(rng: random.Random, text: str) -> str:
         elif choice == 2 and "=" in lines[i]:
             key = lines[i].split("=")[0]
             value = rng.choice(
-                ['""', "0", "-1", "1e300", "-1e300", "nan", "inf", "true", "[]", "{}", "[[1]]",
-                 '"x y"', "99999999999999999999999", "1e-300", "0.0", '"0.0.0.0"', "[1, 2, 3]"]
+                [
+                    '""',
+                    "0",
+                    "-1",
+                    "1e300",
+                    "-1e300",
+                    "nan",
+                    "inf",
+                    "true",
+                    "[]",
+                    "{}",
+                    "[[1]]",
+                    '"x y"',
+                    "99999999999999999999999",
+                    "1e-300",
+                    "0.0",
+                    '"0.0.0.0"',
+                    "[1, 2, 3]",
+                ]
             )
             lines[i] = f"{key}= {value}"
         elif choice == 3:
