@@ -142,3 +142,32 @@ def test_pipe_is_traversed_to_its_goal_without_penetrating(tmp_path: Path, pipe:
     assert summary["goal_error"] < 2e-3
     assert summary["penetration_max"] < 2e-3
     assert summary["contact_impulse"] >= 0.0
+
+
+def test_a_segment_that_starts_bent_starts_at_rest(tmp_path: Path) -> None:
+    """theta_start puts the piston where that bend is the static equilibrium: with the drive
+    holding it there, the bend stays (it would spring back towards straight from mid-stroke)."""
+    from hil.robots.planar_arm import ROBOT
+
+    text = (
+        SCENARIO.split("[robot.environment]")[0]
+        + "[robot.segment]\ntheta_start = [0.9, -0.6, 0.0]\n[camera]"
+        + SCENARIO.split("[camera]")[1]
+    ).replace(
+        "[[0.0, 0.0], [0.3, -15.0]]", "[[0.0, 15.0], [0.3, 15.0]]\nscale = [1.0, -0.6667, 0.0]"
+    )
+    scenario = load_scenario(write(tmp_path, text))
+    pistons = ROBOT.start_pistons(scenario)
+    assert pistons[0] > 0.025 > pistons[1] and pistons[2] == 0.025  # bent ways, straight at mid
+    rig = build_rig(scenario)
+    try:
+        from hil.master import Master
+
+        master = Master(rig.participants, rig.connections, scenario.timing.step)
+        start = [master.values[f"segment{n}.kappa"] for n in (1, 2)]
+        master.advance_to(100)  # 0.1 s with the drives holding their start
+        after = [master.values[f"segment{n}.kappa"] for n in (1, 2)]
+    finally:
+        rig.close()
+    assert start == pytest.approx([15.0, -10.0], abs=1e-9)
+    assert after == pytest.approx(start, abs=0.05)
