@@ -171,3 +171,31 @@ def test_a_segment_that_starts_bent_starts_at_rest(tmp_path: Path) -> None:
         rig.close()
     assert start == pytest.approx([15.0, -10.0], abs=1e-9)
     assert after == pytest.approx(start, abs=0.05)
+
+
+def test_pipe_metrics_from_the_recorded_truth() -> None:
+    """goal_reached needs the tip to enter the band and stay; penetration_max is the deepest
+    penetration of any segment at any time."""
+    from types import SimpleNamespace
+
+    from hil.robots.planar_tasks import _pipe
+
+    t = np.arange(0.0, 3.0, 0.01)
+    goal = (0.3, 0.0)
+    approach = np.clip(1.0 - t, 0.0, None)[:, None] * np.array([0.0, 0.05])
+    signals = {
+        "penetration_1": np.where((t > 0.5) & (t < 0.6), 1.5e-3, 0.0),
+        "penetration_2": np.full(t.size, 2e-4),
+        "contact_impulse": np.linspace(0.0, 0.7, t.size),
+    }
+    task = SimpleNamespace(band=2e-3)
+    reached = _pipe(goal, 2, t, np.array(goal) + approach, signals, task)
+    assert reached["goal_reached"] is True
+    assert reached["time_to_goal"] == pytest.approx(0.96, abs=0.011)  # 50 mm to 2 mm in 1 s
+    assert reached["penetration_max"] == 1.5e-3
+    assert reached["contact_impulse"] == pytest.approx(0.7)
+    short = _pipe(goal, 2, t, np.tile(np.array(goal) + [0.0, 5e-3], (t.size, 1)), signals, task)
+    assert short["goal_reached"] is False and short["time_to_goal"] is None
+    assert short["goal_error"] == pytest.approx(5e-3)
+    left = np.array(goal) + np.where(t[:, None] < 2.0, 0.0, 0.01) * np.array([1.0, 0.0])
+    assert _pipe(goal, 2, t, left, signals, task)["goal_reached"] is False  # reached, then left

@@ -250,3 +250,23 @@ def test_closing_the_loop_never_steps_a_reference_beyond_its_rate() -> None:
     step = np.abs(control.reference - before)
     assert np.all(step <= np.array(config.plan.kappa_rate) * config.control_period + 1e-12)
     assert np.all(step > 0.0)  # and it does move, towards the solution
+
+
+def test_the_pistons_are_held_while_the_estimator_acquires_the_arm() -> None:
+    from controllers.estimation import DriveReading
+    from controllers.task_space import TaskSpaceControl
+
+    config, _ = _config(_plan())
+    control = TaskSpaceControl(config, Protocol())
+    drives = {n: DriveReading(0.01 * n / 2, 0.0, 0.0) for n in range(1, 7)}
+    estimate = Estimate(np.full(6, 40.0), np.zeros(6), np.zeros(6))  # a wild first estimate
+    for cycle, t in enumerate((0.0, 0.1, 0.19)):
+        frames = control.compute(cycle, t, estimate, drives)
+        commands = {f.node: f.piston_setpoint for f in frames if isinstance(f, DriveCommand)}
+        assert commands == {n: drives[n].piston_position for n in range(1, 7)}
+        state = next(f for f in frames if isinstance(f, TaskState))
+        assert state.phase == PHASE["idle"]
+        refs = [f.kappa_ref for f in frames if isinstance(f, ControllerState)]
+        assert max(refs) <= 30.0  # shown within the DBC's range
+    frames = control.compute(3, config.plan.acquire_time, IdealArm(6).estimate(), drives)
+    assert next(f for f in frames if isinstance(f, TaskState)).phase == PHASE["moving"]
