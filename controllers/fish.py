@@ -87,6 +87,10 @@ class FishConfig:
     heading_gain: float = 2.0  # heading task: stroke asymmetry per rad of heading error
     tolerance: float = math.radians(10.0)  # heading task: held within it
     retune_share: float = 3.0  # heading task: another escape turn beyond this many tolerances
+    deadband: float = math.radians(3.0)  # heading task: a corrective stroke beyond it
+    settle_time: float = 0.05  # heading task: the head at rest this long after a turn [s]
+    rest_rate: float = math.radians(60.0)  # heading task: at rest below this yaw rate [rad/s]
+    settle_max: float = 0.3  # heading task: swim on at the latest this long after a turn [s]
     p_set: float = 400e3  # the regulator's set pressure [Pa abs]
     gas_reserve: float = 0.0  # canister mass that can no longer hold p_set [kg]
     gas_per_manoeuvre: float = 1e-4  # model estimate before the first is measured [kg]
@@ -227,6 +231,8 @@ class FishControl:
         self.turned = False  # heading task: the first turn is done
         self.turn_done_at = math.inf
         self.mean_yaw: float | None = None  # heading task: yaw averaged over about a beat
+        self.rest_since: float | None = None  # heading task: the head at rest since [s]
+        self.corrected_at = -math.inf  # heading task: the last corrective stroke [s]
         self.shown = protocol.signal_range("FishState", "heading_ref")
 
     # ------------------------------------------------------------------ gas
@@ -329,9 +335,14 @@ class FishControl:
             return
         self.mode = ESCAPE if busy else VENTING if not self._vented(readings) else IDLE
 
-    def _swim(self, at: float, readings: Mapping[Any, Any], bias: float = 0.0) -> None:
+    def _swim(
+        self, at: float, readings: Mapping[Any, Any], bias: float = 0.0, correction: float = 0.0
+    ) -> None:
         """Alternate the sides: a stroke every half beat, open `duty` of it; `bias` (-1..1)
-        lengthens side a's strokes and shortens side b's (turning left), or the reverse."""
+        lengthens side a's strokes and shortens side b's (turning left), or the reverse;
+        `correction` [rad] (heading task: the beat-averaged heading error beyond the deadband)
+        makes the next stroke on the side that turns towards the reference at least as long
+        as the calibration's open time for that turn."""
         c = self.config
         if at < c.start:
             return
@@ -340,7 +351,13 @@ class FishControl:
         if at + 1e-9 >= self.next_stroke:
             side = self.stroke_side
             share = 1.0 + (bias if side == 0 else -bias)
-            self._pulse(side, min(c.duty * half * share, 0.95 * half), at, readings)
+            t_open = min(c.duty * half * share, 0.95 * half)
+            if correction != 0.0 and side == (0 if correction > 0.0 else 1):
+                # sized by the inverse of the calibration; at most once a beat, so that the
+                # beat-averaged heading has seen the last one before the next is sized
+                t_open = max(t_open, min(open_time_for(c.calibration, correction), 0.95 * half))
+                self.corrected_at = at
+            self._pulse(side, t_open, at, readings)
             self.stroke_side = 1 - side
             self.next_stroke += half
 
@@ -364,12 +381,26 @@ class FishControl:
             return
         error = wrap(c.heading - estimate.yaw)
         if self.mode == TURN or self.mode == VENTING:
-            # after a turn: vent and let the head come to rest before swimming on
-            if not self._vented(readings) or abs(estimate.yaw_rate) > math.radians(20.0):
-                self.mode = VENTING
+            # after a turn: vent and let the head come to rest before swimming on; at rest for
+            # `settle_time`, not for one cycle: the yaw rate also passes through zero at the
+            # turn's overshoot, tens of degrees beyond where the head comes to rest
+            # (or at the latest `settle_max` after the pulse: the head's yaw mode rings on,
+            # and the estimated yaw rate is noisy)
+            self.mode = VENTING
+            late = at - max(self.pulse_end) >= c.settle_max
+            if not self._vented(readings) or abs(estimate.yaw_rate) > c.rest_rate:
+                self.rest_since = None
+                if not late:
+                    return
+            if self.rest_since is None:
+                self.rest_since = at
+            if at - self.rest_since < c.settle_time and not late:
                 return
             self.mean_yaw = estimate.yaw
+            # the strokes go on alternating from the turn: the first is on the other side
+            self.stroke_side = 1 - self.stroke_side
             self.next_stroke = at
+            self.corrected_at = at
             self.mode = HOLD
         if not self.turned or (
             abs(wrap(c.heading - self.mean_yaw)) > c.retune_share * c.tolerance
@@ -378,12 +409,16 @@ class FishControl:
             if self._vented(readings):
                 side = 0 if error > 0.0 else 1
                 self._pulse(side, open_time_for(c.calibration, error), at, readings)
+                self.stroke_side = side
                 self.turned = True
                 self.mode = TURN
             return
         error = wrap(c.heading - self.mean_yaw)
         bias = max(-1.0, min(1.0, c.heading_gain * error))
-        self._swim(at, readings, bias)
+        correction = 0.0
+        if abs(error) > c.deadband and at - self.corrected_at >= 2.0 * half - 1e-9:
+            correction = error
+        self._swim(at, readings, bias, correction)
         self.mode = HOLD
 
 
