@@ -298,3 +298,32 @@ def test_heading_hold_lengthens_the_strokes_that_turn_towards_the_reference() ->
         strokes[offset] = first
     assert strokes[-0.1][1] > strokes[-0.1][2]  # right of the reference: turn left (valve 1)
     assert strokes[0.1][2] > strokes[0.1][1]
+
+
+@pytest.mark.parametrize("error_deg", [25.0, -25.0])
+def test_a_corrective_stroke_turns_towards_the_reference_by_the_calibration(
+    error_deg: float,
+) -> None:
+    """Beyond the deadband, the next stroke on the side that turns towards the reference is
+    lengthened to the calibration's open time for the error; a stroke on the other side is not,
+    and a correction waits a beat before the next."""
+    from controllers.fish import FishControl
+    from controllers.protocol import Protocol
+
+    config = controller_config(load_scenario(resolve_scenario("fish-heading")))
+    error = math.radians(error_deg)
+    towards = 0 if error > 0.0 else 1
+    half = 0.5 / config.frequency
+    plain = min(config.duty * half, 0.95 * half)
+    wanted = min(open_time_for(config.calibration, error), 0.95 * half)
+    assert wanted > plain  # a 25 degree correction needs a longer opening than a stroke
+    for side in (towards, 1 - towards):
+        control = FishControl(config, Protocol())
+        at = config.start + 0.5
+        control.next_stroke, control.stroke_side = at, side
+        control._swim(at, {}, 0.0, error)
+        opened = control.pulse_end[side] - at
+        if side == towards:
+            assert opened == pytest.approx(wanted) and control.corrected_at == at
+        else:
+            assert opened == pytest.approx(plain) and control.corrected_at == -math.inf
