@@ -169,8 +169,7 @@ class Master:
         self._view = MappingProxyType(self.values)  # what observers get: read-only
         self._kernel: kernel_module.Kernel | None = None
         self._kernel_synced = False
-        for p in participants:
-            self._publish(p)
+        self._initialise()
         if kernel is None:
             kernel = os.environ.get("SOFTHIL_KERNEL", "1") != "0"
             try:
@@ -239,6 +238,31 @@ class Master:
                 f"connection endpoint {name!r}: {participant} has no {kind} {variable!r}"
             )
         return participant, variable
+
+    def _initialise(self) -> None:
+        """The values at t = 0. An FMU still in initialisation mode recomputes its initial
+        outputs from the inputs set there (FMI 2.0 initial unknowns), so the connected values
+        are passed along until they stop changing (at most one pass per such FMU: the declared
+        dependencies are acyclic); then each leaves initialisation mode. Without this an output
+        that depends on an input (a segment's pressures on its piston) would start from the
+        input's declared start value instead of the connected one."""
+        for p in self.participants.values():
+            self._publish(p)
+        initializing = [
+            p
+            for p in self.participants.values()
+            if isinstance(p, FmuParticipant) and p.slave.initializing
+        ]
+        for _ in initializing:
+            before = dict(self.values)
+            for p in initializing:
+                p.set_inputs(self.inputs_of(p.name))
+                self._publish(p)
+            if self.values == before:
+                break
+        for p in initializing:
+            p.slave.exit_initialization()
+            self._publish(p)
 
     def _publish(self, participant: Participant) -> None:
         outputs = participant.get_outputs()

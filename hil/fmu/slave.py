@@ -50,6 +50,10 @@ class FmuSlave:
         Start values by variable name, applied before initialisation.
     start_time
         Simulation time of the first communication point [s].
+    exit_initialization
+        Leave initialisation mode at once; False keeps the instance in it, so that a master can
+        set its connected inputs and read the initial outputs that follow from them (FMI 2.0
+        initial unknowns) before calling `exit_initialization` (`do_step` also calls it).
     """
 
     def __init__(
@@ -58,8 +62,10 @@ class FmuSlave:
         instance_name: str,
         parameters: Mapping[str, Value] | None = None,
         start_time: float = 0.0,
+        exit_initialization: bool = True,
     ) -> None:
         self.instance_name = instance_name
+        self.initializing = False
         self.messages: list[str] = []
         self._extracted: Path | None = None
         unzipdir = self._locate(fmu)
@@ -92,6 +98,8 @@ class FmuSlave:
         self._alive = True
         try:
             self._initialise(parameters or {}, start_time)
+            if exit_initialization:
+                self.exit_initialization()
         except BaseException:
             self.close()
             raise
@@ -107,7 +115,13 @@ class FmuSlave:
                     f"{self.model_name} and cannot be given a value"
                 )
             self.set(name, value)
-        self._call("fmi2ExitInitializationMode", self._fmu.exitInitializationMode)
+        self.initializing = True
+
+    def exit_initialization(self) -> None:
+        """Leave initialisation mode (once; later calls do nothing)."""
+        if self.initializing:
+            self._call("fmi2ExitInitializationMode", self._fmu.exitInitializationMode)
+            self.initializing = False
 
     def _locate(self, fmu: str | Path | BuiltFmu) -> Path:
         if isinstance(fmu, BuiltFmu):
@@ -220,6 +234,7 @@ class FmuSlave:
     def do_step(self, time: float, step: float) -> None:
         """Advance from communication point `time` by `step` seconds (the master passes
         time = k * h from its integer tick, so no time is ever accumulated in floats here)."""
+        self.exit_initialization()
         self._call(f"fmi2DoStep(t={time:.6f})", self._fmu.doStep, time, step)
         self.time = time + step
 

@@ -291,7 +291,10 @@ class Fish:
         parameters: dict[str, Mapping[str, float]] = {}
         try:
             source = FmuSlave(
-                fmu_ref(scenario.source, TABLES["source"]), "source", self.given(scenario, "source")
+                fmu_ref(scenario.source, TABLES["source"]),
+                "source",
+                self.given(scenario, "source"),
+                exit_initialization=False,  # until the master has set the connected inputs
             )
             fmus.append(FmuParticipant(source, 1))
             parameters["source"] = source_p
@@ -300,10 +303,16 @@ class Fish:
                     fmu_ref(scenario.source, TABLES["valve"]),
                     f"valve{n}",
                     self.given(scenario, "valve", n),
+                    exit_initialization=False,
                 )
                 fmus.append(FmuParticipant(valve, 1))
                 parameters[f"valve{n}"] = self.parameters(scenario, "valve", n)
-            body = FmuSlave(fmu_ref(scenario.source, TABLES["body"]), "body", body_given)
+            body = FmuSlave(
+                fmu_ref(scenario.source, TABLES["body"]),
+                "body",
+                body_given,
+                exit_initialization=False,
+            )
             fmus.append(FmuParticipant(body, 1))
             parameters["body"] = {**self.parameters(scenario, "body"), **body_given}
         except BaseException:

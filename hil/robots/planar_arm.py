@@ -374,8 +374,13 @@ class PlanarArm:
                 cylinder_values = dict(cylinders_given[n - 1])
                 if pistons[n - 1] != cylinders[n - 1]["x_start"]:
                     cylinder_values["x_start"] = pistons[n - 1]  # a segment that starts bent
+                # every FMU stays in initialisation mode until the master has passed the
+                # connected start values along (Master._initialise)
                 cylinder = FmuSlave(
-                    fmu_ref(scenario.source, r.cylinder_fmu), f"cylinder{n}", cylinder_values
+                    fmu_ref(scenario.source, r.cylinder_fmu),
+                    f"cylinder{n}",
+                    cylinder_values,
+                    exit_initialization=False,
                 )
                 fmus.append(FmuParticipant(cylinder, r.cylinder_decimation))
                 # the segment's gas circuit includes the cylinder: same bore and stroke, sealed
@@ -389,12 +394,11 @@ class PlanarArm:
                     **{k: v for k, v in geometry.items() if k in segment_names},
                     **segments_given[n - 1],
                 }
-                # its connected input as it will be at t = 0, so that its initial outputs (the
-                # pressures of a segment that starts bent) are those of the start, not of the
-                # input's declared default
-                segment_values["x_piston"] = pistons[n - 1]
                 segment = FmuSlave(
-                    fmu_ref(scenario.source, r.segment_fmu), f"segment{n}", segment_values
+                    fmu_ref(scenario.source, r.segment_fmu),
+                    f"segment{n}",
+                    segment_values,
+                    exit_initialization=False,
                 )
                 fmus.append(FmuParticipant(segment, r.segment_decimation))
                 parameters[f"cylinder{n}"] = cylinders[n - 1]
@@ -416,11 +420,9 @@ class PlanarArm:
                 world_values = environment.parameters(
                     scenario, segments, ACTUATOR_WIDTH[r.actuator]
                 )
-                start_inputs = {  # the arm's start shape, as above
-                    f"kappa_{i}": s.get("theta_start", 0.0) / s["length"]
-                    for i, s in enumerate(segments, start=1)
-                }
-                world = FmuSlave(environment.FMU, "environment", {**world_values, **start_inputs})
+                world = FmuSlave(
+                    environment.FMU, "environment", world_values, exit_initialization=False
+                )
                 fmus.append(FmuParticipant(world, 1))
                 parameters["environment"] = world_values
                 for source, target in environment.connections(r.segments):
