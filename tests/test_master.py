@@ -275,3 +275,55 @@ def test_observer_cannot_change_the_values_participants_read() -> None:
     master.add_observer(Vandal())
     master.advance_to(3)
     assert [values["u"] for values in relay.received] == [0.0, 1.0, 2.0]
+
+
+class Constant:
+    """A participant whose one output is a constant."""
+
+    def __init__(self, name: str, value: float) -> None:
+        self.name, self.decimation, self.value = name, 1, value
+
+    def input_names(self) -> list[str]:
+        return []
+
+    def output_names(self) -> list[str]:
+        return ["y"]
+
+    def set_inputs(self, values: Mapping[str, float]) -> None:
+        pass
+
+    def step(self, time: float, step: float) -> None:
+        pass
+
+    def get_outputs(self) -> dict[str, float]:
+        return {"y": self.value}
+
+
+def test_initial_outputs_follow_connected_inputs_through_a_chain() -> None:
+    """Two segments in initialisation mode, the first fed by the second's pressure, the second
+    by a constant piston position: listed against the chain's order, the start values need two
+    passes; afterwards each initial pressure is that of its connected piston position."""
+    from hil.fmu.slave import FmuSlave
+    from hil.master import FmuParticipant
+
+    first = FmuSlave("FeaSegment", "first", exit_initialization=False)
+    second = FmuSlave("FeaSegment", "second", exit_initialization=False)
+    try:
+        links = [
+            Connection("second.p_a", "first.x_piston", gain=-1e-6, offset=0.03),
+            Connection("source.y", "second.x_piston"),
+        ]
+        parts = [FmuParticipant(first), FmuParticipant(second), Constant("source", 0.04)]
+        master = Master(parts, links, 1e-3)
+        assert not first.initializing and not second.initializing
+        for name in ("first", "second"):
+            x = master.inputs_of(name)["x_piston"]
+            alone = FmuSlave("FeaSegment", "alone", {"x_piston": x})
+            try:
+                assert master.values[f"{name}.p_a"] == pytest.approx(alone.get("p_a"), rel=1e-12)
+            finally:
+                alone.close()
+        assert master.inputs_of("first")["x_piston"] != pytest.approx(0.03)  # two passes made
+    finally:
+        first.close()
+        second.close()
