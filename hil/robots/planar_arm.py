@@ -32,6 +32,17 @@ if TYPE_CHECKING:
 
 TASK_STREAM = 0x7A5C  # the task's random stream, apart from the camera's (seeded by the seed alone)
 DRIVE_SPEED_SHARE = 0.5  # of the drive's no-load speed that curvature moves may ask for
+# the [task] keys the controller's plan takes as they are
+PLAN_KEYS = (
+    "tolerance",
+    "settle_time",
+    "max_time",
+    "speed",
+    "acceleration",
+    "task_gain",
+    "centreline",
+    "clearance",
+)
 IK_RANGE_SHARE = 0.9  # of each segment's reachable curvature range that IK may use: the rest is
 # left for the curvature loop to correct in
 
@@ -663,16 +674,9 @@ class PlanarArm:
             kappa_min=tuple(float(v) for v in mid - half),
             kappa_max=tuple(float(v) for v in mid + half),
             kappa_rate=tuple(float(v) for v in rates),
-            tolerance=task.tolerance,
-            settle_time=task.settle_time,
-            max_time=task.max_time,
-            speed=task.speed,
-            acceleration=task.acceleration,
-            task_gain=task.task_gain,
             walls=walls,
-            centreline=task.centreline,
             width=width,
-            clearance=task.clearance,
+            **{name: getattr(task, name) for name in PLAN_KEYS},
         )
 
     def _check_task_space(self, s: Scenario) -> None:
