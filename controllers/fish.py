@@ -105,14 +105,9 @@ class FishConfig:
     @classmethod
     def from_json(cls, text: str) -> FishConfig:
         """Read a config; wrong or missing keys raise ValueError naming the key."""
-        from controllers.node import POLICIES, _from_data
+        from controllers.node import config_from_json
 
-        data = json.loads(text)
-        if not isinstance(data, dict):
-            raise ValueError("must be a JSON object")
-        config: FishConfig = _from_data(cls, data, "")
-        if config.policy not in POLICIES:
-            raise ValueError(f"policy: {config.policy!r} is not one of {', '.join(POLICIES)}")
+        config: FishConfig = config_from_json(cls, text)
         if config.task not in TASKS:
             raise ValueError(f"task: {config.task!r} is not one of {', '.join(TASKS)}")
         if config.side not in (1, 2):

@@ -122,12 +122,7 @@ class ControllerConfig:
     @classmethod
     def from_json(cls, text: str) -> ControllerConfig:
         """Read a config; wrong or missing keys raise ValueError naming the key."""
-        data = json.loads(text)
-        if not isinstance(data, dict):
-            raise ValueError("must be a JSON object")
-        config = _from_data(cls, data, "")
-        if config.policy not in POLICIES:
-            raise ValueError(f"policy: {config.policy!r} is not one of {', '.join(POLICIES)}")
+        config: ControllerConfig = config_from_json(cls, text)
         if config.estimator not in ESTIMATORS:
             raise ValueError(
                 f"estimator: {config.estimator!r} is not one of {', '.join(ESTIMATORS)}"
@@ -227,6 +222,18 @@ def _check_plan(plan: TaskPlan, segments: int) -> None:
     for name in ("tolerance", "settle_time", "max_time", "speed", "acceleration", "accel_time"):
         if getattr(plan, name) <= 0:
             raise ValueError(f"plan.{name}: must be positive")
+
+
+def config_from_json(cls: Any, text: str) -> Any:
+    """A robot's controller configuration (a dataclass with a `policy`) from its JSON text:
+    every key and type checked, ValueError naming the key; the robot checks the rest."""
+    data = json.loads(text)
+    if not isinstance(data, dict):
+        raise ValueError("must be a JSON object")
+    config = _from_data(cls, data, "")
+    if config.policy not in POLICIES:
+        raise ValueError(f"policy: {config.policy!r} is not one of {', '.join(POLICIES)}")
+    return config
 
 
 def _from_data(cls: Any, data: Any, key: str) -> Any:
