@@ -453,17 +453,19 @@ def _check_object(arm: _Arm, obstacle: _Obstacle, current: np.ndarray, what: str
         raise ValueError(f"grasp planning: object radius {obstacle.radius} m must be positive")
     if not obstacle.margin > 0.0:
         raise ValueError(f"grasp planning: margin {obstacle.margin} m must be positive")
-    # the gripper alone at the grasp pose: the object must pass between the open fingers
+    # the gripper alone at the grasp pose: the object must pass between the open fingers and
+    # stay clear of the arm's end (its capsule reaches width / 2 ahead of the tip)
     gripper = arm.geometry
     tip = tip_for_grasp(gripper, (0.0, 0.0), 0.0)
     fingers = min(
-        float(np.min(np.linalg.norm(points, axis=1)))
+        float(np.min(np.linalg.norm(points, axis=1))) - 0.5 * gripper.finger_width
         for points in finger_points(gripper, tip, gripper.theta_open, BODY_SAMPLES)
     )
-    if fingers - 0.5 * gripper.finger_width - obstacle.radius < obstacle.margin:
+    if min(fingers, gripper.grasp_offset - 0.5 * arm.width) - obstacle.radius < obstacle.margin:
         raise ValueError(
-            f"grasp planning: an object of radius {obstacle.radius} m does not fit between the "
-            f"open fingers with a margin of {obstacle.margin} m"
+            f"grasp planning: an object of radius {obstacle.radius} m does not fit the open "
+            f"gripper (between the fingers, ahead of the arm's end) with a margin of "
+            f"{obstacle.margin} m"
         )
     now = _sweep(arm, obstacle, current, current)
     if now < obstacle.margin:
