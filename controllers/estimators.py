@@ -605,7 +605,7 @@ class ObjectTracker:
 
     GATE = 5.0  # Mahalanobis distance beyond which a marker is an outlier
 
-    def __init__(self, objects: int, camera: CameraNoise, drift: float = 0.01) -> None:
+    def __init__(self, objects: int, camera: CameraNoise, drift: float = 2e-3) -> None:
         self.x = np.full((objects, 2), np.nan)
         self.P = np.full(objects, np.inf)  # isotropic variance [m^2]
         self.R = marker_std(camera) ** 2

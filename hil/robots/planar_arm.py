@@ -47,6 +47,8 @@ PLAN_KEYS = (
 IK_RANGE_SHARE = 0.9  # of each segment's reachable curvature range that IK may use: the rest is
 # left for the curvature loop to correct in
 
+_LAYOUTS: dict[str, tuple[tuple[float, float], tuple[float, float]]] = {}  # grasp_layout's
+
 SEGMENT_GEOMETRY = (
     "bore",
     "stroke",
@@ -434,6 +436,9 @@ class PlanarArm:
         task = scenario.task
         if task.pick is not None and task.place is not None:
             return task.pick, task.place
+        key = repr((scenario.seed, task, scenario.robot))  # the draw plans: ~1 s, asked often
+        if key in _LAYOUTS:
+            return _LAYOUTS[key]
         lower, upper, _ = self.curvature_limits(scenario)
         mid, half = 0.5 * (lower + upper), 0.5 * (upper - lower) * IK_RANGE_SHARE
         lengths = [p["length"] for p in self.parameters(scenario, "segment")]
@@ -451,7 +456,11 @@ class PlanarArm:
             self.grasp_object(scenario)["radius"],
             start,
         )
-        return task.pick or pick, task.place or place
+        layout = (task.pick or pick, task.place or place)
+        if len(_LAYOUTS) >= 64:
+            _LAYOUTS.clear()
+        _LAYOUTS[key] = layout
+        return layout
 
     def grasp_object(self, scenario: Scenario) -> dict[str, float]:
         """The grasp task's object (the first of `[robot.environment] objects`): its keys."""
