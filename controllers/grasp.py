@@ -305,7 +305,8 @@ class _Arm:
             )
         if width < 0.0:
             raise ValueError(f"grasp planning: arm width {width} m must not be negative")
-        return cls(lengths_, tuple(float(v) for v in base), lo, hi, geometry, width)  # type: ignore[arg-type]
+        pose = (float(base[0]), float(base[1]), float(base[2]))
+        return cls(lengths_, pose, lo, hi, geometry, width)
 
     def tip(self, kappas: np.ndarray) -> np.ndarray:
         return kinematics.forward(kappas, self.lengths, self.base)[-1]

@@ -151,7 +151,7 @@ def test_sweep_clearance_bounds_the_whole_interpolation() -> None:
         x, y, heading = spine[rng.integers(8, len(spine))]
         side = (WIDTH / 2 + RADIUS + 0.005) * rng.choice((-1.0, 1.0))
         centre = (x - side * math.sin(heading), y + side * math.cos(heading))
-        fractions = np.linspace(0.0, 1.0, 8001)
+        fractions = np.linspace(0.0, 1.0, 6001)
         fine = min(
             float(
                 np.min(
@@ -225,8 +225,9 @@ def test_approach_waypoints_lie_on_shrinking_circles_facing_the_centre(
     approaches: dict[str, GraspPlan], name: str
 ) -> None:
     plan = approaches[name]
-    centre, radius = np.array(CASES[name][0]), CASES[name][1]
-    radii = default_radii(radius, GEOMETRY) if CASES[name][3] is None else CASES[name][3]
+    centre_, radius, _, given = CASES[name]
+    centre = np.array(centre_)
+    radii = default_radii(radius, GEOMETRY) if given is None else given
     assert plan.radii == tuple(radii)
     assert set(radii) <= set(plan.standoffs)  # every circle is visited
     assert plan.standoffs[0] == radii[0] and plan.standoffs[-1] == 0.0
@@ -460,8 +461,9 @@ def test_drawn_objects_and_places_are_graspable_and_apart(seed: int) -> None:
 
 @pytest.mark.parametrize("seed", [0, 1])
 def test_drawn_objects_keep_the_start_margin_from_the_arm(seed: int) -> None:
-    centre, _ = draw(seed, start_margin=0.08, plannable=False)
-    assert dense_clearance(START, centre, RADIUS) >= 0.08
+    # drawn with no margin these seeds put the object 0.16 to 0.18 m from the straight arm
+    centre, _ = draw(seed, start_margin=0.2, plannable=False)
+    assert dense_clearance(START, centre, RADIUS) >= 0.2
 
 
 def test_draw_gives_up_after_its_attempts() -> None:
