@@ -18,7 +18,8 @@ the controller's side of that: pure planning on the arm's curvatures, no plant s
   first move.)
 - `plan_carry`: the grasp point (where the held object's centre sits) moved along a straight line
   to the place location, the heading changing linearly if it must (the place heading is the
-  reachable one nearest the grasp heading).
+  reachable one nearest the grasp heading, from which, given the object's radius, the gripper
+  can also back off).
 - `plan_retreat`: after release, the open gripper backed off along its axis to the outer radius.
 
 "Without touching": every waypoint and every point of the straight curvature interpolation
