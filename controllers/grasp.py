@@ -18,7 +18,8 @@ the controller's side of that: pure planning on the arm's curvatures, no plant s
   first move.)
 - `plan_carry`: the grasp point (where the held object's centre sits) moved along a straight line
   to the place location, the heading changing linearly if it must (the place heading is the
-  reachable one nearest the grasp heading).
+  reachable one nearest the grasp heading, from which, given the object's radius, the gripper
+  can also back off).
 - `plan_retreat`: after release, the open gripper backed off along its axis to the outer radius.
 
 "Without touching": every waypoint and every point of the straight curvature interpolation
@@ -226,6 +227,23 @@ def clearance(
     return float(_clearances(k, centre, object_radius, lengths_, base, geometry, theta, width)[0])
 
 
+def sweep_speed(start: Floats, goal: Floats, lengths: Floats, geometry: GripperGeometry) -> float:
+    """Bound on how fast any point of the arm or its fingers moves along the straight curvature
+    interpolation from `start` to `goal` [1/m], per unit fraction of it [m].
+
+    Bending segment i by d theta_i moves its own chord by at most L_i / 2 d theta_i (the chord
+    is the integral over the arc of its direction) and turns everything distal to it about the
+    segment's end, so a point moves by at most R_i d theta_i, R_i the arc length from the
+    segment's start to the arm's tip plus the fingers' reach (root_offset + finger_length). The
+    bend angles change linearly, by delta theta_i = L_i delta kappa_i: V = sum_i R_i |delta
+    theta_i|."""
+    lengths_ = np.asarray(lengths, dtype=float)
+    delta = np.asarray(goal, dtype=float) - np.asarray(start, dtype=float)
+    reach = geometry.root_offset + geometry.finger_length
+    beyond = np.cumsum(lengths_[::-1])[::-1]  # arc length from each segment's start to the tip
+    return float(np.sum((beyond + reach) * np.abs(delta) * lengths_))
+
+
 def sweep_clearance(
     start: Floats,
     goal: Floats,
@@ -241,18 +259,13 @@ def sweep_clearance(
     """Lower bound of the clearance [m] (as `clearance`) over the straight curvature
     interpolation from `start` to `goal` [1/m], both ends included.
 
-    Bending segment i by d theta_i moves a point distal to it by at most (L_i / 2 + its distance
-    from the segment's end) d theta_i <= R_i d theta_i, R_i the arc length from the segment's
-    start to the arm's tip plus the fingers' reach (root_offset + finger_length). So along the
-    interpolation no point moves faster than V = sum_i R_i |delta theta_i| per unit fraction;
-    sampling the fraction at n >= V / SWEEP_TOLERANCE steps and taking V / (2 n) off the smallest
-    sampled clearance bounds it everywhere between the samples (the clearance is 1-Lipschitz in
-    every point's position)."""
+    No point moves faster than V = `sweep_speed` per unit fraction, and the clearance is
+    1-Lipschitz in every point's position; so sampling the fraction at n >= V / SWEEP_TOLERANCE
+    steps and taking V / (2 n) off the smallest sampled clearance bounds it everywhere between
+    the samples."""
     lengths_ = np.asarray(lengths, dtype=float)
     a, b = np.asarray(start, dtype=float), np.asarray(goal, dtype=float)
-    reach = geometry.root_offset + geometry.finger_length
-    arm_beyond = np.cumsum(lengths_[::-1])[::-1]  # arc length from each segment's start
-    speed = float(np.sum((arm_beyond + reach) * np.abs(b - a) * lengths_))
+    speed = sweep_speed(a, b, lengths_, geometry)
     count = max(1, math.ceil(speed / SWEEP_TOLERANCE))
     fractions = np.linspace(0.0, 1.0, count + 1)
     chain = a + fractions[:, None] * (b - a)
@@ -293,7 +306,8 @@ class _Arm:
             )
         if width < 0.0:
             raise ValueError(f"grasp planning: arm width {width} m must not be negative")
-        return cls(lengths_, tuple(float(v) for v in base), lo, hi, geometry, width)  # type: ignore[arg-type]
+        pose = (float(base[0]), float(base[1]), float(base[2]))
+        return cls(lengths_, pose, lo, hi, geometry, width)
 
     def tip(self, kappas: np.ndarray) -> np.ndarray:
         return kinematics.forward(kappas, self.lengths, self.base)[-1]

@@ -20,7 +20,9 @@ from controllers.grasp import (
     START_MARGIN,
     SWEEP_TOLERANCE,
     GraspPlan,
+    _Arm,
     _clearances,
+    _ring,
     clearance,
     default_radii,
     draw_grasp_task,
@@ -28,6 +30,7 @@ from controllers.grasp import (
     plan_carry,
     plan_retreat,
     sweep_clearance,
+    sweep_speed,
 )
 from controllers.gripper import GripperGeometry, finger_points, grasp_point, tip_for_grasp
 from controllers.ik import solve_ik
@@ -55,6 +58,15 @@ CASES = {
         np.array([-4.164083221722851, 0.5500364110845144, 7.63912463842145,
                   11.784364242927843, -10.049406391387713, 12.48247849845394]),
         (0.07, 0.0),
+    ),
+    # the object beside the arm's body: the moves onto the outer circle of the headings with
+    # the least motion sweep the body through it, so the plan must take another heading
+    "beside": (
+        (0.19486574104952406, 0.1959820183500471),
+        RADIUS,
+        np.array([-10.687678941051452, -12.10476548139797, 17.43963003573171,
+                  -6.127198940006204, -2.2504512376529853, 5.993754306985107]),
+        None,
     ),
 }  # fmt: skip
 
@@ -139,7 +151,7 @@ def test_sweep_clearance_bounds_the_whole_interpolation() -> None:
         x, y, heading = spine[rng.integers(8, len(spine))]
         side = (WIDTH / 2 + RADIUS + 0.005) * rng.choice((-1.0, 1.0))
         centre = (x - side * math.sin(heading), y + side * math.cos(heading))
-        fractions = np.linspace(0.0, 1.0, 8001)
+        fractions = np.linspace(0.0, 1.0, 6001)
         fine = min(
             float(
                 np.min(
@@ -163,6 +175,48 @@ def test_sweep_clearance_bounds_the_whole_interpolation() -> None:
         assert fine - SWEEP_TOLERANCE <= bound <= fine
 
 
+def test_sweep_speed_bounds_every_point_and_is_near_tight_for_one_bend() -> None:
+    def body(kappas: np.ndarray) -> np.ndarray:
+        spine = kinematics.backbone(kappas, LENGTHS, BASE, per_segment=16)
+        fingers = finger_points(GEOMETRY, tuple(spine[-1]), GEOMETRY.theta_open, samples=16)
+        return np.vstack((spine[:, :2], *fingers))
+
+    def fastest(a: np.ndarray, b: np.ndarray) -> float:
+        d = 1e-5
+        return max(
+            float(
+                np.max(np.linalg.norm(body(a + (s + d) * (b - a)) - body(a + s * (b - a)), axis=1))
+            )
+            / d
+            for s in np.linspace(0.0, 1.0 - 1e-5, 51)
+        )
+
+    rng = np.random.default_rng(9)
+    for _ in range(4):
+        a, b = rng.uniform(LOWER, UPPER, size=(2, 6))
+        assert fastest(a, b) <= sweep_speed(a, b, LENGTHS, GEOMETRY) * (1.0 + 1e-6)
+    # the first segment alone, from straight: everything turns about the base
+    bend = np.zeros(6)
+    bend[0] = 10.0
+    speed = sweep_speed(np.zeros(6), bend, LENGTHS, GEOMETRY)
+    assert 0.8 * speed <= fastest(np.zeros(6), bend) <= speed
+
+
+def test_ring_continues_round_the_circle_both_ways() -> None:
+    arm = _Arm.of(LENGTHS, BASE, LOWER, UPPER, GEOMETRY, WIDTH)
+    centre, standoff = (0.12, 0.2), 0.04
+    seed = arm.seed(centre, standoff, START)
+    assert seed is not None
+    ring = list(_ring(arm, centre, standoff, float(tip(seed)[2]), seed))
+    steps = [j for j, _, _ in ring]
+    assert min(steps) <= -2 and max(steps) >= 2 and len(set(steps)) == len(steps)
+    for j, heading, kappas in ring:
+        assert heading == pytest.approx(ring[0][1] + j * HEADING_STEP)
+        pose = tip_for_grasp(GEOMETRY, centre, heading, standoff)
+        assert np.allclose(tip(kappas)[:2], pose[:2], atol=1e-6)
+        assert math.remainder(tip(kappas)[2] - heading, 2 * math.pi) == pytest.approx(0, abs=1e-6)
+
+
 # ---------------------------------------------------------------------- approach
 
 
@@ -171,8 +225,9 @@ def test_approach_waypoints_lie_on_shrinking_circles_facing_the_centre(
     approaches: dict[str, GraspPlan], name: str
 ) -> None:
     plan = approaches[name]
-    centre, radius = np.array(CASES[name][0]), CASES[name][1]
-    radii = default_radii(radius, GEOMETRY) if CASES[name][3] is None else CASES[name][3]
+    centre_, radius, _, given = CASES[name]
+    centre = np.array(centre_)
+    radii = default_radii(radius, GEOMETRY) if given is None else given
     assert plan.radii == tuple(radii)
     assert set(radii) <= set(plan.standoffs)  # every circle is visited
     assert plan.standoffs[0] == radii[0] and plan.standoffs[-1] == 0.0
@@ -297,6 +352,25 @@ def test_carry_moves_the_grasp_point_along_the_line_to_the_place(
     assert math.remainder(headings[-1] - carry.heading, 2 * math.pi) == pytest.approx(0, abs=1e-5)
 
 
+def test_carry_turns_only_as_far_as_the_place_needs(
+    approaches: dict[str, GraspPlan], carry: GraspPlan
+) -> None:
+    grasp = approaches["right"].waypoints[-1]
+    free = plan_carry(PLACE, grasp[0], grasp[1][2], LENGTHS, BASE, LOWER, UPPER, GEOMETRY)
+    kappas, pose = free.waypoints[-1]
+    turn = pose[2] - grasp[1][2]
+    # the grid heading next nearer to the grasp heading is out of reach at the place
+    nearer = pose[2] - math.copysign(HEADING_STEP, turn)
+    assert abs(nearer - grasp[1][2]) < abs(turn)
+    target = tip_for_grasp(GEOMETRY, PLACE, nearer)
+    assert not solve_ik(target[:2], kappas, LENGTHS, BASE, LOWER, UPPER, heading=nearer).converged
+    # asked to leave room for the retreat, the carry turns further: from the nearest heading
+    # the gripper cannot back off
+    assert abs(carry.heading - grasp[1][2]) > abs(turn)
+    with pytest.raises(ValueError, match="is unreachable"):
+        plan_retreat(PLACE, RADIUS, kappas, pose[2], LENGTHS, BASE, LOWER, UPPER, GEOMETRY)
+
+
 def test_carry_keeps_the_heading_where_the_place_allows(approaches: dict[str, GraspPlan]) -> None:
     grasp = approaches["right"].waypoints[-1]
     heading = grasp[1][2]
@@ -312,13 +386,25 @@ def test_retreat_backs_off_along_the_axis_without_touching(carry: GraspPlan) -> 
         PLACE, RADIUS, release, pose[2], LENGTHS, BASE, LOWER, UPPER, GEOMETRY, width=WIDTH
     )
     outer = default_radii(RADIUS, GEOMETRY)[0]
-    assert plan.standoffs[-1] == outer and plan.radii[-1] == outer
+    assert plan.radii == default_radii(RADIUS, GEOMETRY)[::-1]
+    assert set(plan.radii[1:]) <= set(plan.standoffs) and plan.standoffs[-1] == outer
     assert all(b > a for a, b in zip((0.0,) + plan.standoffs, plan.standoffs, strict=False))
     for kappas, standoff in zip(plan.kappas, plan.standoffs, strict=True):
         actual = tip(kappas)
         assert np.allclose(actual[:2], tip_for_grasp(GEOMETRY, PLACE, pose[2], standoff)[:2])
         assert math.remainder(actual[2] - pose[2], 2 * math.pi) == pytest.approx(0, abs=1e-5)
     assert plan_clearance(plan, RADIUS) >= MARGIN <= plan.clearance
+
+
+def test_retreat_poses_take_the_configurations_heading_branch(carry: GraspPlan) -> None:
+    release, pose = carry.waypoints[-1]
+    plans = [
+        plan_retreat(PLACE, RADIUS, release, heading, LENGTHS, BASE, LOWER, UPPER, GEOMETRY)
+        for heading in (pose[2], pose[2] + 2 * math.pi)
+    ]
+    assert np.allclose(plans[0].kappas, plans[1].kappas)
+    for plan in plans:
+        assert np.allclose(plan.poses, [tip(k) for k in plan.kappas], atol=1e-6)
 
 
 # ---------------------------------------------------------------------- task draw
@@ -371,6 +457,13 @@ def test_drawn_objects_and_places_are_graspable_and_apart(seed: int) -> None:
     assert reaches_grasp_pose(place, -shrink, shrink)
     assert math.dist(centre, place) >= 0.06
     assert dense_clearance(START, centre, RADIUS) >= START_MARGIN
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_drawn_objects_keep_the_start_margin_from_the_arm(seed: int) -> None:
+    # drawn with no margin these seeds put the object 0.16 to 0.18 m from the straight arm
+    centre, _ = draw(seed, start_margin=0.2, plannable=False)
+    assert dense_clearance(START, centre, RADIUS) >= 0.2
 
 
 def test_draw_gives_up_after_its_attempts() -> None:
