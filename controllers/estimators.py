@@ -601,7 +601,9 @@ class ObjectTracker:
     """Kalman filters of the objects' centres from their camera markers: per object a
     random-walk position (process noise `drift` [m/sqrt(s)]: an object stays put unless the arm
     moves it) measured with the camera's marker noise, started at its first sighting; a marker
-    further than GATE standard deviations from the prediction is an outlier and is dropped."""
+    further than GATE standard deviations from the prediction is an outlier and is dropped,
+    unless REACQUIRE pictures in a row say so: then the object has moved (the arm carries it)
+    and the filter restarts at the marker."""
 
     GATE = 5.0  # Mahalanobis distance beyond which a marker is an outlier
 
@@ -611,6 +613,7 @@ class ObjectTracker:
         self.R = marker_std(camera) ** 2
         self.q = drift**2
         self.time = np.full(objects, np.nan)
+        self.rejected = np.zeros(objects, int)  # consecutive gated markers
 
     def update(self, points: np.ndarray, exposure: float) -> int:
         """Fuse one picture's object markers (shape (objects, 2), NaN where unseen); returns the
@@ -619,15 +622,18 @@ class ObjectTracker:
         for o, z in enumerate(points):
             if np.isnan(z).any():
                 continue
-            if np.isnan(self.time[o]):
+            if np.isnan(self.time[o]) or self.rejected[o] + 1 >= REACQUIRE:
                 self.x[o], self.P[o], self.time[o] = z, self.R, exposure
+                self.rejected[o] = 0
                 continue
             P = self.P[o] + self.q * max(exposure - self.time[o], 0.0)
             S = P + self.R
             innovation = z - self.x[o]
             if float(innovation @ innovation) / S > self.GATE**2:
                 gated += 1
+                self.rejected[o] += 1
                 continue
+            self.rejected[o] = 0
             gain = P / S
             self.x[o] = self.x[o] + gain * innovation
             self.P[o], self.time[o] = (1.0 - gain) * P, exposure

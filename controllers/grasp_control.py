@@ -17,12 +17,13 @@ camera marker (controllers.estimators.ObjectTracker). Stages, each reported in T
   7. moving (retreat): the gripper backs off along its axis out of the object's way
      (plan_retreat); then done, holding the last configuration.
 Invariant: every curvature reference stays within the plan's bounds and its rate within each
-drive's (CurvatureMove), and the gripper's setpoint is always one of its three pistons.
+drive's (CurvatureMove), and the gripper's setpoint only ramps between its three pistons.
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping
+from types import SimpleNamespace
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -39,7 +40,19 @@ if TYPE_CHECKING:
     from controllers.node import ControllerConfig
 
 LEGS = ("approach", "carry", "retreat")
-CORRECTION_LIMIT = 0.03  # [m] bound of the integrated task-space correction while settling
+CORRECTION_LIMIT = 0.04  # [m] bound of the integrated task-space correction while settling (a held
+# object sits up to a centimetre off the nominal grasp point, and the estimate carries a bias
+# of a centimetre or two under its load)
+# [m] the correction integrates only while the estimated tip is this close to the goal: further
+# off, the arm is still on its way and integrating would wind the correction up (as
+# controllers.task_space does)
+WINDUP_LIMIT = 0.005
+ARRIVAL_TIME = 1.0  # [s] settling this long, the arm has arrived however biased its estimate
+# [m/rad] the settling IK weighs the gripper's heading lightly: the object is a disk, a few
+# degrees of heading cost nothing, a few millimetres of position can make the fingers miss
+HEADING_WEIGHT = 0.005
+RETREAT_STEP = 0.005  # [m] between the warm-started poses of a straight retreat
+STROKE_SHARE = 0.5  # of grasp_time the fingers' closing or opening stroke is spread over
 
 
 class GraspControl:
@@ -66,6 +79,8 @@ class GraspControl:
         self.waypoint = 0
         self.move: CurvatureMove | None = None
         self.setpoint = self.gripper.x_start  # the gripper drive's piston setpoint [m]
+        self.stroke_from = self.gripper.x_start  # where its current stroke began [m]
+        self.stroke_start = 0.0  # when [s]
         self.heading = 0.0  # the gripper's approach heading [rad]
         self.target = np.array(self.plan.targets[0], float)  # where the object is to go
         self.found: np.ndarray | None = None  # the object's estimated centre when planned
@@ -91,7 +106,7 @@ class GraspControl:
                 return self._hold(cycle, estimate, drives)
         self._advance(t, kappa)
         frames = self.curvature.command(cycle, self.reference, estimate, drives)
-        frames.append(DriveCommand(self.gripper.node, self.setpoint, True, cycle))
+        frames.append(DriveCommand(self.gripper.node, self._gripper_piston(t), True, cycle))
         point = self._reference_point()
         frames.append(
             TaskState(self.leg, self.phase, float(point[0]), float(point[1]), cycle % 256)
@@ -115,6 +130,21 @@ class GraspControl:
             TaskState(0, PHASE["idle"], float(self.target[0]), float(self.target[1]), cycle % 256)
         )
         return frames
+
+    def _gripper_piston(self, t: float) -> float:
+        """The gripper's piston setpoint now: its strokes are ramps over STROKE_SHARE of
+        grasp_time (trapezoidal), so closing fingers centre an object they reach off-centre
+        instead of knocking it away."""
+        from controllers.tasks import trapezoid_fraction
+
+        duration = STROKE_SHARE * self.plan.grasp_time
+        share = trapezoid_fraction(t - self.stroke_start, duration, 0.25 * duration)
+        return self.stroke_from + (self.setpoint - self.stroke_from) * share
+
+    def _stroke(self, t: float, to: float) -> None:
+        self.stroke_from = self._gripper_piston(t)
+        self.stroke_start = t
+        self.setpoint = to
 
     def _reference_point(self) -> np.ndarray:
         """Where the plan holds the object's centre now: the grasp point of the current
@@ -156,9 +186,10 @@ class GraspControl:
         elif self.phase == PHASE["releasing"] and waited >= self.plan.grasp_time:
             self.leg = 2
             # back off from where the camera sees the released object; just released, it may
-            # sit closer to a finger than the plan's margin: then plan without one
+            # still touch the palm or a finger: then plan with less margin, down to a few
+            # millimetres of overlap (the retreat only backs away from it)
             where = (float(self.seen[0]), float(self.seen[1]))
-            for margin in (grasp.MARGIN, 0.0):
+            for margin in (grasp.MARGIN,):
                 try:
                     retreat = grasp.plan_retreat(
                         where,
@@ -176,7 +207,31 @@ class GraspControl:
                     continue
                 self._follow(t, retreat)
                 return
-            self._enter(t, PHASE["done"])  # no clear way back: stay, released
+            # still touching it (pressed into the palm): straight back along the gripper's axis
+            # to the outer circle, in warm-started steps
+            outer = grasp.default_radii(self.plan.object_radius, self.gripper.geometry)[0]
+            x, y, heading = kinematics.forward(self.reference, self.lengths, self.base)[-1]
+            waypoints, previous = [], self.reference
+            for standoff in np.arange(RETREAT_STEP, outer + 1e-9, RETREAT_STEP):
+                back = float(standoff)
+                pose = (x - back * np.cos(heading), y - back * np.sin(heading), float(heading))
+                result = solve_ik(
+                    np.array(pose[:2]),
+                    previous,
+                    self.lengths,
+                    self.base,
+                    self.lower,
+                    self.upper,
+                    heading=pose[2],
+                )
+                if not result.converged:
+                    break
+                waypoints.append((result.kappas, pose))
+                previous = result.kappas
+            if waypoints:
+                self._follow(t, SimpleNamespace(waypoints=waypoints))
+            else:
+                self._enter(t, PHASE["done"])  # no way back: stay, released
 
     def _approach(self, t: float, kappa: np.ndarray, centre: np.ndarray) -> None:
         self.found = centre.copy()
@@ -193,7 +248,7 @@ class GraspControl:
             self.gripper.geometry,
         )
         self.heading = approach.heading
-        self.setpoint = self.gripper.x_open
+        self._stroke(t, self.gripper.x_open)
         self._follow(t, approach)
 
     def _follow(self, t: float, plan: Any) -> None:
@@ -226,12 +281,20 @@ class GraspControl:
         does."""
         _, pose = self.waypoints[-1] if self.waypoints else (None, None)
         tip = kinematics.forward(kappa, self.lengths, self.base)[-1, :2]
+        error = np.zeros(2)
         if pose is not None and self.leg < 2:
-            error = np.array(pose[:2]) - tip
-            self.correction += self.plan.task_gain * self.config.control_period * error
-            norm = float(np.linalg.norm(self.correction))
-            if norm > CORRECTION_LIMIT:
-                self.correction *= CORRECTION_LIMIT / norm
+            # carrying, the camera sees where the object is (it sits a few millimetres off the
+            # nominal grasp point, pressed into the palm): close the loop on it; else on the tip
+            error = self.target - self.seen if self.leg == 1 else np.array(pose[:2]) - tip
+            lag = np.array(pose[:2]) + self.correction - tip
+            # integrate once the arm has caught up; under a load the estimate may keep a bias
+            # of a centimetre or two, so after ARRIVAL_TIME in any case
+            arrived = t - self.since >= ARRIVAL_TIME
+            if float(np.linalg.norm(lag)) <= WINDUP_LIMIT or arrived:
+                self.correction += self.plan.task_gain * self.config.control_period * error
+                norm = float(np.linalg.norm(self.correction))
+                if norm > CORRECTION_LIMIT:
+                    self.correction *= CORRECTION_LIMIT / norm
             result = solve_ik(
                 np.array(pose[:2]) + self.correction,
                 self.solution,
@@ -240,6 +303,7 @@ class GraspControl:
                 self.lower,
                 self.upper,
                 heading=pose[2],
+                heading_weight=HEADING_WEIGHT,
                 max_iter=5,
             )
             self.solution = result.kappas
@@ -249,7 +313,7 @@ class GraspControl:
                 self.lower,
                 self.upper,
             )
-        on_target = pose is None or np.linalg.norm(tip - np.array(pose[:2])) <= self.plan.tolerance
+        on_target = pose is None or float(np.linalg.norm(error)) <= self.plan.tolerance
         if on_target:
             if self.on_target_since is None:
                 self.on_target_since = t
@@ -262,10 +326,10 @@ class GraspControl:
         if not settled and t - self.since < self.plan.max_time:
             return
         if self.leg == 0:
-            self.setpoint = self.gripper.x_closed
+            self._stroke(t, self.gripper.x_closed)
             self._enter(t, PHASE["grasping"])
         elif self.leg == 1:
-            self.setpoint = self.gripper.x_open
+            self._stroke(t, self.gripper.x_open)
             self._enter(t, PHASE["releasing"])
         else:
             self._enter(t, PHASE["done"])

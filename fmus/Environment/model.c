@@ -67,6 +67,18 @@
  * at most 1.2 % of the impact's elastic energy for a few steps before the controller takes it
  * back.
  *
+ * Objects in the coupling (a known artefact): the arm is predicted H ahead, the objects are held
+ * where they are, so a carried object is also an obstacle the predicted arm runs into: a drag of
+ * about k H v per contact at the hand's speed v, which vanishes at rest (measured: 0.02 N m on
+ * the base of an arm creeping at 3 cm/s with a 5 g object, most of a segment's torque; the arm
+ * gets there, slower). Four cures were tried and each was unstable: predicting the objects at
+ * their velocity (a squeezed object's velocity answers the contact within a step, loop gain
+ * ~ k H h / m per contact, about 1 for 5 g), at their velocity low-passed over 20 ms, or rigidly
+ * with the hand when both fingers hold them (the object's inertia then reaches the arm through
+ * its lag only, an explicit coupling of gain k |J|^2 h / d ~ 20 at the base), and leaving the
+ * objects' contact explicit (closing fingers hit an object with 30 N). The consistent cure
+ * solves the objects' velocities in the same implicit system as the arm's torques.
+ *
  * Objects: disks (x, y, yaw) pushed by the arm and stopped by the walls and by table friction
  * (exact Coulomb: a velocity update that may stop but never reverse the motion, torque limit
  * 2/3 mu m g R for uniform pressure), integrated by semi-implicit Euler in substeps (stable below
@@ -855,6 +867,7 @@ fmi2Status model_outputs(Instance *inst) {
         VI(inst, object_tilt, o) = s->tilt[o][0];
     }
     V(inst, contact_impulse) = s->impulse;
+    V(inst, passivity_damping) = s->beta;
     V(inst, E_contact) = now.elastic + object_wall_elastic(inst, s);
     V(inst, E_kinetic) = kinetic_energy(inst, s);
     V(inst, E_dissipated) = s->E_diss;

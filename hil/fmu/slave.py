@@ -162,7 +162,9 @@ class FmuSlave:
         try:
             return method(*args, **kwargs)
         except (FMICallException, Exception) as exc:
-            said = "; ".join(self.messages[before:]) or str(exc)
+            said = "; ".join(self.messages[before:])
+            if not said:  # the FMU said why in an earlier call (e.g. a lazy initialisation)
+                said = f"{exc} (it last said: {self.messages[-1]})" if self.messages else str(exc)
             raise FmuError(
                 f"{self.instance_name} ({self.model_name}): {function} failed: {said}"
             ) from exc

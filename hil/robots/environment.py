@@ -175,6 +175,12 @@ def signals(scenario: Scenario) -> list[SignalSpec]:
             source="environment.E_dissipated",
         ),
         SignalSpec(
+            "passivity_damping",
+            "N.m.s/rad",
+            "damping the environment's passivity controller adds to every degree of freedom",
+            source="environment.passivity_damping",
+        ),
+        SignalSpec(
             "W_arm_env",
             "J",
             "work of the environment's torques on the arm",

@@ -32,16 +32,18 @@ if TYPE_CHECKING:
 SEGMENT_FMU, CYLINDER_FMU = "FeaSegment", "DriveCylinder"
 # [estimate] The finger pair as one actuator (sums of two fingers of 4 g, 40 mm): free, the pair
 # curls to 1 rad at 36 mm of piston travel and to its 1.4 rad limit at full stroke; blocked on
-# an object at 0.5 rad with the piston at the 1.2 rad setting it presses with ~0.15 N per finger.
+# an object at 0.6 rad with the piston at the 1.35 rad setting it squeezes with ~0.016 N m,
+# about 0.25 N per finger (a held 5 g object drags 0.015 N of table friction).
 GRIPPER_SEGMENT: dict[str, float] = {
     "length": 0.04,
     "mass": 0.008,
-    "k_bend": 0.01,
-    "d_bend": 2e-3,
-    "G_a": 2.5e-7,
+    "k_bend": 0.02,
+    "d_bend": 4e-3,
+    "G_a": 5e-7,
     "V_ch0": 3e-6,
     "C_a": 5e-11,
     "theta_max": 1.4,
+    "substep": 2.5e-4,  # the light finger pair's bending mode is stable below 4e-4 s
 }
 GEOMETRY_KEYS = tuple(f.name for f in dataclasses.fields(GripperGeometry))
 OWN_TABLES = ("segment", "cylinder")
