@@ -230,8 +230,12 @@ class CameraNode:
         marker_model: MarkerModel,
         latency_ticks: int,
         camera: Camera,
+        field: tuple[tuple[float, float], tuple[float, float]] | None = None,
     ) -> None:
         self._inputs = list(inputs)
+        # the field of view ((x min, x max), (y min, y max)) [m]: a marker outside it is not seen
+        # (the DBC's marker frames carry no more), as a real camera loses what leaves its image
+        self.field = field
         self.marker_model = marker_model
         self.camera = camera
         self.period_ticks = camera.period_ticks
@@ -273,6 +277,14 @@ class CameraNode:
             self.frame_index, self.frame_index * self.period_ticks
         )
 
+    def _in_view(self, point: np.ndarray) -> bool:
+        if np.isnan(point).any():
+            return False
+        if self.field is None:
+            return True
+        (x_lo, x_hi), (y_lo, y_hi) = self.field
+        return bool(x_lo <= point[0] <= x_hi and y_lo <= point[1] <= y_hi)
+
     def accepts(self, frame: Frame) -> bool:
         return False
 
@@ -287,7 +299,7 @@ class CameraNode:
             _, picture = self.queue.popleft()
             index, points = picture.frame_index, picture.points
             offset = (sync.tick - picture.exposure_tick) * self.macro_step
-            seen = [m for m in range(len(points)) if not np.isnan(points[m]).any()]
+            seen = [m for m in range(len(points)) if self._in_view(points[m])]
             mask = sum(1 << m for m in seen)
             frames.append((MEASUREMENT, CameraFrame(index, offset, mask, len(seen))))
             for m in seen:

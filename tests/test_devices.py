@@ -442,3 +442,14 @@ def test_camera_noise_is_seeded_and_zero_noise_is_exact() -> None:
     assert points(1e-3, 1) == points(1e-3, 1)
     assert points(1e-3, 1) != points(1e-3, 2)
     assert 0 < np.max(np.abs(np.subtract(points(1e-3, 1), exact))) < 5e-3
+
+
+def test_a_marker_outside_the_field_of_view_is_not_seen() -> None:
+    # marker 0 walks out along x (k mm at tick k), marker 1 stays at x = 0.1 m
+    model = Camera(CameraEffects(), np.random.default_rng(0), 5e-3, 1e-3)
+    node = CameraNode(["kappa_1"], marker_model, 0, model, field=((-0.02, 0.02), (-1.0, 1.0)))
+    delivered = run_camera(node, ticks=40, ticks_per_sync=5)
+    seen = {tick: [m.marker_id for m in markers] for tick, markers in delivered if markers}
+    assert seen[20] == [0]
+    assert all(ids == [0] for tick, ids in seen.items() if tick <= 20)  # 0.1 m is out: never 1
+    assert all(0 not in ids for tick, ids in seen.items() if tick > 20)  # x > 0.02 m: 0 is gone

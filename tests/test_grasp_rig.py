@@ -30,7 +30,7 @@ def write(tmp_path: Path, text: str) -> Path:
 @pytest.fixture(scope="module")
 def approach_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict, dict, Path]:
     tmp = tmp_path_factory.mktemp("grasp")
-    text = GRASP.replace("duration = 16.0", "duration = 2.5")
+    text = GRASP.replace("duration = 30.0", "duration = 2.5")
     scenario = load_scenario(write(tmp, text))
     summary = run_scenario(scenario, RunOptions(out=tmp / "run", inprocess=True, progress=False))
     return summary.summary, read_signals(tmp / "run" / "signals.csv"), tmp / "run"

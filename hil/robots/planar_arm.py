@@ -538,6 +538,10 @@ class PlanarArm:
             marker_model,
             scenario.latency_ticks,
             scenario_camera(scenario),
+            field=(
+                Protocol().signal_range("CameraMarker0", "x"),
+                Protocol().signal_range("CameraMarker0", "y"),
+            ),
         )
         fmus: list[FmuParticipant] = []
         connections: dict[str, Connection] = {}
