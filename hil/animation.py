@@ -2,11 +2,11 @@
 frames as a GIF (matplotlib's PillowWriter) or an MP4 (its FFMpegWriter, with ffmpeg on PATH).
 
 What a frame shows is the robot kind's business (`Rig.animation`); this module knows no robot.
-Invariants: frames are at most MAX_FPS apart in simulated time and at most MAX_FRAMES in all, so
-any run renders in seconds; the playback runs at the simulated speed (the frames' spacing in
-simulated time is their spacing on screen), so a time stamp in the frame reads true; the file is
-written whole or not at all (`hil.results.write_file`); the figure is drawn by Agg, never by an
-interactive backend.
+Invariants: frames are evenly spaced, at least 1 / MAX_FPS apart in simulated time and at most
+MAX_FRAMES in all, so any run renders in seconds; the playback runs at the simulated speed (the
+frames' spacing in simulated time is their spacing on screen), so a time stamp in the frame reads
+true; the file is written whole or not at all (`hil.results.write_file`); the figure is drawn by
+Agg, never by an interactive backend.
 """
 
 from __future__ import annotations
@@ -31,6 +31,7 @@ FORMATS = ("gif", "mp4")
 MAX_FPS = 15.0  # [1/s of simulated time]: finer steps are invisible at a GIF's frame rate
 MAX_FRAMES = 300  # any duration: a 20 s run at 15 fps fits, a longer one is subsampled
 DPI = 80
+FIGURE_WIDTH = 6.4  # [in] at DPI: 512 pixels
 
 
 def check_format(fmt: str) -> None:
@@ -48,26 +49,32 @@ def check_format(fmt: str) -> None:
 def frame_rows(
     time: np.ndarray, max_fps: float = MAX_FPS, max_frames: int = MAX_FRAMES
 ) -> np.ndarray:
-    """The recorded rows drawn as frames: evenly spread from the first row to the last, as many
-    as the span allows at `max_fps` (the first frame at the start, so floor(span max_fps) + 1),
-    at most `max_frames` and at most every row.
+    """The recorded rows drawn as frames: every `stride`-th row from the first, the stride the
+    smallest whole number of rows that keeps frames at least 1 / `max_fps` apart in simulated
+    time and at most `max_frames` in all. A whole stride keeps the frames evenly spaced, so the
+    animation plays at one frame rate; the last frame is less than a stride before the end.
 
     Parameters
     ----------
     time : ndarray, shape (rows,)
         Recorded times [s], increasing and evenly spaced (one row per SYNC).
+    max_fps : float
+        Most frames per second of simulated time [1/s].
+    max_frames : int
+        Most frames, for any duration.
 
     Returns
     -------
     ndarray of int, shape (frames,)
-        Row indices, increasing, first 0 and last rows - 1 (none for no rows).
+        Row indices, increasing, the first 0.
     """
     rows = int(np.asarray(time).size)
-    if rows == 0:
-        return np.zeros(0, dtype=int)
-    span = float(time[-1] - time[0])
-    count = min(max_frames, rows, math.floor(span * max_fps + 1e-9) + 1)
-    return np.round(np.linspace(0, rows - 1, count)).astype(int)
+    if rows < 2:
+        return np.arange(rows)
+    step = float(time[-1] - time[0]) / (rows - 1)
+    by_rate = math.ceil(1.0 / (max_fps * step) - 1e-9) if step > 0 else 1
+    by_count = math.ceil((rows - 1) / max(max_frames - 1, 1) - 1e-9)
+    return np.arange(0, rows, max(1, by_rate, by_count))
 
 
 def playback_fps(time: np.ndarray, rows: np.ndarray) -> float:
@@ -75,6 +82,16 @@ def playback_fps(time: np.ndarray, rows: np.ndarray) -> float:
     if rows.size < 2:
         return 1.0
     return float((rows.size - 1) / (time[rows[-1]] - time[rows[0]]))
+
+
+def figure_size(low: np.ndarray, high: np.ndarray) -> tuple[float, float]:
+    """Width and height [in] of a figure showing the box from `low` to `high` (x, y [m]) at
+    equal scales, with room for the axes' labels and a legend below: FIGURE_WIDTH wide for a
+    wide box, as tall for a tall one."""
+    aspect = float((high[1] - low[1]) / (high[0] - low[0]))  # height to width
+    width = FIGURE_WIDTH if aspect <= 1.0 else max(3.5, FIGURE_WIDTH / aspect + 1.0)
+    height = min(FIGURE_WIDTH + 1.5, max(2.4, (width - 1.0) * aspect + 1.5))
+    return width, height
 
 
 def write_animation(

@@ -250,6 +250,9 @@ RESULT_FILES = (
     "arm.png",
     "arm.gif",
     "arm.mp4",
+    "fish.png",
+    "fish.gif",
+    "fish.mp4",
 )
 
 

@@ -24,7 +24,7 @@ import numpy as np
 
 from controllers import kinematics
 from controllers.gripper import GripperGeometry, finger_points
-from hil.animation import DPI, frame_rows, playback_fps, write_animation
+from hil.animation import DPI, figure_size, frame_rows, playback_fps, write_animation
 from hil.robots import environment
 
 if TYPE_CHECKING:
@@ -34,7 +34,6 @@ if TYPE_CHECKING:
 
 BACKBONE_POINTS = 8  # per segment: smooth enough at this size
 MARGIN = 0.02  # [m] around everything drawn
-FIGURE_WIDTH = 6.4  # [in] of a wide scene; a tall one keeps this height
 
 
 @dataclass(frozen=True)
@@ -143,10 +142,7 @@ def _figure(
     from matplotlib.patches import Circle
 
     low, high = _bounds(scene, frames, tips)
-    aspect = (high[1] - low[1]) / (high[0] - low[0])  # of the scene, height to width
-    width = FIGURE_WIDTH if aspect <= 1.0 else max(3.5, FIGURE_WIDTH / aspect + 1.0)
-    height = min(FIGURE_WIDTH + 1.5, max(3.5, (width - 1.0) * aspect + 1.5))
-    fig = Figure(figsize=(width, height), dpi=DPI, layout="constrained")
+    fig = Figure(figsize=figure_size(low, high), dpi=DPI, layout="constrained")
     ax = fig.add_subplot()
     for k, wall in enumerate(scene.walls):
         ax.plot(
