@@ -132,9 +132,9 @@ def write_animation(
     write_file(path, data)
 
 
-def _canvas_rgba(fig: Figure) -> tuple[tuple[int, int], memoryview]:
-    canvas = fig.canvas
-    return canvas.get_width_height(), canvas.buffer_rgba()  # type: ignore[attr-defined]
+def _canvas_rgba(fig: Figure) -> np.ndarray:
+    """The canvas's pixels as drawn so far, shape (height, width, 4), uint8 (a view)."""
+    return np.asarray(fig.canvas.buffer_rgba())  # type: ignore[attr-defined]
 
 
 def _writer(fmt: str, fps: float, colours: Sequence[tuple[float, float, float]]) -> Any:
@@ -145,22 +145,28 @@ def _writer(fmt: str, fps: float, colours: Sequence[tuple[float, float, float]])
     from matplotlib.animation import FFMpegWriter, PillowWriter
     from PIL import Image
 
+    # both keep matplotlib's own setup and finish; grab_frame hands them the canvas's pixels
+    # where matplotlib's keeps them (PillowWriter._frames, MovieWriter._proc: matplotlib >= 3.1)
     class GifWriter(PillowWriter):
         palette: Any = None
 
         def grab_frame(self, **savefig_kwargs: Any) -> None:
-            size, rgba = _canvas_rgba(self.fig)
-            image = Image.frombuffer("RGBA", size, rgba, "raw", "RGBA", 0, 1).convert("RGB")
+            image = Image.fromarray(_canvas_rgba(self.fig)[:, :, :3])  # a copy, RGB
             if self.palette is None:  # one palette for every frame: 1 ms a frame, not 40
                 self.palette = _palette(image, colours)
-            self._frames.append(image.quantize(palette=self.palette, dither=Image.Dither.NONE))
+            frame = image.quantize(palette=self.palette, dither=Image.Dither.NONE)
+            self._frames.append(frame)  # type: ignore[attr-defined]
 
     class Mp4Writer(FFMpegWriter):
         def grab_frame(self, **savefig_kwargs: Any) -> None:
-            _, rgba = _canvas_rgba(self.fig)
-            self._proc.stdin.write(rgba)  # frame_format "rgba", as savefig would write it
+            # frame_format "rgba", the bytes savefig would write
+            self._proc.stdin.write(_canvas_rgba(self.fig).tobytes())  # type: ignore[attr-defined]
 
-    return GifWriter(fps=fps) if fmt == "gif" else Mp4Writer(fps=fps)
+    # fps: a float plays at the simulated speed (matplotlib's stubs say int; both writers take
+    # any rate: Pillow's frame duration 1000 / fps ms, ffmpeg's -r)
+    if fmt == "gif":
+        return GifWriter(fps=fps)  # type: ignore[arg-type]
+    return Mp4Writer(fps=fps)  # type: ignore[arg-type]
 
 
 def _colours(artists: Sequence[Artist]) -> list[tuple[float, float, float]]:

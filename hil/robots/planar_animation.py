@@ -157,8 +157,8 @@ def _figure(
         ax.plot([], [], "-", color="tab:green", lw=2.5, label=None if i else "fingers")[0]
         for i in range(max(len(f.fingers) for f in frames))
     ]
-    disks = [
-        ax.add_patch(
+    disks: list[Circle] = [
+        ax.add_patch(  # type: ignore[misc]
             Circle(
                 (np.nan, np.nan), 0.0, color="tab:orange", alpha=0.7, label=None if o else "objects"
             )
