@@ -54,7 +54,17 @@ def times(duration: float, step: float) -> np.ndarray:
 
 @pytest.mark.parametrize(
     ("duration", "step"),
-    [(1.0, 0.01), (20.0, 0.01), (100.0, 0.01), (2.0, 0.002), (0.05, 0.01), (2.0, 1.0), (0.0, 0.01)],
+    [
+        (1.0, 0.01),
+        (20.0, 0.01),
+        (100.0, 0.01),
+        (2.0, 0.002),
+        (0.05, 0.01),
+        (2.0, 1.0),
+        (0.0, 0.01),
+        (299.0, 1.0),  # 300 rows, the rate no limit: every row
+        (300.0, 1.0),  # 301 rows: every other one
+    ],
 )
 def test_frames_are_evenly_spaced_within_the_rate_and_the_count(
     duration: float, step: float
@@ -80,6 +90,19 @@ def test_a_twenty_second_run_has_286_frames_seven_rows_apart() -> None:
     """100 Hz rows, 15 fps: a stride of ceil(6.67) = 7 rows; 2001 rows -> 286 frames (< 300)."""
     rows = frame_rows(times(20.0, 0.01))
     assert rows.size == 286 and rows[1] == 7
+
+
+def test_the_gif_palette_holds_colours_the_first_frame_lacks() -> None:
+    """Frames share the first frame's palette: a colour drawn only later (fingers that close
+    once the gripper lands) must be in it too, with its antialiasing blends."""
+    from hil.animation import _palette
+
+    palette = _palette(Image.new("RGB", (64, 64), "white"), [tuple(GREEN / 255)])
+    later = np.full((4, 4, 3), 255, dtype=np.uint8)
+    later[:2] = GREEN
+    later[2] = (0.5 * GREEN + 0.5 * 255).round()  # a line's edge blended into white
+    shown = Image.fromarray(later).quantize(palette=palette, dither=Image.Dither.NONE)
+    assert np.abs(np.asarray(shown.convert("RGB"), dtype=float) - later).max() < 12
 
 
 # ---------------------------------------------------------------------- the planar arm's frames
