@@ -163,13 +163,13 @@ def colour_mask(image: Image.Image, colour: np.ndarray, tolerance: float = 30.0)
 def test_the_gif_shows_each_frame_at_the_simulated_speed(pipe, tmp_path: Path) -> None:  # noqa: ANN001
     """Frames as frame_rows picks them; the object drawn where it was recorded (its pixels move
     right as it does); the fingers drawn exactly while their bend angle is recorded."""
-    signals = arm_signals(2.0, gripper_from=1.0)
+    signals = arm_signals(1.0, gripper_from=0.5)
     path = tmp_path / "arm.gif"
     animate_arm(ROBOT, pipe, signals, path, "gif")
     rows = frame_rows(signals["time"])
     with Image.open(path) as gif:
         assert gif.format == "GIF"
-        assert gif.n_frames == rows.size == 29
+        assert gif.n_frames == rows.size == 15
         assert gif.info["duration"] == 70  # ms: 7 rows of 10 ms
         centroids, fingers = [], []
         for k in range(gif.n_frames):
@@ -181,7 +181,7 @@ def test_the_gif_shows_each_frame_at_the_simulated_speed(pipe, tmp_path: Path) -
     assert np.corrcoef(signals["object1_x"][rows], centroids)[0, 1] > 0.99
     assert centroids[-1] - centroids[0] > 30  # pixels: 5 cm of the ~50 cm wide view
     legend = min(fingers)  # the legend's green line: in every frame
-    recorded = signals["time"][rows] >= 1.0
+    recorded = signals["time"][rows] >= 0.5
     assert all(f > legend + 50 for f, r in zip(fingers, recorded, strict=True) if r)
     assert all(f == legend for f, r in zip(fingers, recorded, strict=True) if not r)
 
