@@ -62,6 +62,7 @@ class Estimate:
     kappa_std: np.ndarray
     gated: int = 0  # camera measurements rejected as outliers in this update
     measured: int = 0  # camera measurements accepted in this update
+    objects: np.ndarray | None = None  # estimated object centres, shape (k, 2) [m] (NaN: unseen)
 
 
 @dataclass(frozen=True)

@@ -27,6 +27,7 @@ Invariant: an estimate depends only on the sequence of `update` calls (bit-ident
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
@@ -47,6 +48,9 @@ from controllers.estimation import (
 from controllers.kinematics import curvatures_from_markers
 
 GATE_PROBABILITY = 0.999  # chi-square quantile of the outlier gate
+# consecutive gated measurements of a segment after which the filter re-acquires it: outliers
+# come one at a time (0.1 % of markers), a model that has lost the arm is gated every picture
+REACQUIRE = 5
 PRESSURE_QUANTUM = 10.0  # [Pa] DriveStatus p_a, p_b scale (softhil.dbc)
 MARKER_QUANTUM = 2e-5  # [m] CameraMarker x, y scale (softhil.dbc)
 TABLE_FRICTION = 0.3  # Coulomb coefficient of an elastomer on the table (PHYSICS.md section 2)
@@ -311,6 +315,7 @@ class SegmentKalmanEstimator(_LatencyFilter):
         super().__init__(bends, base, camera, control_period, latency_compensation, torque_std)
         self.filters = [KalmanFilter(dim_x=2, dim_z=1) for _ in self.bends]
         self.gate = float(chi2.ppf(GATE_PROBABILITY, 1))
+        self.rejected = np.zeros(self.segments, int)  # consecutive gated measurements
 
     def _initial(self) -> tuple[np.ndarray, np.ndarray]:
         var_theta, var_omega = self._initial_variances()
@@ -350,9 +355,17 @@ class SegmentKalmanEstimator(_LatencyFilter):
                 H = np.array([[1.0 / length, 0.0]])
                 S = float((H @ P[i] @ H.T)[0, 0]) + R
                 y = z - x[i, 0] / length
-                if y * y / S > self.gate:
+                if y * y / S > self.gate and self.rejected[i] + 1 < REACQUIRE:
                     gated += 1
+                    self.rejected[i] += 1
                 else:
+                    if self.rejected[i] + 1 >= REACQUIRE and y * y / S > self.gate:
+                        # the model has lost the segment (a load it does not know, such as a
+                        # held object): forget the prior and take the camera's word again
+                        var_theta, var_omega = self._initial_variances()
+                        P[i] = P[i] + np.diag([var_theta[i], var_omega[i]])
+                        S = float((H @ P[i] @ H.T)[0, 0]) + R
+                    self.rejected[i] = 0
                     kf.x, kf.P = x[i].reshape(2, 1), P[i]
                     kf.update(np.array([[z]]), R=np.array([[R]]), H=H)
                     x[i], P[i] = kf.x.ravel(), kf.P
@@ -582,3 +595,64 @@ def run_offline(
         np.array([e.gated for e in estimates], dtype=int),
         np.array([e.measured for e in estimates], dtype=int),
     )
+
+
+class ObjectTracker:
+    """Kalman filters of the objects' centres from their camera markers: per object a
+    random-walk position (process noise `drift` [m/sqrt(s)]: an object stays put unless the arm
+    moves it) measured with the camera's marker noise, started at its first sighting; a marker
+    further than GATE standard deviations from the prediction is an outlier and is dropped."""
+
+    GATE = 5.0  # Mahalanobis distance beyond which a marker is an outlier
+
+    def __init__(self, objects: int, camera: CameraNoise, drift: float = 2e-3) -> None:
+        self.x = np.full((objects, 2), np.nan)
+        self.P = np.full(objects, np.inf)  # isotropic variance [m^2]
+        self.R = marker_std(camera) ** 2
+        self.q = drift**2
+        self.time = np.full(objects, np.nan)
+
+    def update(self, points: np.ndarray, exposure: float) -> int:
+        """Fuse one picture's object markers (shape (objects, 2), NaN where unseen); returns the
+        number of outliers rejected."""
+        gated = 0
+        for o, z in enumerate(points):
+            if np.isnan(z).any():
+                continue
+            if np.isnan(self.time[o]):
+                self.x[o], self.P[o], self.time[o] = z, self.R, exposure
+                continue
+            P = self.P[o] + self.q * max(exposure - self.time[o], 0.0)
+            S = P + self.R
+            innovation = z - self.x[o]
+            if float(innovation @ innovation) / S > self.GATE**2:
+                gated += 1
+                continue
+            gain = P / S
+            self.x[o] = self.x[o] + gain * innovation
+            self.P[o], self.time[o] = (1.0 - gain) * P, exposure
+        return gated
+
+
+class WithObjects:
+    """An arm estimator plus an ObjectTracker: the arm's markers (the first `markers` of each
+    picture) go to the arm's estimator, the rest to the tracker; the estimate carries both."""
+
+    def __init__(self, arm: Estimator, markers: int, tracker: ObjectTracker) -> None:
+        self.arm, self.markers, self.tracker = arm, markers, tracker
+        self.name = arm.name
+
+    def update(
+        self, t: float, drives: Mapping[int, DriveReading], frames: Sequence[MarkerFrame]
+    ) -> Estimate:
+        gated = 0
+        for frame in frames:
+            gated += self.tracker.update(frame.points[self.markers :], frame.exposure_time)
+        arm_frames = [
+            MarkerFrame(exposure_time=f.exposure_time, points=f.points[: self.markers])
+            for f in frames
+        ]
+        estimate = self.arm.update(t, drives, arm_frames)
+        return dataclasses.replace(
+            estimate, objects=self.tracker.x.copy(), gated=estimate.gated + gated
+        )

@@ -37,6 +37,7 @@ from controllers.estimation import (
     Estimator,
     MarkerFrame,
 )
+from controllers.gripper import GripperGeometry
 from controllers.protocol import (
     COUNTER_MODULO,
     CameraFrame,
@@ -88,6 +89,17 @@ class CameraTiming:
 
 
 @dataclass(frozen=True)
+class GripperConfig:
+    """The gripper's drive (node) and the piston positions [m] that start, open and close it."""
+
+    node: int
+    x_start: float
+    x_open: float
+    x_closed: float
+    geometry: GripperGeometry = GripperGeometry()
+
+
+@dataclass(frozen=True)
 class ControllerConfig:
     """Everything the planar arm's controller knows about the rig and its task (written by
     `hil run` as controller.json); per-segment values are tuples, segment 1 first."""
@@ -110,7 +122,10 @@ class ControllerConfig:
     timeout: float = 10.0  # wall-clock wait for a cycle's frames [s]
     estimator: str = "raw"
     latency_compensation: bool = True
+    torque_std: float | None = None  # the estimator's unmodelled torque std [N m]; None: derived
     plan: TaskPlan | None = None  # task-space task (point-to-point, path); None: the profile
+    objects: int = 0  # object markers the camera reports after the arm's (ids segments + 1 ...)
+    gripper: GripperConfig | None = None  # the finger pair at the tip and its drive
 
     @property
     def segments(self) -> int:
@@ -196,8 +211,15 @@ def _check_ranges(config: ControllerConfig) -> None:
     timing = config.camera_timing
     if min(timing.period_ticks, timing.control_ticks) < 1 or timing.latency_ticks < 0:
         raise ValueError("camera_timing: period_ticks and control_ticks must be at least 1")
-    if timing.markers != config.segments + 1:
-        raise ValueError(f"camera_timing.markers: must be {config.segments + 1} (segments + 1)")
+    if config.objects < 0:
+        raise ValueError("objects: must not be negative")
+    if timing.markers != config.segments + 1 + config.objects:
+        raise ValueError(
+            f"camera_timing.markers: must be {config.segments + 1 + config.objects} "
+            "(segments + 1 + objects)"
+        )
+    if config.gripper is not None and config.gripper.node <= config.segments:
+        raise ValueError("gripper.node: must follow the segments' drives")
 
 
 def _check_plan(plan: TaskPlan, segments: int) -> None:

@@ -28,8 +28,11 @@ def __getattr__(name: str) -> Any:
 
 
 def expected(config: ControllerConfig) -> set[tuple[str, int | None]]:
-    """The status frames every cycle must bring: each drive's."""
-    return {("DriveStatus", n) for n in range(1, config.segments + 1)}
+    """The status frames every cycle must bring: each drive's (the gripper's too)."""
+    drives = {("DriveStatus", n) for n in range(1, config.segments + 1)}
+    if config.gripper is not None:
+        drives.add(("DriveStatus", config.gripper.node))
+    return drives
 
 
 def readings(status: Mapping[tuple[str, int | None], Any]) -> dict[int, DriveReading]:
@@ -45,14 +48,19 @@ def make_estimator(config: ControllerConfig) -> Any:
     """The estimator the configuration names (controllers.estimators)."""
     from controllers import estimators
 
-    return estimators.make_estimator(
+    arm = estimators.make_estimator(
         config.estimator,
         config.bends,
         config.base,
         config.camera,
         config.control_period,
         config.latency_compensation,
+        config.torque_std,
     )
+    if config.objects == 0:
+        return arm
+    tracker = estimators.ObjectTracker(config.objects, config.camera)
+    return estimators.WithObjects(arm, config.segments + 1, tracker)
 
 
 class CurvatureControl:
@@ -106,6 +114,10 @@ class CurvatureControl:
 def make_controller(config: ControllerConfig, protocol: Protocol) -> Any:
     """Curvature tracking of the task's profile, or task-space control when the configuration
     carries a task plan (point-to-point, path)."""
+    if config.plan is not None and config.plan.kind == "grasp":
+        from controllers.grasp_control import GraspControl
+
+        return GraspControl(config, protocol)
     if config.plan is not None:
         from controllers.task_space import TaskSpaceControl
 

@@ -141,7 +141,16 @@ class TaskState:
     counter: int
 
 
-TASK_PHASES = ("idle", "moving", "settling", "settled", "done", "tracking")  # the DBC's values
+TASK_PHASES = (  # the DBC's values
+    "idle",
+    "moving",
+    "settling",
+    "settled",
+    "done",
+    "tracking",
+    "grasping",
+    "releasing",
+)
 
 
 @frame_type("EMCY", index="node")

@@ -25,7 +25,7 @@ from controllers import kinematics
 from controllers.protocol import TASK_PHASES
 
 PHASE = {name: code for code, name in enumerate(TASK_PHASES)}
-TASK_KINDS = ("point_to_point", "path", "pipe")
+TASK_KINDS = ("point_to_point", "path", "pipe", "grasp")
 CANDIDATES_PER_TARGET = 32
 PATH_ATTEMPTS = 200
 PATH_CHECKS = 21  # points along a drawn path that must each have an IK solution
@@ -61,6 +61,9 @@ class TaskPlan:
     centreline: tuple[tuple[float, float], ...] = ()
     width: float = 0.0  # [m] the arm's backbone width
     clearance: float = 2e-3  # [m] kept beyond width / 2 by the plan
+    # grasp-and-place (kind "grasp"): the object (found by the camera) goes to targets[0]
+    object_radius: float = 0.0  # [m]
+    grasp_time: float = 1.0  # [s] the fingers close (or open) this long before the arm moves on
 
     def legs(self) -> int:
         return len(self.targets)

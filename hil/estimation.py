@@ -64,7 +64,9 @@ def measured_cycles(log: Path, config: ControllerConfig) -> list[Cycle]:
         frames = []
         for j in range(taken, due):
             if assembler.complete(j):
-                frames.append(assembler.take(j, t))
+                picture = assembler.take(j, t)  # the arm's markers (objects' follow them)
+                arm = picture.points[: len(config.lengths) + 1]
+                frames.append(MarkerFrame(exposure_time=picture.exposure_time, points=arm))
             else:
                 assembler.drop(j)
         taken = max(taken, due)

@@ -118,6 +118,9 @@ class ControllerSpec:
     timeout: float = 10.0  # wall-clock wait for a peer [s]
     estimator: str = "ukf"  # raw, kf or ukf (see README: ukf measures best on the default)
     latency_compensation: bool = True  # fuse camera frames at their exposure time
+    # the estimator's unmodelled torque standard deviation [N m]; None: derived per segment from
+    # table friction and pressure quantisation (a held object's load needs more)
+    torque_std: float | None = None
     # real-time runs fail when a SYNC is later than max_lateness [s] (0: one control period), or
     # when more than the fraction max_overruns of SYNCs is over one control period late
     max_lateness: float = 0.0
@@ -159,6 +162,11 @@ class TaskSpec:
     goal: tuple[float, float] | None = None
     centreline: tuple[tuple[float, float], ...] = ()
     clearance: float = 2e-3
+    # grasp-and-place (kind "grasp"): where the object starts (`pick`) and where it goes
+    # (`place`), each drawn from the seed unless given; the fingers' closing and opening time
+    pick: tuple[float, float] | None = None
+    place: tuple[float, float] | None = None
+    grasp_time: float = 1.0
 
     def profile(self) -> CurvatureProfile:
         """The reference profile that the controller tracks and the plant scores against."""

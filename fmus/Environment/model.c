@@ -74,6 +74,14 @@
  * theta_n + theta_dot_n t for them. Neglected: object-object contact; the arm's reaction to
  * the objects uses their poses at the step's end (an O(h) mismatch of action and reaction).
  *
+ * Gripper (gripper = 1): a finger pair at the tip (controllers/gripper.py, see fingers()) adds one
+ * degree of freedom after the segments, the fingers' common bend angle: gripper_theta in,
+ * gripper_tau_ext out, solved in the same implicit coupling. An object is held only by the
+ * contact forces of both fingers enclosing it (finger_force_left/right), never attached.
+ *
+ * Tipping (object_upright, object_tilt): a monitor of whether the pushes would tip an upright
+ * cylinder over, not fed back into the planar motion (see tip_over()).
+ *
  * Table friction [estimate]: PHYSICS.md's mu ~ 0.3 gives a Coulomb torque mu m g L / 2 per
  * segment for its own mass only. Acting on every backbone point, friction of the segments beyond
  * also resists a bend: the torque on segment i is mu g sum_p m_p |dp/dtheta_i|, 0.27 mu N m on
@@ -101,8 +109,9 @@
 #include "glue.h"
 
 #define MAX_SEGMENTS 7
+#define MAX_DOF (MAX_SEGMENTS + 1) /* the segments' bend angles and the fingers' */
 #define MAX_SAMPLES 16
-#define MAX_POINTS (MAX_SEGMENTS * MAX_SAMPLES)
+#define MAX_POINTS ((MAX_SEGMENTS + 2) * MAX_SAMPLES) /* the segments' and two fingers' */
 #define MAX_WALLS 2
 #define MAX_OBJECTS 4
 #define NEWTON_ITERATIONS 20
@@ -118,11 +127,14 @@ enum { OX, OY, OYAW, OVX, OVY, OW, N_OBJECT_STATES };
 
 typedef struct {
     double object[MAX_OBJECTS][N_OBJECT_STATES];
-    double theta[MAX_SEGMENTS];      /* bend angles received at this step's start [rad] */
-    double theta_dot[MAX_SEGMENTS];  /* bend rates received [rad/s] */
-    double theta_prev[MAX_SEGMENTS]; /* bend angles of the previous step [rad] */
-    double tau_now[MAX_SEGMENTS];    /* torque acting on the arm during this step [N m] */
-    double tau_next[MAX_SEGMENTS];   /* torque output, acting after this step if delayed [N m] */
+    /* per degree of freedom: the segments' bend angles, then the fingers' if there is a gripper */
+    double theta[MAX_DOF];      /* bend angles received at this step's start [rad] */
+    double theta_dot[MAX_DOF];  /* bend rates received [rad/s] */
+    double theta_prev[MAX_DOF]; /* bend angles of the previous step [rad] */
+    double tau_now[MAX_DOF];    /* torque acting on the arm during this step [N m] */
+    double tau_next[MAX_DOF];   /* torque output, acting after this step if delayed [N m] */
+    double tilt[MAX_OBJECTS][2]; /* each object's tilt about its base's edge [rad], its rate */
+    int toppled[MAX_OBJECTS];
     int have_prev;
     double t_step;     /* time since this step's start [s] */
     double E_diss;     /* [J] */
@@ -138,12 +150,19 @@ size_t model_state_size(void) { return sizeof(State); }
 
 typedef struct {
     int n;                         /* points in use */
-    int segment[MAX_POINTS];       /* segment of each point */
+    int segment[MAX_POINTS];       /* the degree of freedom owning each point (a finger's: the
+                                      gripper's); the point moves with it and every one before */
+    int finger[MAX_POINTS];        /* 0 on the arm, 1 on the left finger, 2 on the right */
+    double radius[MAX_POINTS];     /* capsule radius [m] */
+    double mass[MAX_POINTS];       /* mass the point carries for table friction [kg] */
     double p[MAX_POINTS][2];       /* positions [m] */
-    double J[MAX_POINTS][MAX_SEGMENTS][2]; /* dp/dtheta_i [m/rad] */
+    double J[MAX_POINTS][MAX_DOF][2]; /* dp/dtheta_i [m/rad] */
 } Backbone;
 
 static int n_segments(const Instance *inst) { return (int)V(inst, n_segments); }
+
+/* degrees of freedom: the segments' bend angles, then the fingers' (one angle, both fingers) */
+static int n_dof(const Instance *inst) { return n_segments(inst) + (V(inst, gripper) != 0.0); }
 
 /* g(u) = sin(u/2) / (u/2) and dg/du, series below SMALL_HALF_ANGLE as in kinematics.py */
 static void chord_factor(double u, double *g, double *dg) {
@@ -157,11 +176,53 @@ static void chord_factor(double u, double *g, double *dg) {
     }
 }
 
+/* The two fingers at the tip pose (b, phi) of the arm, appended to bb: each an arc of length L_f
+ * from a root offset +-r0 across the axis, the left finger curving right (towards the axis) by
+ * the bend angle theta_g and the right one mirrored, exactly as controllers/gripper.py. A point
+ * l from the tip moves with segment i < ns by d(tip)/dtheta_i + z x l, and with theta_g by its
+ * own arc's derivative. */
+static void fingers(const Instance *inst, double theta_g, const double b[2], double phi,
+                    const double db[][2], Backbone *bb) {
+    const int ns = n_segments(inst), nk = (int)V(inst, n_samples);
+    const double Lf = V(inst, finger_length), r0 = V(inst, finger_root_offset);
+    const double nrm[2] = {-sin(phi), cos(phi)};
+    int side, k, i;
+    for (side = 0; side < 2; side++) {
+        const double sign = side == 0 ? 1.0 : -1.0, curl = -sign; /* du / dtheta_g * L_f / s */
+        for (k = 1; k <= nk; k++) {
+            const double s = Lf * k / nk, u = curl * theta_g * s / Lf;
+            const double c = cos(phi + 0.5 * u), sn = sin(phi + 0.5 * u);
+            double g, dg, l[2];
+            const int q = bb->n++;
+            chord_factor(u, &g, &dg);
+            l[0] = sign * r0 * nrm[0] + s * g * c;
+            l[1] = sign * r0 * nrm[1] + s * g * sn;
+            bb->segment[q] = ns;
+            bb->finger[q] = side + 1;
+            bb->radius[q] = 0.5 * V(inst, finger_width);
+            bb->mass[q] = V(inst, finger_mass) / nk;
+            bb->p[q][0] = b[0] + l[0];
+            bb->p[q][1] = b[1] + l[1];
+            for (i = 0; i < MAX_DOF; i++) {
+                if (i < ns) {
+                    bb->J[q][i][0] = db[i][0] - l[1];
+                    bb->J[q][i][1] = db[i][1] + l[0];
+                } else if (i == ns) {
+                    bb->J[q][i][0] = curl * (s / Lf) * s * (dg * c - 0.5 * g * sn);
+                    bb->J[q][i][1] = curl * (s / Lf) * s * (dg * sn + 0.5 * g * c);
+                } else {
+                    bb->J[q][i][0] = bb->J[q][i][1] = 0.0;
+                }
+            }
+        }
+    }
+}
+
 /* Sample points and their Jacobians at bend angles theta. */
 static void backbone(const Instance *inst, const double theta[], Backbone *bb) {
     const int ns = n_segments(inst), nk = (int)V(inst, n_samples);
     double b[2] = {V(inst, base_x), V(inst, base_y)}, phi = V(inst, base_heading);
-    double db[MAX_SEGMENTS][2]; /* d(segment start)/dtheta_i for i < j */
+    double db[MAX_DOF][2]; /* d(segment start)/dtheta_i for i < j */
     int i, j, k;
     memset(db, 0, sizeof db);
     bb->n = 0;
@@ -180,9 +241,12 @@ static void backbone(const Instance *inst, const double theta[], Backbone *bb) {
             dl[0] = (s / L) * s * (dg * c - 0.5 * g * sn);
             dl[1] = (s / L) * s * (dg * sn + 0.5 * g * c);
             bb->segment[q] = j;
+            bb->finger[q] = 0;
+            bb->radius[q] = 0.5 * VI(inst, width, j);
+            bb->mass[q] = VI(inst, mass, j) / nk;
             bb->p[q][0] = b[0] + l[0];
             bb->p[q][1] = b[1] + l[1];
-            for (i = 0; i < MAX_SEGMENTS; i++) {
+            for (i = 0; i < MAX_DOF; i++) {
                 if (i < j) { /* rotation of the local chord about the segment's start + start */
                     bb->J[q][i][0] = db[i][0] - l[1];
                     bb->J[q][i][1] = db[i][1] + l[0];
@@ -207,6 +271,7 @@ static void backbone(const Instance *inst, const double theta[], Backbone *bb) {
         b[1] += end_l[1];
         phi += theta[j];
     }
+    if (V(inst, gripper) != 0.0) fingers(inst, theta[ns], b, phi, (const double(*)[2])db, bb);
 }
 
 /* ---------------------------------------------------------------- geometry */
@@ -305,10 +370,11 @@ static void contact_law(const Instance *inst, double delta, const double n[2], c
 /* ---------------------------------------------------------------- forces on the arm */
 
 typedef struct {
-    double tau[MAX_SEGMENTS];
-    double A[MAX_SEGMENTS][MAX_SEGMENTS]; /* sum J^T (H K + C) J: d(-tau)/d(rate) */
-    double penetration[MAX_SEGMENTS];
-    double force[MAX_SEGMENTS][2];
+    double tau[MAX_DOF];
+    double A[MAX_DOF][MAX_DOF]; /* sum J^T (H K + C) J: d(-tau)/d(rate) */
+    double penetration[MAX_DOF];
+    double force[MAX_DOF][2];
+    double finger_force[2][2]; /* each finger's resultant contact force [N] */
     double elastic, dissipation, force_sum;
 } ArmForces;
 
@@ -324,18 +390,28 @@ static void add_point_force(ArmForces *out, const Backbone *bb, int q, const dou
                     out->A[i][j] += bb->J[q][i][a] * (H * K[a][b] + C[a][b]) * bb->J[q][j][b];
 }
 
+/* Adds a contact force at point q to its segment's (or finger's) resultant. */
+static void add_resultant(ArmForces *out, const Backbone *bb, int q, const double F[2]) {
+    out->force[bb->segment[q]][0] += F[0];
+    out->force[bb->segment[q]][1] += F[1];
+    if (bb->finger[q]) {
+        out->finger_force[bb->finger[q] - 1][0] += F[0];
+        out->finger_force[bb->finger[q] - 1][1] += F[1];
+    }
+}
+
 /* Forces of walls, objects and table on the arm at bend angles q and rates rate; H weighs the
  * stiffness in the Newton matrix A. */
 static void arm_forces(const Instance *inst, const State *s, const double q[],
                        const double rate[], double H, ArmForces *out) {
-    const int ns = n_segments(inst), nk = (int)V(inst, n_samples);
+    const int ns = n_dof(inst);
     Backbone bb;
     int p, i, w, o;
     memset(out, 0, sizeof *out);
     backbone(inst, q, &bb);
     for (p = 0; p < bb.n; p++) {
         const int seg = bb.segment[p];
-        const double r = 0.5 * VI(inst, width, seg);
+        const double r = bb.radius[p];
         double v[2] = {0.0, 0.0};
         for (i = 0; i < ns; i++) {
             v[0] += bb.J[p][i][0] * rate[i];
@@ -347,8 +423,7 @@ static void arm_forces(const Instance *inst, const State *s, const double q[],
             if (!wall_distance(inst, w, bb.p[p], &d, n) || d >= r) continue;
             contact_law(inst, r - d, n, v, V(inst, mu_arm), &ct);
             add_point_force(out, &bb, p, ct.F, ct.K, ct.C, H);
-            out->force[seg][0] += ct.F[0];
-            out->force[seg][1] += ct.F[1];
+            add_resultant(out, &bb, p, ct.F);
             if (r - d > out->penetration[seg]) out->penetration[seg] = r - d;
             out->elastic += ct.elastic;
             out->dissipation += ct.dissipation;
@@ -366,15 +441,14 @@ static void arm_forces(const Instance *inst, const State *s, const double q[],
             vrel[1] = v[1] - (ob[OVY] + ob[OW] * R * n[0]);
             contact_law(inst, r + R - d, n, vrel, V(inst, mu_arm), &ct);
             add_point_force(out, &bb, p, ct.F, ct.K, ct.C, H);
-            out->force[seg][0] += ct.F[0];
-            out->force[seg][1] += ct.F[1];
+            add_resultant(out, &bb, p, ct.F);
             if (r + R - d > out->penetration[seg]) out->penetration[seg] = r + R - d;
             out->elastic += ct.elastic;
             /* its dissipation and impulse are counted in the objects' substeps (finer) */
         }
         { /* table friction of this point's share of the segment's mass */
             const double speed = hypot(v[0], v[1]), eps = V(inst, v_slip);
-            const double weight = VI(inst, mass, seg) / nk * V(inst, gravity);
+            const double weight = bb.mass[p] * V(inst, gravity);
             const double limit = V(inst, mu_table) * weight;
             const double Z[2][2] = {{0.0, 0.0}, {0.0, 0.0}};
             double F[2] = {0.0, 0.0}, C[2][2] = {{limit / eps, 0.0}, {0.0, limit / eps}};
@@ -399,7 +473,7 @@ static void arm_forces(const Instance *inst, const State *s, const double q[],
 
 /* Solves A x = b (n x n, A = I + m A' is diagonally dominant enough in practice: partial
  * pivoting anyway). Returns 0 if singular. */
-static int solve_linear(int n, double A[MAX_SEGMENTS][MAX_SEGMENTS], double b[]) {
+static int solve_linear(int n, double A[MAX_DOF][MAX_DOF], double b[]) {
     int i, j, k;
     for (k = 0; k < n; k++) {
         int pivot = k;
@@ -427,9 +501,9 @@ static int solve_linear(int n, double A[MAX_SEGMENTS][MAX_SEGMENTS], double b[])
 /* Residual tau - G(q(tau)) of the implicit coupling and the forces at q(tau); returns |.|_1. */
 static double coupling_residual(const Instance *inst, const State *s, double H, const double tau[],
                                 double residual[], ArmForces *out) {
-    const int ns = n_segments(inst);
+    const int ns = n_dof(inst);
     const double m = V(inst, arm_mobility);
-    double q[MAX_SEGMENTS] = {0.0}, rate[MAX_SEGMENTS] = {0.0}, size = 0.0;
+    double q[MAX_DOF] = {0.0}, rate[MAX_DOF] = {0.0}, size = 0.0;
     int i;
     for (i = 0; i < ns; i++) {
         rate[i] = s->theta_dot[i] + m * (tau[i] - s->tau_now[i]);
@@ -451,12 +525,12 @@ static double coupling_residual(const Instance *inst, const State *s, double H, 
 /* A damped Newton step from tau with the Newton matrix I + m A: the full step, halved until the
  * residual falls. Returns 1 and updates tau, residual, size and out if it found a descent. */
 static int newton_step(const Instance *inst, const State *s, double H,
-                       const double A[MAX_SEGMENTS][MAX_SEGMENTS], double tau[],
+                       const double A[MAX_DOF][MAX_DOF], double tau[],
                        double residual[], double *size, ArmForces *out) {
-    const int ns = n_segments(inst);
+    const int ns = n_dof(inst);
     const double m = V(inst, arm_mobility);
-    double M[MAX_SEGMENTS][MAX_SEGMENTS], step[MAX_SEGMENTS], trial[MAX_SEGMENTS];
-    double trial_residual[MAX_SEGMENTS], fraction = 1.0;
+    double M[MAX_DOF][MAX_DOF], step[MAX_DOF], trial[MAX_DOF];
+    double trial_residual[MAX_DOF], fraction = 1.0;
     ArmForces trial_out;
     int i, j, halvings;
     for (i = 0; i < ns; i++) {
@@ -484,17 +558,17 @@ static int newton_step(const Instance *inst, const State *s, double H,
  * returns the residual left |tau - G|_1 [N m] (coupling_residual). */
 static double solve_arm_torque(const Instance *inst, const State *s, double H, double tau[],
                                ArmForces *out) {
-    const int ns = n_segments(inst);
-    double residual[MAX_SEGMENTS], size;
+    const int ns = n_dof(inst);
+    double residual[MAX_DOF], size;
     int i, it;
-    for (i = 0; i < MAX_SEGMENTS; i++) tau[i] = i < ns ? s->tau_now[i] : 0.0;
+    for (i = 0; i < MAX_DOF; i++) tau[i] = i < ns ? s->tau_now[i] : 0.0;
     size = coupling_residual(inst, s, H, tau, residual, out);
     if (V(inst, arm_mobility) == 0.0) { /* explicit: the forces at theta + H theta_dot */
         for (i = 0; i < ns; i++) tau[i] = out->tau[i];
         return 0.0;
     }
     for (it = 0; it < NEWTON_ITERATIONS && size > NEWTON_TOLERANCE; it++) {
-        if (!newton_step(inst, s, H, (const double(*)[MAX_SEGMENTS])out->A, tau, residual, &size,
+        if (!newton_step(inst, s, H, (const double(*)[MAX_DOF])out->A, tau, residual, &size,
                          out))
             break; /* no descent: keep the best torque found */
     }
@@ -512,7 +586,7 @@ static void object_forces(const Instance *inst, const State *s, int o, const Bac
     int p, w;
     F[0] = F[1] = *torque = *dissipation = *force_sum = 0.0;
     for (p = 0; p < bb->n; p++) {
-        const double r = 0.5 * VI(inst, width, bb->segment[p]);
+        const double r = bb->radius[p];
         double rel[2] = {bb->p[p][0] - ob[OX], bb->p[p][1] - ob[OY]}, d = hypot(rel[0], rel[1]);
         double n[2], vrel[2];
         Contact ct;
@@ -577,18 +651,42 @@ static double coulomb_stop(double speed, double decrement) {
     return speed > decrement ? speed - decrement : 0.0;
 }
 
+/* Whether the push F on object o tips it (an upright cylinder of radius R and height H). A
+ * monitor, not fed back into the planar motion: the tilt phi about the base's edge on the far
+ * side of the push obeys I_e phi'' = |F| h - m a_F H / 2 - m g (R cos phi - (H / 2) sin phi)
+ * (moments about the edge, which moves with the object's acceleration a; a_F its component along
+ * F; h = min(contact_height, H) the height of the push; I_e = m (15 R^2 + 4 H^2) / 12 about the
+ * edge), phi >= 0 on the table (landing is inelastic). Past atan(2 R / H) the centre of mass is
+ * beyond the edge: the object has fallen (latched). A light object pushed low slides rather
+ * than tips: the inertial term carries most of the push. */
+static void tip_over(const Instance *inst, State *s, int o, const double F[2], double ax,
+                     double ay, double dt) {
+    const double m = VI(inst, object_mass, o), R = VI(inst, object_radius, o);
+    const double H = VI(inst, object_height, o), g = V(inst, gravity);
+    const double h = V(inst, contact_height) < H ? V(inst, contact_height) : H;
+    const double push = hypot(F[0], F[1]), Ie = m * (15.0 * R * R + 4.0 * H * H) / 12.0;
+    double *tilt = s->tilt[o], along, moment;
+    if (s->toppled[o]) return;
+    along = push > 0.0 ? (ax * F[0] + ay * F[1]) / push : 0.0;
+    moment = push * h - m * along * 0.5 * H - m * g * (R * cos(tilt[0]) - 0.5 * H * sin(tilt[0]));
+    tilt[1] += dt * moment / Ie;
+    tilt[0] += dt * tilt[1];
+    if (tilt[0] <= 0.0) tilt[0] = tilt[1] = 0.0;
+    if (tilt[0] >= atan2(2.0 * R, H)) s->toppled[o] = 1;
+}
+
 /* One semi-implicit Euler substep of the objects with the arm at theta + theta_dot t. */
 void model_after_substep(Instance *inst, double dt) {
     State *s = (State *)inst->state;
-    const int ns = n_segments(inst), no = (int)V(inst, n_objects);
-    double q[MAX_SEGMENTS], v_arm[MAX_POINTS][2];
+    const int ns = n_dof(inst), no = (int)V(inst, n_objects);
+    double q[MAX_DOF], v_arm[MAX_POINTS][2];
     Backbone bb;
     int o, p, i;
     if (no == 0) {
         s->t_step += dt;
         return;
     }
-    for (i = 0; i < MAX_SEGMENTS; i++)
+    for (i = 0; i < MAX_DOF; i++)
         q[i] = i < ns ? s->theta[i] + s->theta_dot[i] * s->t_step : 0.0;
     backbone(inst, q, &bb);
     for (p = 0; p < bb.n; p++) {
@@ -611,6 +709,7 @@ void model_after_substep(Instance *inst, double dt) {
             const double m = VI(inst, object_mass, o), R = VI(inst, object_radius, o);
             const double I = 0.5 * m * R * R, mug = V(inst, mu_table_object) * V(inst, gravity);
             double before, after, speed, x0 = ob[OX], y0 = ob[OY], yaw0 = ob[OYAW];
+            const double vx0 = ob[OVX], vy0 = ob[OVY];
             ob[OVX] += dt * F[o][0] / m;
             ob[OVY] += dt * F[o][1] / m;
             ob[OW] += dt * T[o] / I;
@@ -628,6 +727,7 @@ void model_after_substep(Instance *inst, double dt) {
             }
             after = 0.5 * m * (ob[OVX] * ob[OVX] + ob[OVY] * ob[OVY]) + 0.5 * I * ob[OW] * ob[OW];
             s->E_diss += before - after;
+            tip_over(inst, s, o, F[o], (ob[OVX] - vx0) / dt, (ob[OVY] - vy0) / dt, dt);
             ob[OX] += dt * ob[OVX];
             ob[OY] += dt * ob[OVY];
             ob[OYAW] += dt * ob[OW];
@@ -645,14 +745,15 @@ void model_after_substep(Instance *inst, double dt) {
  * since the previous step. */
 fmi2Status model_step_start(Instance *inst) {
     State *s = (State *)inst->state;
-    const int ns = n_segments(inst);
+    const int ns = n_segments(inst), nd = n_dof(inst);
     int i;
-    for (i = 0; i < ns; i++) {
-        const double theta = VI(inst, kappa, i) * VI(inst, length, i);
+    for (i = 0; i < nd; i++) {
+        const double theta =
+            i < ns ? VI(inst, kappa, i) * VI(inst, length, i) : V(inst, gripper_theta);
         if (s->have_prev) s->W_arm += s->tau_now[i] * (theta - s->theta_prev[i]);
         s->theta_prev[i] = theta;
         s->theta[i] = theta;
-        s->theta_dot[i] = VI(inst, theta_dot, i);
+        s->theta_dot[i] = i < ns ? VI(inst, theta_dot, i) : V(inst, gripper_theta_dot);
     }
     s->have_prev = 1;
     s->t_step = 0.0;
@@ -682,7 +783,7 @@ int model_derivatives(const Instance *inst, const double y[], double dy[]) {
  * [N m s/rad]; it is part of the implicit solve, so it cannot destabilise it. */
 static double passivity_damping(const Instance *inst, const State *s, double H,
                                 const ArmForces *now) {
-    const int ns = n_segments(inst);
+    const int ns = n_dof(inst);
     const double m = V(inst, arm_mobility);
     double held, deficit, rates = 0.0, beta, limit;
     int i;
@@ -700,16 +801,16 @@ static double passivity_damping(const Instance *inst, const State *s, double H,
  * the end of every step (s->t_step is then the step's length) and at initialisation (length 0). */
 fmi2Status model_outputs(Instance *inst) {
     State *s = (State *)inst->state;
-    const int ns = n_segments(inst);
+    const int ns = n_dof(inst);
     const double h = s->t_step, H = (1.0 + V(inst, coupling_delay)) * h;
-    double tau[MAX_SEGMENTS];
+    double tau[MAX_DOF];
     ArmForces out, now;
     int i, o;
     /* the state of the contact at the angles received; the torque solved for the coming step */
     arm_forces(inst, s, s->theta, s->theta_dot, 0.0, &now);
     s->beta = passivity_damping(inst, s, H, &now);
     V(inst, coupling_residual) = solve_arm_torque(inst, s, H, tau, &out);
-    for (i = 0; i < MAX_SEGMENTS; i++) {
+    for (i = 0; i < MAX_DOF; i++) {
         if (!isfinite(tau[i])) {
             log_message(inst, fmi2Error, "the contact torque on segment %d is not finite", i + 1);
             return fmi2Error;
@@ -717,16 +818,27 @@ fmi2Status model_outputs(Instance *inst) {
     }
     /* the torque this step's output replaces acts on the arm from now on (Gauss-Seidel) or
      * after the next step (Jacobi) */
-    for (i = 0; i < MAX_SEGMENTS; i++) {
+    for (i = 0; i < MAX_DOF; i++) {
         if (V(inst, coupling_delay) == 0.0) {
             s->tau_now[i] = tau[i];
         } else {
             s->tau_now[i] = s->tau_next[i];
             s->tau_next[i] = tau[i];
         }
-        VI(inst, tau_ext, i) = tau[i];
-        VI(inst, penetration, i) = i < ns ? now.penetration[i] : 0.0;
-        VI(inst, contact_force, i) = i < ns ? hypot(out.force[i][0], out.force[i][1]) : 0.0;
+    }
+    for (i = 0; i < MAX_SEGMENTS; i++) {
+        const int used = i < n_segments(inst);
+        VI(inst, tau_ext, i) = used ? tau[i] : 0.0;
+        VI(inst, penetration, i) = used ? now.penetration[i] : 0.0;
+        VI(inst, contact_force, i) = used ? hypot(out.force[i][0], out.force[i][1]) : 0.0;
+    }
+    {
+        const int g = n_segments(inst), used = ns > g; /* the fingers' degree of freedom */
+        V(inst, gripper_tau_ext) = used ? tau[g] : 0.0;
+        V(inst, gripper_penetration) = used ? now.penetration[g] : 0.0;
+        V(inst, finger_force_left) = hypot(out.finger_force[0][0], out.finger_force[0][1]);
+        V(inst, finger_force_right) = hypot(out.finger_force[1][0], out.finger_force[1][1]);
+        V(inst, gripper_contact_force) = V(inst, finger_force_left) + V(inst, finger_force_right);
     }
     /* the arm's dissipation and impulse over the step in which this torque acts */
     s->E_diss += out.dissipation * h;
@@ -739,6 +851,8 @@ fmi2Status model_outputs(Instance *inst) {
         VI(inst, object_vx, o) = ob[OVX];
         VI(inst, object_vy, o) = ob[OVY];
         VI(inst, object_omega, o) = ob[OW];
+        VI(inst, object_upright, o) = s->toppled[o] ? 0.0 : 1.0;
+        VI(inst, object_tilt, o) = s->tilt[o][0];
     }
     V(inst, contact_impulse) = s->impulse;
     V(inst, E_contact) = now.elastic + object_wall_elastic(inst, s);

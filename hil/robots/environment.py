@@ -26,7 +26,15 @@ if TYPE_CHECKING:
 
 FMU = "Environment"
 OWN_KEYS = ("walls", "objects", "width")
-OBJECT_KEYS = {"x": None, "y": None, "radius": 0.015, "mass": 0.01, "mu": 0.3, "yaw": 0.0}
+OBJECT_KEYS = {
+    "x": None,
+    "y": None,
+    "radius": 0.015,
+    "mass": 0.01,
+    "mu": 0.3,
+    "yaw": 0.0,
+    "height": 0.05,
+}
 MAX_WALLS, MAX_VERTICES, MAX_OBJECTS, MAX_SEGMENTS = 2, 16, 4, 7
 
 
@@ -35,10 +43,14 @@ def present(scenario: Scenario) -> bool:
 
 
 def parameters(
-    scenario: Scenario, segments: Sequence[Mapping[str, float]], width: float
+    scenario: Scenario,
+    segments: Sequence[Mapping[str, float]],
+    width: float,
+    placed: Mapping[int, tuple[float, float]] | None = None,
 ) -> dict[str, float]:
     """The Environment FMU's parameters from `[robot.environment]` and the arm's segments;
-    raises ScenarioError naming the key."""
+    raises ScenarioError naming the key. `placed` gives the positions of objects (by 1-based
+    index) that the task places (a grasp task draws its object's position from the seed)."""
     from hil.scenario import check_parameter, fail, fmu_interface
 
     file = scenario.source
@@ -90,6 +102,10 @@ def parameters(
             )
         for name, default in OBJECT_KEYS.items():
             value = item.get(name, default)
+            if placed and o in placed and name in ("x", "y"):
+                if name in item:
+                    raise fail(file, f"{key}.{name}", "placed by the task: leave it out")
+                value = placed[o][0 if name == "x" else 1]
             if value is None:
                 raise fail(file, f"{key}.{name}", "missing required key")
             number = _number(file, f"{key}.{name}", value)
@@ -166,7 +182,7 @@ def signals(scenario: Scenario) -> list[SignalSpec]:
         ),
     ]
     for o in range(1, len(scenario.robot.environment.get("objects", [])) + 1):
-        for name, unit in (("x", "m"), ("y", "m"), ("yaw", "rad")):
+        for name, unit in (("x", "m"), ("y", "m"), ("yaw", "rad"), ("upright", "")):
             specs.append(
                 SignalSpec(
                     f"object{o}_{name}",

@@ -21,12 +21,12 @@ from controllers import kinematics
 from controllers.curvature import PiGains, SegmentModel
 from controllers.estimation import BendModel, CameraNoise
 from controllers.loop_design import design_outer_loop, effective_delay, estimator_delay
-from controllers.node import CameraTiming, ControllerConfig
+from controllers.node import CameraTiming, ControllerConfig, GripperConfig
 from controllers.protocol import Protocol
 from controllers.tasks import TASK_KINDS, TaskPlan, draw_paths, draw_targets
 from hil.devices import HEARTBEAT_PERIOD, CameraNode, DriveNode
 from hil.master import Connection, FmuParticipant, Participant
-from hil.robots import PlotSpec, Rig, SignalSpec, environment, fmu_ref, scenario_camera
+from hil.robots import PlotSpec, Rig, SignalSpec, environment, fmu_ref, gripper, scenario_camera
 
 if TYPE_CHECKING:
     from hil.scenario import Scenario
@@ -43,9 +43,12 @@ PLAN_KEYS = (
     "task_gain",
     "centreline",
     "clearance",
+    "grasp_time",
 )
 IK_RANGE_SHARE = 0.9  # of each segment's reachable curvature range that IK may use: the rest is
 # left for the curvature loop to correct in
+
+_LAYOUTS: dict[str, tuple[tuple[float, float], tuple[float, float]]] = {}  # grasp_layout's
 
 SEGMENT_GEOMETRY = (
     "bore",
@@ -69,6 +72,7 @@ class PlanarArmSpec:
     cylinder_decimation: int = 1
     actuator: str = "rectangular"  # the FEA parameter set (PARAMETER_SETS) under the given values
     environment: dict[str, Any] = field(default_factory=dict)  # walls, objects: environment.py
+    gripper: dict[str, Any] | None = None  # the finger pair at the tip: gripper.py
 
 
 # The thesis's two planar arms [thesis, PHYSICS.md section 6]: free space uses bidirectional
@@ -101,7 +105,12 @@ PER_SEGMENT: tuple[tuple[str, str, str], ...] = (
 )
 TASK_SIGNALS: tuple[tuple[str, str, str], ...] = (
     ("target_index", "", "target (point-to-point) or path (path task) pursued, 0 first"),
-    ("phase", "", "task phase: 0 idle, 1 moving, 2 settling, 3 settled, 4 done, 5 tracking"),
+    (
+        "phase",
+        "",
+        "task phase: 0 idle, 1 moving, 2 settling, 3 settled, 4 done, 5 tracking, 6 grasping, "
+        "7 releasing",
+    ),
     ("target_x", "m", "task-space reference point x, as the controller reported it"),
     ("target_y", "m", "task-space reference point y, as the controller reported it"),
 )
@@ -203,7 +212,7 @@ class PlanarArm:
                 "robot.actuator",
                 f"unknown parameter set {r.actuator!r} (known: {', '.join(PARAMETER_SETS)})",
             )
-        if s.camera and r.segments + 1 > protocol.count("CameraMarker"):
+        if s.camera and self.markers(s) > protocol.count("CameraMarker"):
             raise fail(file, "robot.segments", "more markers than the DBC's CameraMarker frames")
         for name in ("segment_decimation", "cylinder_decimation"):
             d = getattr(r, name)
@@ -248,9 +257,50 @@ class PlanarArm:
             self.start_pistons(s)
         except ValueError as exc:
             raise fail(file, "robot.segment.theta_start", f"no piston holds it: {exc}") from None
+        if gripper.present(s):
+            self._check_gripper(s, protocol)
         if environment.present(s):
-            environment.parameters(s, self.parameters(s, "segment"), ACTUATOR_WIDTH[r.actuator])
+            self.environment_parameters(s)
         self._check_task(s)
+
+    def _check_gripper(self, s: Scenario, protocol: Protocol) -> None:
+        from hil.scenario import check_parameter, fail, fmu_interface
+
+        file = s.source
+        if not environment.present(s):
+            raise fail(
+                file, "robot.gripper", "needs [robot.environment]: the fingers act through contact"
+            )
+        if gripper.node(s) > protocol.count("DriveStatus"):
+            raise fail(file, "robot.segments", "no DriveStatus frame left for the gripper's drive")
+        gripper.geometry(s)
+        for name, fmu in (("segment", gripper.SEGMENT_FMU), ("cylinder", gripper.CYLINDER_FMU)):
+            interface = fmu_interface(file, f"robot.gripper.{name}", fmu)
+            values = gripper.segment_values(s) if name == "segment" else gripper.table(s, name)
+            for key, value in values.items():
+                if name == "segment" and key in SEGMENT_GEOMETRY:
+                    raise fail(file, f"robot.gripper.segment.{key}", "set it in the cylinder")
+                check_parameter(file, f"robot.gripper.{name}.{key}", interface, key, value)
+        self.gripper_model(s).reachable_curvature()
+
+    def environment_parameters(self, s: Scenario) -> dict[str, float]:
+        """The Environment FMU's parameters: `[robot.environment]`, the arm's segments, the
+        gripper's fingers, and the objects the task places."""
+        values = environment.parameters(
+            s, self.parameters(s, "segment"), ACTUATOR_WIDTH[s.robot.actuator], self._placed(s)
+        )
+        if gripper.present(s):
+            values.update(gripper.environment_parameters(s))
+            # the implicit coupling predicts the fingers with their mobility too
+            d_bend = gripper.segment_values(s)["d_bend"]
+            values["arm_mobility"] = max(values["arm_mobility"], 1.0 / max(d_bend, 1e-12))
+        return values
+
+    def _placed(self, s: Scenario) -> dict[int, tuple[float, float]]:
+        """Objects the task places: a grasp task's object, from the seed unless given."""
+        if s.task.kind != "grasp":
+            return {}
+        return {1: self.grasp_layout(s)[0]}
 
     def _check_task(self, s: Scenario) -> None:
         from hil.scenario import fail
@@ -295,7 +345,7 @@ class PlanarArm:
             "cylinder": fmu_interface(scenario.source, "robot.cylinder_fmu", r.cylinder_fmu),
         }
         ports: dict[str, tuple[set[str], set[str]]] = {
-            "camera": (set(), {f"kappa_{i}" for i in range(1, r.segments + 1)})
+            "camera": (set(), set(self.camera_inputs(scenario)))
         }
         for i in range(1, r.segments + 1):
             for kind, interface in interfaces.items():
@@ -304,6 +354,15 @@ class PlanarArm:
                     {n for n, v in interface.items() if v.causality == "input"},
                 )
             ports[f"drive{i}"] = ({"x_ref", "enable", "fault"}, {"x", "p_a", "p_b", "servo_fault"})
+        if gripper.present(scenario):
+            g = gripper.node(scenario)
+            for kind, fmu in (("gripper", gripper.SEGMENT_FMU), (f"cylinder{g}", "DriveCylinder")):
+                interface = fmu_interface(scenario.source, "robot.gripper", fmu)
+                ports[kind] = (
+                    {n for n, v in interface.items() if v.causality == "output"},
+                    {n for n, v in interface.items() if v.causality == "input"},
+                )
+            ports[f"drive{g}"] = ({"x_ref", "enable", "fault"}, {"x", "p_a", "p_b", "servo_fault"})
         if environment.present(scenario):
             interface = fmu_interface(scenario.source, "robot.environment", environment.FMU)
             ports["environment"] = (
@@ -330,6 +389,84 @@ class PlanarArm:
             else:
                 pistons.append(model.piston_for_curvature(theta / segment["length"]))
         return pistons
+
+    def camera_inputs(self, scenario: Scenario) -> list[str]:
+        """What the camera sees: each segment's curvature (the arm's markers), then each
+        object's position (its marker, ids segments + 1 ...)."""
+        names = [f"kappa_{n}" for n in range(1, scenario.robot.segments + 1)]
+        if environment.present(scenario):
+            for o in range(1, len(scenario.robot.environment.get("objects", [])) + 1):
+                names += [f"object_x_{o}", f"object_y_{o}"]
+        return names
+
+    def gripper_cylinder(self, scenario: Scenario) -> dict[str, float]:
+        """Every parameter of the gripper's drive cylinder."""
+        from hil.scenario import fmu_interface
+
+        interface = fmu_interface(scenario.source, "robot.gripper.cylinder", "DriveCylinder")
+        defaults = {
+            n: p.start
+            for n, p in interface.items()
+            if p.causality == "parameter" and p.start is not None
+        }
+        return {**defaults, **gripper.table(scenario, "cylinder")}
+
+    def gripper_model(self, scenario: Scenario) -> SegmentModel:
+        """The finger pair's static model (as the arm's segment_models)."""
+        from hil.scenario import fmu_interface
+
+        interface = fmu_interface(scenario.source, "robot.gripper.segment", gripper.SEGMENT_FMU)
+        values = {
+            n: p.start
+            for n, p in interface.items()
+            if p.causality == "parameter" and p.start is not None
+        }
+        values.update(gripper.segment_values(scenario))
+        cylinder = self.gripper_cylinder(scenario)
+        values.update(bore=cylinder["bore"], stroke=cylinder["stroke"])
+        return SegmentModel(
+            **{k: values[k] for k in SegmentModel.__dataclass_fields__ if k != "x_seal"},
+            x_seal=cylinder["x_start"],
+        )
+
+    def grasp_layout(self, scenario: Scenario) -> tuple[tuple[float, float], tuple[float, float]]:
+        """Where a grasp task's object starts and where it is to be placed [m]: the task's
+        `pick` and `place`, else drawn from the seed within the reachable workspace."""
+        from controllers.grasp import draw_grasp_task
+
+        task = scenario.task
+        if task.pick is not None and task.place is not None:
+            return task.pick, task.place
+        key = repr((scenario.seed, task, scenario.robot))  # the draw plans: ~1 s, asked often
+        if key in _LAYOUTS:
+            return _LAYOUTS[key]
+        lower, upper, _ = self.curvature_limits(scenario)
+        mid, half = 0.5 * (lower + upper), 0.5 * (upper - lower) * IK_RANGE_SHARE
+        lengths = [p["length"] for p in self.parameters(scenario, "segment")]
+        rng = np.random.default_rng([scenario.seed, TASK_STREAM])
+        start = [
+            p.get("theta_start", 0.0) / p["length"] for p in self.parameters(scenario, "segment")
+        ]
+        pick, place = draw_grasp_task(
+            rng,
+            lengths,
+            scenario.robot.base,
+            mid - half,
+            mid + half,
+            gripper.geometry(scenario),
+            self.grasp_object(scenario)["radius"],
+            start,
+        )
+        layout = (task.pick or pick, task.place or place)
+        if len(_LAYOUTS) >= 64:
+            _LAYOUTS.clear()
+        _LAYOUTS[key] = layout
+        return layout
+
+    def grasp_object(self, scenario: Scenario) -> dict[str, float]:
+        """The grasp task's object (the first of `[robot.environment] objects`): its keys."""
+        item = scenario.robot.environment.get("objects", [{}])[0]
+        return {k: item.get(k, v) for k, v in environment.OBJECT_KEYS.items() if v is not None}
 
     def reach(self, scenario: Scenario) -> float:
         """Farthest a marker can be from the base [m]: the arm's length."""
@@ -370,11 +507,36 @@ class PlanarArm:
             )
             for n in range(1, r.segments + 1)
         ]
+        if gripper.present(scenario):
+            g = gripper.node(scenario)
+            x_start = self.gripper_cylinder(scenario)["x_start"]
+            drives.append(
+                DriveNode(
+                    g,
+                    x_start,
+                    x_start,
+                    scenario.safety.max_pressure,
+                    timeout_ticks,
+                    position_range=protocol.signal_range(f"DriveStatus{g}", "piston_position"),
+                    pressure_range=protocol.signal_range(f"DriveStatus{g}", "p_a"),
+                    decimation=scenario.control_ticks,
+                )
+            )
         lengths = [p["length"] for p in segments]
         base = r.base
+        n_arm = r.segments
+
+        def marker_model(values: list[float]) -> np.ndarray:
+            """The arm's markers (base, every segment end), then each object's (its centre)."""
+            arm = kinematics.markers(values[:n_arm], lengths, base)
+            if len(values) == n_arm:
+                return arm
+            objects = np.reshape(values[n_arm:], (-1, 2))
+            return np.vstack([arm, objects])
+
         camera = CameraNode(
-            [f"kappa_{n}" for n in range(1, r.segments + 1)],
-            lambda kappas: kinematics.markers(kappas, lengths, base),
+            self.camera_inputs(scenario),
+            marker_model,
             scenario.latency_ticks,
             scenario_camera(scenario),
         )
@@ -428,10 +590,30 @@ class PlanarArm:
                     (f"segment{n}.kappa", f"camera.kappa_{n}"),
                 ):
                     connections[target] = Connection(source, target)
-            if environment.present(scenario):
-                world_values = environment.parameters(
-                    scenario, segments, ACTUATOR_WIDTH[r.actuator]
+            if gripper.present(scenario):
+                g = gripper.node(scenario)
+                cylinder_values = gripper.table(scenario, "cylinder")
+                cylinder = FmuSlave(
+                    gripper.CYLINDER_FMU, f"cylinder{g}", cylinder_values, exit_initialization=False
                 )
+                fmus.append(FmuParticipant(cylinder, r.cylinder_decimation))
+                full = self.gripper_cylinder(scenario)
+                finger_values = {
+                    **gripper.segment_values(scenario),
+                    "bore": full["bore"],
+                    "stroke": full["stroke"],
+                    "x_seal": full["x_start"],
+                }
+                fingers = FmuSlave(
+                    gripper.SEGMENT_FMU, "gripper", finger_values, exit_initialization=False
+                )
+                fmus.append(FmuParticipant(fingers, r.segment_decimation))
+                parameters[f"cylinder{g}"] = full
+                parameters["gripper"] = finger_values
+                for source, target in gripper.connections(scenario):
+                    connections[target] = Connection(source, target)
+            if environment.present(scenario):
+                world_values = self.environment_parameters(scenario)
                 world = FmuSlave(
                     environment.FMU, "environment", world_values, exit_initialization=False
                 )
@@ -439,6 +621,11 @@ class PlanarArm:
                 parameters["environment"] = world_values
                 for source, target in environment.connections(r.segments):
                     connections[target] = Connection(source, target)
+                for name in self.camera_inputs(scenario)[r.segments :]:
+                    # object_x_1 ...: the camera sees each object's marker
+                    connections[f"camera.{name}"] = Connection(
+                        f"environment.{name}", f"camera.{name}"
+                    )
         except BaseException:
             for participant in fmus:
                 participant.close()
@@ -478,6 +665,28 @@ class PlanarArm:
                     specs.append(SignalSpec(column, unit, text, frame=("ControllerState", n, name)))
                 else:
                     specs.append(SignalSpec(column, unit, text, source=_SOURCES[name].format(n=n)))
+        if gripper.present(scenario):
+            g = gripper.node(scenario)
+            for name, unit, text, source in (
+                ("gripper_theta", "rad", "fingers' bend angle (positive closes)", "gripper.theta"),
+                ("gripper_p_a", "Pa", "fingers' side a gauge pressure", "gripper.p_a"),
+                ("gripper_p_b", "Pa", "fingers' side b gauge pressure", "gripper.p_b"),
+                ("gripper_x", "m", "gripper drive's piston position", f"cylinder{g}.x"),
+                ("gripper_x_ref", "m", "gripper drive's piston setpoint", f"drive{g}.x_ref"),
+                (
+                    "finger_force_left",
+                    "N",
+                    "left finger's contact force",
+                    "environment.finger_force_left",
+                ),
+                (
+                    "finger_force_right",
+                    "N",
+                    "right finger's contact force",
+                    "environment.finger_force_right",
+                ),
+            ):
+                specs.append(SignalSpec(name, unit, text, source=source))
         if environment.present(scenario):
             specs += environment.signals(scenario)
         if scenario.task.kind in TASK_KINDS:
@@ -528,8 +737,13 @@ class PlanarArm:
             rates[f"Heartbeat{n}"] = 1.0 / HEARTBEAT_PERIOD
         if scenario.task.kind in TASK_KINDS:
             rates["TaskState"] = per_period
+        if gripper.present(scenario):
+            g = gripper.node(scenario)
+            rates[f"DriveStatus{g}"] = per_period
+            rates[f"DriveCommand{g}"] = per_period
+            rates[f"Heartbeat{g}"] = 1.0 / HEARTBEAT_PERIOD
         rates["CameraFrame"] = scenario.camera.rate
-        for m in range(scenario.robot.segments + 1):
+        for m in range(self.markers(scenario)):
             rates[f"CameraMarker{m}"] = scenario.camera.rate
         return rates
 
@@ -607,12 +821,39 @@ class PlanarArm:
             ),
             estimator=c.estimator,
             latency_compensation=c.latency_compensation,
+            torque_std=c.torque_std,
             camera_timing=CameraTiming(
                 period_ticks=scenario.camera_ticks,
                 latency_ticks=scenario.latency_ticks,
                 control_ticks=scenario.control_ticks,
-                markers=scenario.robot.segments + 1,
+                markers=self.markers(scenario),
             ),
+            objects=self.markers(scenario) - scenario.robot.segments - 1,
+            gripper=self.gripper_config(scenario),
+        )
+
+    def markers(self, scenario: Scenario) -> int:
+        """Markers the camera reports: the base, each segment end, each object."""
+        return (
+            scenario.robot.segments
+            + 1
+            + len(self.camera_inputs(scenario)[scenario.robot.segments :]) // 2
+        )
+
+    def gripper_config(self, scenario: Scenario) -> GripperConfig | None:
+        """What the controller knows of the gripper: its drive, the pistons that open and close
+        it (from the finger pair's static model) and its geometry."""
+        if not gripper.present(scenario):
+            return None
+        geometry = gripper.geometry(scenario)
+        model = self.gripper_model(scenario)
+        length = geometry.finger_length
+        return GripperConfig(
+            node=gripper.node(scenario),
+            x_start=self.gripper_cylinder(scenario)["x_start"],
+            x_open=model.piston_for_curvature(geometry.theta_open / length),
+            x_closed=model.piston_for_curvature(geometry.theta_closed / length),
+            geometry=geometry,
         )
 
     # ------------------------------------------------------------------ task space
@@ -646,7 +887,11 @@ class PlanarArm:
         ends: tuple[tuple[float, float], ...] = ()
         walls: tuple[tuple[tuple[float, float], ...], ...] = ()
         width = 0.0
-        if task.kind == "pipe":
+        object_radius = 0.0
+        if task.kind == "grasp":  # the controller is told where to place it, not where it is
+            targets = (self.grasp_layout(scenario)[1],)
+            object_radius = float(self.grasp_object(scenario)["radius"])
+        elif task.kind == "pipe":
             assert task.goal is not None  # checked
             targets = (task.goal,)
             walls = tuple(
@@ -684,6 +929,7 @@ class PlanarArm:
             kappa_rate=tuple(float(v) for v in rates),
             walls=walls,
             width=width,
+            object_radius=object_radius,
             **{name: getattr(task, name) for name in PLAN_KEYS},
         )
 
@@ -728,6 +974,13 @@ class PlanarArm:
             except ValueError as exc:
                 raise fail(file, "robot.environment.walls", str(exc)) from None
             points = [("task.goal", np.array(task.goal))]
+        if task.kind == "grasp":
+            if not gripper.present(s):
+                raise fail(file, "robot.gripper", "a grasp task needs the gripper")
+            if not s.robot.environment.get("objects"):
+                raise fail(file, "robot.environment.objects", "a grasp task needs its object")
+            if task.grasp_time <= 0:
+                raise fail(file, "task.grasp_time", "must be positive")
         if task.kind == "path" and task.path_length <= 0:
             raise fail(file, "task.path_length", "must be positive")
         from controllers.ik import solve_ik
@@ -738,6 +991,12 @@ class PlanarArm:
         points = [(f"task.targets[{i}]", np.array(p)) for i, p in enumerate(task.targets)]
         if task.kind == "pipe" and task.goal is not None:
             points.append(("task.goal", np.array(task.goal)))
+        if task.kind == "grasp":  # the grasp poses themselves are checked by grasp_layout
+            points += [
+                (f"task.{name}", np.array(p))
+                for name, p in (("pick", task.pick), ("place", task.place))
+                if p is not None
+            ]
         for i, path in enumerate(task.paths):
             a, b = np.array(path[:2]), np.array(path[2:])
             if np.linalg.norm(b - a) == 0.0:

@@ -55,7 +55,52 @@ def task_space_metrics(
         return _point_to_point(plan.targets, t, tips, index, phase, task)
     if plan.kind == "pipe":
         return _pipe(plan.targets[0], scenario.robot.segments, t, tips, signals, task)
+    if plan.kind == "grasp":
+        return _grasp(robot, scenario, t, signals, phase)
     return _paths(plan.targets, plan.ends, t, tips, index, phase, task)
+
+
+PLACE_TOLERANCE = 0.01  # [m] the issue's success: the object within 1 cm of its place
+
+
+def _grasp(
+    robot: PlanarArm,
+    scenario: Scenario,
+    t: np.ndarray,
+    signals: Mapping[str, Any],
+    phase: np.ndarray,
+) -> dict[str, Any]:
+    """Grasp-and-place, scored on the true object: `success` when it ends within 1 cm of the
+    place location, upright and released (neither finger touching it); `place_error` [m];
+    `approach_disturbance` [m], how far the object moved before the fingers began to close
+    (the approach must not touch it); `grasped`, both fingers on it when the carry began;
+    `time_to_place` [s], when the controller finished (None if it did not)."""
+    pick, place = robot.grasp_layout(scenario)
+    xy = np.column_stack([signals["object1_x"], signals["object1_y"]])
+    left, right = (
+        np.asarray(signals["finger_force_left"]),
+        np.asarray(signals["finger_force_right"]),
+    )
+    closing = np.nonzero(phase == PHASE["grasping"])[0]
+    before = closing[0] if closing.size else len(t)
+    disturbance = float(np.max(np.linalg.norm(xy[:before] - np.array(pick), axis=1), initial=0.0))
+    carry = np.nonzero((phase == PHASE["moving"]) & (np.arange(len(t)) > before))[0]
+    grasped = bool(carry.size and left[carry[0]] > 0.0 and right[carry[0]] > 0.0)
+    place_error = float(np.linalg.norm(xy[-1] - np.array(place)))
+    upright = bool(np.asarray(signals["object1_upright"])[-1] == 1.0)
+    released = bool(left[-1] == 0.0 and right[-1] == 0.0)
+    done = np.nonzero(phase == PHASE["done"])[0]
+    return {
+        "success": place_error <= PLACE_TOLERANCE and upright and released,
+        "place_error": place_error,
+        "upright": upright,
+        "released": released,
+        "grasped": grasped,
+        "approach_disturbance": disturbance,
+        "time_to_place": float(t[done[0]]) if done.size else None,
+        "pick": [float(v) for v in pick],
+        "place": [float(v) for v in place],
+    }
 
 
 def _pipe(
@@ -211,7 +256,17 @@ def draw_arm(robot: PlanarArm, scenario: Scenario, signals: Mapping[str, Any], p
     for k, wall in enumerate(plan.walls):
         xy = np.array(wall)
         ax.plot(xy[:, 0], xy[:, 1], color="saddlebrown", lw=3, label="walls" if k == 0 else None)
-    if plan.kind == "pipe":
+    if plan.kind == "grasp":
+        pick, place = robot.grasp_layout(scenario)
+        radius = plan.object_radius
+        ax.add_patch(
+            plt.Circle(pick, radius, fill=False, color="tab:blue", ls="--", label="object, start")
+        )
+        ax.add_patch(plt.Circle(place, 0.01, fill=False, color="red", label="place (1 cm)"))
+        trail = np.column_stack([signals["object1_x"], signals["object1_y"]])
+        ax.plot(trail[:, 0], trail[:, 1], color="tab:blue", lw=1.2, label="object (true)")
+        ax.add_patch(plt.Circle(trail[-1], radius, color="tab:blue", alpha=0.5))
+    elif plan.kind == "pipe":
         ax.plot(*plan.targets[0], "r*", ms=14, label="goal")
     elif plan.kind == "point_to_point":
         for k, (x, y) in enumerate(plan.targets):

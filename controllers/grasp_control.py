@@ -1,0 +1,271 @@
+"""Grasp-and-place with the planar arm's soft gripper (issue 12): the controller's state machine
+above the per-segment curvature controllers and the gripper's drive.
+
+The controller is told where to place the object, never where it is: it finds the object by its
+camera marker (controllers.estimators.ObjectTracker). Stages, each reported in TaskState (index:
+0 approach, 1 carry, 2 retreat; phase as named):
+  1. idle: the pistons held while the estimators acquire the arm and the object;
+  2. moving (approach): the fingers open and the arm follows the approach plan
+     (controllers.grasp.plan_approach: concentric circles around the estimated object that
+     shrink onto it without touching it), waypoint after waypoint by realisable curvature moves;
+  3. settling: the curvature loops settle on the grasp configuration (the estimated tip within
+     `tolerance` of the plan's tip for `settle_time`, or `max_time` at most);
+  4. grasping: the fingers close for `grasp_time`; contact alone holds the object;
+  5. moving (carry): the held object's centre goes to the place location (plan_carry), then
+     settling;
+  6. releasing: the fingers open for `grasp_time`;
+  7. moving (retreat): the gripper backs off along its axis out of the object's way
+     (plan_retreat); then done, holding the last configuration.
+Invariant: every curvature reference stays within the plan's bounds and its rate within each
+drive's (CurvatureMove), and the gripper's setpoint is always one of its three pistons.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from controllers import grasp, kinematics
+from controllers.estimation import DriveReading, Estimate
+from controllers.gripper import grasp_point
+from controllers.ik import solve_ik
+from controllers.planar_arm import CurvatureControl
+from controllers.protocol import ControllerState, DriveCommand, Protocol, TaskState
+from controllers.tasks import PHASE, CurvatureMove
+
+if TYPE_CHECKING:
+    from controllers.node import ControllerConfig
+
+LEGS = ("approach", "carry", "retreat")
+CORRECTION_LIMIT = 0.03  # [m] bound of the integrated task-space correction while settling
+
+
+class GraspControl:
+    """Grasp-and-place; see the module."""
+
+    def __init__(self, config: ControllerConfig, protocol: Protocol) -> None:
+        if config.plan is None or config.gripper is None:
+            raise ValueError("plan: grasp-and-place needs a task plan and a gripper")
+        self.config = config
+        self.plan = config.plan
+        self.gripper = config.gripper
+        self.curvature = CurvatureControl(config, protocol)
+        self.lengths = np.array(config.lengths)
+        self.base = config.base
+        self.lower = np.array(self.plan.kappa_min)
+        self.upper = np.array(self.plan.kappa_max)
+        self.rates = np.array(self.plan.kappa_rate)
+        self.reference = np.zeros(config.segments)
+        self.leg = 0
+        self.phase = PHASE["idle"]
+        self.since = 0.0  # when the current phase (or waypoint) began [s]
+        self.on_target_since: float | None = None
+        self.waypoints: list[tuple[np.ndarray, tuple[float, float, float]]] = []
+        self.waypoint = 0
+        self.move: CurvatureMove | None = None
+        self.setpoint = self.gripper.x_start  # the gripper drive's piston setpoint [m]
+        self.heading = 0.0  # the gripper's approach heading [rad]
+        self.target = np.array(self.plan.targets[0], float)  # where the object is to go
+        self.found: np.ndarray | None = None  # the object's estimated centre when planned
+        self.correction = np.zeros(2)  # integrated task-space correction of the goal [m]
+        self.seen = self.target.copy()  # the object's latest estimated centre [m]
+        self.solution = np.zeros(config.segments)  # the last IK solution (warm start)
+
+    # ------------------------------------------------------------------ the cycle
+
+    def compute(
+        self, cycle: int, t: float, estimate: Estimate, drives: Mapping[int, DriveReading]
+    ) -> list[Any]:
+        kappa = np.asarray(estimate.kappa, float)
+        if estimate.objects is not None and not np.isnan(estimate.objects[0]).any():
+            self.seen = np.array(estimate.objects[0], float)
+        if self.phase == PHASE["idle"]:
+            objects = estimate.objects
+            seen = objects is not None and not np.isnan(objects[0]).any()
+            if t >= self.plan.acquire_time - 1e-9 and seen:
+                assert objects is not None
+                self._approach(t, kappa, objects[0])
+            else:
+                return self._hold(cycle, estimate, drives)
+        self._advance(t, kappa)
+        frames = self.curvature.command(cycle, self.reference, estimate, drives)
+        frames.append(DriveCommand(self.gripper.node, self.setpoint, True, cycle))
+        point = self._reference_point()
+        frames.append(
+            TaskState(self.leg, self.phase, float(point[0]), float(point[1]), cycle % 256)
+        )
+        return frames
+
+    def _hold(
+        self, cycle: int, estimate: Estimate, drives: Mapping[int, DriveReading]
+    ) -> list[Any]:
+        """Every piston held where it is (the estimators are still acquiring)."""
+        frames: list[Any] = []
+        lo, hi = self.curvature.shown_range
+        for i in range(self.config.segments):
+            reading = drives.get(i + 1)
+            piston = reading.piston_position if reading is not None else self.config.x_mid[i]
+            kappa = min(max(float(estimate.kappa[i]), lo), hi)
+            frames.append(DriveCommand(i + 1, piston, True, cycle))
+            frames.append(ControllerState(i + 1, kappa, kappa, cycle))
+        frames.append(DriveCommand(self.gripper.node, self.setpoint, True, cycle))
+        frames.append(
+            TaskState(0, PHASE["idle"], float(self.target[0]), float(self.target[1]), cycle % 256)
+        )
+        return frames
+
+    def _reference_point(self) -> np.ndarray:
+        """Where the plan holds the object's centre now: the grasp point of the current
+        waypoint's tip pose (the estimated object before any plan)."""
+        if not self.waypoints:
+            return self.target if self.found is None else self.found
+        _, pose = self.waypoints[min(self.waypoint, len(self.waypoints) - 1)]
+        return grasp_point(self.gripper.geometry, pose)
+
+    # ------------------------------------------------------------------ stages
+
+    def _advance(self, t: float, kappa: np.ndarray) -> None:
+        waited = t - self.since
+        if self.phase == PHASE["moving"]:
+            assert self.move is not None
+            self.reference = self.move.value(waited)
+            if waited >= self.move.duration:
+                if self.waypoint + 1 < len(self.waypoints):
+                    self.waypoint += 1
+                    self._move_to(t, self.waypoints[self.waypoint][0])
+                else:
+                    self._enter(t, PHASE["settling"])
+        elif self.phase == PHASE["settling"]:
+            self._settle(t, kappa)
+        elif self.phase == PHASE["grasping"] and waited >= self.plan.grasp_time:
+            self.leg = 1
+            carry = grasp.plan_carry(
+                self.target,
+                self.reference,
+                self.heading,
+                self.lengths,
+                self.base,
+                self.lower,
+                self.upper,
+                self.gripper.geometry,
+            )
+            self.heading = carry.heading  # the heading the object is placed with
+            self._follow(t, carry)
+        elif self.phase == PHASE["releasing"] and waited >= self.plan.grasp_time:
+            self.leg = 2
+            # back off from where the camera sees the released object; just released, it may
+            # sit closer to a finger than the plan's margin: then plan without one
+            where = (float(self.seen[0]), float(self.seen[1]))
+            for margin in (grasp.MARGIN, 0.0):
+                try:
+                    retreat = grasp.plan_retreat(
+                        where,
+                        self.plan.object_radius,
+                        self.reference,
+                        self.heading,
+                        self.lengths,
+                        self.base,
+                        self.lower,
+                        self.upper,
+                        self.gripper.geometry,
+                        margin=margin,
+                    )
+                except ValueError:
+                    continue
+                self._follow(t, retreat)
+                return
+            self._enter(t, PHASE["done"])  # no clear way back: stay, released
+
+    def _approach(self, t: float, kappa: np.ndarray, centre: np.ndarray) -> None:
+        self.found = centre.copy()
+        start = np.clip(kappa, self.lower, self.upper)
+        self.reference = start.copy()
+        approach = grasp.plan_approach(
+            (float(centre[0]), float(centre[1])),
+            self.plan.object_radius,
+            start,
+            self.lengths,
+            self.base,
+            self.lower,
+            self.upper,
+            self.gripper.geometry,
+        )
+        self.heading = approach.heading
+        self.setpoint = self.gripper.x_open
+        self._follow(t, approach)
+
+    def _follow(self, t: float, plan: Any) -> None:
+        self.waypoints = [(np.asarray(k, float), tuple(p)) for k, p in plan.waypoints]
+        self.waypoint = 0
+        if not self.waypoints:
+            self._enter(t, PHASE["settling"])
+            return
+        self._move_to(t, self.waypoints[0][0])
+        self.phase = PHASE["moving"]
+
+    def _move_to(self, t: float, goal: np.ndarray) -> None:
+        goal = np.clip(goal, self.lower, self.upper)
+        self.move = CurvatureMove.plan(self.reference, goal, self.rates, self.plan.accel_time)
+        self.since = t
+
+    def _enter(self, t: float, phase: int) -> None:
+        self.phase = phase
+        self.since = t
+        self.on_target_since = None
+        self.correction = np.zeros(2)
+        self.solution = self.reference.copy()
+
+    def _settle(self, t: float, kappa: np.ndarray) -> None:
+        """Close the loop on the estimated tip until it has stayed on the leg's last pose for
+        settle_time (or max_time has passed), then act on the object (close, open) or finish.
+        The curvature loops alone leave the tip centimetres off under the load of a held object
+        (small curvature errors add up along the arm): the tip error is integrated into a
+        correction of the IK goal (with the plan's heading), as the task-space controller
+        does."""
+        _, pose = self.waypoints[-1] if self.waypoints else (None, None)
+        tip = kinematics.forward(kappa, self.lengths, self.base)[-1, :2]
+        if pose is not None and self.leg < 2:
+            error = np.array(pose[:2]) - tip
+            self.correction += self.plan.task_gain * self.config.control_period * error
+            norm = float(np.linalg.norm(self.correction))
+            if norm > CORRECTION_LIMIT:
+                self.correction *= CORRECTION_LIMIT / norm
+            result = solve_ik(
+                np.array(pose[:2]) + self.correction,
+                self.solution,
+                self.lengths,
+                self.base,
+                self.lower,
+                self.upper,
+                heading=pose[2],
+                max_iter=5,
+            )
+            self.solution = result.kappas
+            step = self.rates * self.config.control_period
+            self.reference = np.clip(
+                self.reference + np.clip(self.solution - self.reference, -step, step),
+                self.lower,
+                self.upper,
+            )
+        on_target = pose is None or np.linalg.norm(tip - np.array(pose[:2])) <= self.plan.tolerance
+        if on_target:
+            if self.on_target_since is None:
+                self.on_target_since = t
+        else:
+            self.on_target_since = None
+        settled = (
+            self.on_target_since is not None
+            and t - self.on_target_since >= self.plan.settle_time - 1e-9
+        )
+        if not settled and t - self.since < self.plan.max_time:
+            return
+        if self.leg == 0:
+            self.setpoint = self.gripper.x_closed
+            self._enter(t, PHASE["grasping"])
+        elif self.leg == 1:
+            self.setpoint = self.gripper.x_open
+            self._enter(t, PHASE["releasing"])
+        else:
+            self._enter(t, PHASE["done"])

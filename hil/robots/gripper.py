@@ -1,0 +1,139 @@
+"""The planar arm's soft gripper (issue 12): `[robot.gripper]` to a FeaSegment FMU (the finger
+pair), its own DriveCylinder FMU and drive node (the seventh DOF), wired into the Environment
+FMU's contact.
+
+    [robot.gripper]
+    finger_length = 0.04          # geometry (controllers.gripper.GripperGeometry), [m] and [rad]
+    theta_closed = 1.2
+    [robot.gripper.segment]       # the finger pair's FeaSegment parameters over GRIPPER_SEGMENT
+    k_bend = 0.01
+    [robot.gripper.cylinder]      # its drive cylinder's over the DriveCylinder defaults
+    stroke = 0.05
+
+The fingers' channels are fed in parallel by one cylinder, so the pair is one FeaSegment whose
+stiffness, damping, mass and dV/dtheta are the two fingers' sums and whose length is a finger's.
+The gripper's drive is node `segments + 1` (DriveStatus/DriveCommand of that index); its FMUs are
+`cylinder{node}` and `gripper`. It needs `[robot.environment]`: the fingers act on the world only
+through its contact. Invariant: the FeaSegment's bend angle is the Environment's gripper_theta.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Mapping
+from typing import TYPE_CHECKING, Any
+
+from controllers.gripper import GripperGeometry
+
+if TYPE_CHECKING:
+    from hil.scenario import Scenario
+
+SEGMENT_FMU, CYLINDER_FMU = "FeaSegment", "DriveCylinder"
+# [estimate] The finger pair as one actuator (sums of two fingers of 4 g, 40 mm): free, the pair
+# curls to 1 rad at 36 mm of piston travel and to its 1.4 rad limit at full stroke; blocked on
+# an object at 0.5 rad with the piston at the 1.2 rad setting it presses with ~0.15 N per finger.
+GRIPPER_SEGMENT: dict[str, float] = {
+    "length": 0.04,
+    "mass": 0.008,
+    "k_bend": 0.01,
+    "d_bend": 2e-3,
+    "G_a": 2.5e-7,
+    "V_ch0": 3e-6,
+    "C_a": 5e-11,
+    "theta_max": 1.4,
+}
+GEOMETRY_KEYS = tuple(f.name for f in dataclasses.fields(GripperGeometry))
+OWN_TABLES = ("segment", "cylinder")
+
+
+def present(scenario: Scenario) -> bool:
+    return getattr(scenario.robot, "gripper", None) is not None
+
+
+def node(scenario: Scenario) -> int:
+    """The gripper drive's node number."""
+    return int(scenario.robot.segments) + 1
+
+
+def geometry(scenario: Scenario) -> GripperGeometry:
+    """The fingers' geometry from `[robot.gripper]`; ScenarioError naming the key."""
+    from hil.scenario import fail
+
+    raw: Mapping[str, Any] = scenario.robot.gripper or {}
+    values = {}
+    for name, value in raw.items():
+        if name in OWN_TABLES:
+            continue
+        key = f"robot.gripper.{name}"
+        if name not in GEOMETRY_KEYS:
+            known = ", ".join((*GEOMETRY_KEYS, *OWN_TABLES))
+            raise fail(scenario.source, key, f"unknown key (known: {known})")
+        values[name] = _number(scenario.source, key, value)
+    built = GripperGeometry(**values)
+    for name in ("finger_length", "grasp_offset"):
+        if getattr(built, name) <= 0.0:
+            raise fail(scenario.source, f"robot.gripper.{name}", "must be positive")
+    if built.finger_width < 0.0 or built.root_offset < 0.0:
+        raise fail(scenario.source, "robot.gripper", "finger_width and root_offset >= 0")
+    if not built.theta_open < built.theta_closed:
+        raise fail(scenario.source, "robot.gripper.theta_open", "must be below theta_closed")
+    return built
+
+
+def table(scenario: Scenario, name: str) -> dict[str, float]:
+    """What `[robot.gripper.<name>]` sets (name: segment or cylinder), checked as numbers."""
+    from hil.scenario import fail
+
+    raw = (scenario.robot.gripper or {}).get(name, {})
+    if not isinstance(raw, Mapping):
+        raise fail(scenario.source, f"robot.gripper.{name}", "must be a table of parameters")
+    return {k: _number(scenario.source, f"robot.gripper.{name}.{k}", v) for k, v in raw.items()}
+
+
+def segment_values(scenario: Scenario) -> dict[str, float]:
+    """The finger pair's FeaSegment parameters given (GRIPPER_SEGMENT, the scenario's, and the
+    length of a finger)."""
+    values = {**GRIPPER_SEGMENT, **table(scenario, "segment")}
+    values["length"] = geometry(scenario).finger_length
+    return values
+
+
+def environment_parameters(scenario: Scenario) -> dict[str, float]:
+    """The Environment FMU's gripper parameters."""
+    g = geometry(scenario)
+    segment = segment_values(scenario)
+    return {
+        "gripper": 1.0,
+        "finger_length": g.finger_length,
+        "finger_width": g.finger_width,
+        "finger_root_offset": g.root_offset,
+        "finger_mass": 0.5 * segment["mass"],
+    }
+
+
+def connections(scenario: Scenario) -> list[tuple[str, str]]:
+    """The gripper's drive, cylinder and finger pair, and the fingers in the world's contact."""
+    n = node(scenario)
+    return [
+        (f"cylinder{n}.x", "gripper.x_piston"),
+        ("gripper.p_a", f"cylinder{n}.p_a"),
+        ("gripper.p_b", f"cylinder{n}.p_b"),
+        (f"drive{n}.x_ref", f"cylinder{n}.x_ref"),
+        (f"drive{n}.enable", f"cylinder{n}.enable"),
+        (f"cylinder{n}.x", f"drive{n}.x"),
+        ("gripper.p_a", f"drive{n}.p_a"),
+        ("gripper.p_b", f"drive{n}.p_b"),
+        (f"cylinder{n}.fault", f"drive{n}.servo_fault"),
+        ("gripper.theta", "environment.gripper_theta"),
+        ("gripper.theta_dot", "environment.gripper_theta_dot"),
+        ("environment.gripper_tau_ext", "gripper.tau_ext"),
+    ]
+
+
+def _number(file: str, key: str, value: Any) -> float:
+    from hil.scenario import fail
+
+    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+        raise fail(file, key, f"must be a finite number, got {value!r}")
+    return float(value)
