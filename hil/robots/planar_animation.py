@@ -25,7 +25,7 @@ import numpy as np
 from controllers import kinematics
 from controllers.gripper import GripperGeometry, finger_points
 from hil.animation import DPI, figure_size, frame_rows, playback_fps, write_animation
-from hil.robots import environment
+from hil.robots import environment, gripper
 
 if TYPE_CHECKING:
     from controllers.tasks import TaskPlan
@@ -47,6 +47,7 @@ class ArmScene:
     object_radii: tuple[float, ...] = ()  # one per object, in the order of `object{o}_*`
     plan: TaskPlan | None = None
     gripper: GripperGeometry = field(default_factory=GripperGeometry)
+    grasp: tuple[tuple[float, float], tuple[float, float]] | None = None  # (pick, place) [m]
 
 
 @dataclass(frozen=True)
@@ -66,18 +67,25 @@ class ArmFrame:
 
 
 def arm_scene(robot: PlanarArm, scenario: Scenario) -> ArmScene:
-    """The scene of a planar-arm scenario: segment lengths, base, walls, object radii, plan."""
+    """The scene of a planar-arm scenario: segment lengths, base, walls, the objects' radii (as
+    the Environment FMU has them, task-placed objects included), the plan, the fingers'
+    geometry (`[robot.gripper]`), a grasp task's pick and place."""
     world = scenario.robot.environment
-    default_radius = environment.OBJECT_KEYS["radius"]
+    radii: tuple[float, ...] = ()
+    if environment.present(scenario):
+        values = robot.environment_parameters(scenario)
+        count = int(values.get("n_objects", 0))
+        radii = tuple(values[f"object_radius_{o}"] for o in range(1, count + 1))
+    plan = robot.task_plan(scenario)
     return ArmScene(
         name=scenario.name,
         lengths=tuple(p["length"] for p in robot.parameters(scenario, "segment")),
         base=tuple(scenario.robot.base),  # type: ignore[arg-type]
         walls=tuple(np.array(wall, dtype=float) for wall in world.get("walls", [])),
-        object_radii=tuple(
-            float(item.get("radius", default_radius)) for item in world.get("objects", [])
-        ),
-        plan=robot.task_plan(scenario),
+        object_radii=radii,
+        plan=plan,
+        gripper=gripper.geometry(scenario) if gripper.present(scenario) else GripperGeometry(),
+        grasp=robot.grasp_layout(scenario) if plan is not None and plan.kind == "grasp" else None,
     )
 
 
@@ -148,7 +156,7 @@ def _figure(
         ax.plot(
             wall[:, 0], wall[:, 1], color="saddlebrown", lw=3, label="walls" if k == 0 else None
         )
-    _draw_plan(ax, scene.plan)
+    _draw_plan(ax, scene)
     ax.plot(scene.base[0], scene.base[1], "ks", ms=8, label="base")
     (trace,) = ax.plot([], [], color="grey", lw=0.8, label="tip (true)")
     (arm,) = ax.plot([], [], "-", color="tab:blue", lw=3, solid_capstyle="round", label="arm")
@@ -200,11 +208,27 @@ def _figure(
     return fig, moving, update
 
 
-def _draw_plan(ax: Any, plan: TaskPlan | None) -> None:
-    """The task's targets, lines or goal, as planar_tasks.draw_arm draws them."""
+def _draw_plan(ax: Any, scene: ArmScene) -> None:
+    """The task's targets, lines, goal or pick and place, as planar_tasks.draw_arm draws them."""
+    from matplotlib.patches import Circle
+
+    plan = scene.plan
     if plan is None:
         return
-    if plan.kind == "pipe":
+    if plan.kind == "grasp" and scene.grasp is not None:
+        pick, place = scene.grasp
+        ax.add_patch(
+            Circle(
+                pick,
+                plan.object_radius,
+                fill=False,
+                color="tab:blue",
+                ls="--",
+                label="object, start",
+            )
+        )
+        ax.add_patch(Circle(place, 0.01, fill=False, color="red", label="place (1 cm)"))
+    elif plan.kind == "pipe":
         ax.plot(*plan.targets[0], "r*", ms=14, label="goal")
     elif plan.kind == "point_to_point":
         for k, (x, y) in enumerate(plan.targets):
@@ -235,6 +259,8 @@ def _bounds(
         points += [np.array([[x - r, y - r], [x + r, y + r]]) for x, y, r in f.objects]
     if scene.plan is not None:
         points.append(np.array(scene.plan.targets + scene.plan.ends).reshape(-1, 2))
+    if scene.grasp is not None:
+        points.append(np.array(scene.grasp))
     every = np.vstack(points)
     every = every[np.all(np.isfinite(every), axis=1)]
     return every.min(axis=0) - MARGIN, every.max(axis=0) + MARGIN
