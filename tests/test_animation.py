@@ -155,6 +155,20 @@ def test_a_frame_is_the_recorded_truth_at_its_row(pipe) -> None:  # noqa: ANN001
     assert arm_frame(scene, signals, row).fingers == ()  # no gripper: no fingers
 
 
+def test_the_scene_takes_the_gripper_and_the_placed_object_from_the_scenario(
+    tmp_path: Path,
+) -> None:
+    text = (SCENARIOS / "planar-grasp.toml").read_text()
+    path = tmp_path / "grasp.toml"
+    path.write_text(text.replace("[robot.gripper]\n", "[robot.gripper]\nfinger_length = 0.05\n"))
+    scenario = load_scenario(path)
+    scene = arm_scene(ROBOT, scenario)
+    assert scene.gripper.finger_length == 0.05
+    assert scene.plan is not None and scene.plan.kind == "grasp"
+    assert scene.object_radii == (scene.plan.object_radius,)  # the object the task places
+    assert scene.grasp == ROBOT.grasp_layout(scenario)
+
+
 def colour_mask(image: Image.Image, colour: np.ndarray, tolerance: float = 30.0) -> np.ndarray:
     rgb = np.asarray(image.convert("RGB"), dtype=float)
     return np.linalg.norm(rgb - colour, axis=2) < tolerance
