@@ -5,8 +5,9 @@ loopback hub on 127.0.0.1, in a child process, and plant and controller speak it
 records), starts the controller (a separate process by default, or a thread on
 the virtual bus with `inprocess`), serves SYNCs until the end, and writes one folder:
 `signals.csv`, `can.log` (candump, simulation time), `controller.json` (what the controller was
-told), `controller.log` (its stderr), plots (`*.png`) and `summary.json`. If anything stops the
-run, the files written so far stay complete and `summary.json` says why.
+told), `controller.log` (its stderr), plots (`*.png`), with `animate` the robot's animation
+(`arm.gif`: hil.animation) and `summary.json`. If anything stops the run, the files written so
+far stay complete and `summary.json` says why.
 """
 
 from __future__ import annotations
@@ -36,6 +37,7 @@ from controllers.node import (
     RealtimeClock,
 )
 from controllers.protocol import Protocol
+from hil.animation import check_format
 from hil.bus.direct import direct_pair
 from hil.bus.loopback import HubProcess, LoopbackHub
 from hil.devices import HEARTBEAT_PERIOD
@@ -59,6 +61,7 @@ class RunOptions:
     start: str | None = None  # overriding [recording] start: ISO 8601 or "now"
     mf4: bool | None = None  # overriding [recording] mf4
     overwrite: bool = False  # replace the files an earlier run wrote in `out` (never others)
+    animate: str | None = None  # write the robot's animation in this format ("gif", "mp4")
 
 
 @dataclass(frozen=True)
@@ -94,6 +97,8 @@ def run_scenario(scenario: Scenario, options: RunOptions) -> RunResult:
             f"--can-log: {options.can_log!r}: a file name (no folder) ending in one of "
             f"{', '.join(LOG_SUFFIXES)}"
         )
+    if options.animate is not None:  # before anything runs: a format this machine can write
+        check_format(options.animate)
     try:
         start = log_start(scenario)
     except ValueError as exc:
@@ -146,6 +151,8 @@ def _run(
     with ExitStack() as stack:
         rig = robot.build(scenario)
         stack.callback(rig.close)
+        if options.animate is not None and rig.animation is None:  # before the run, not after
+            raise HilError(f"--animate: robot kind {scenario.robot.kind!r} has no animation")
         direct = options.inprocess and not options.bus
         if direct:  # plant and controller in this thread, frames handed over synchronously
             plant_bus, controller_bus = direct_pair(f"softhil-{scenario.name}")
@@ -208,6 +215,10 @@ def _run(
     plot_run(recorded, rig.plots, out)
     for name, draw in rig.figures:
         draw(recorded, folder.claim(f"{name}.png"))
+    if options.animate is not None and rig.animation is not None:
+        name, animate = rig.animation
+        summary["animation"] = f"{name}.{options.animate}"
+        animate(recorded, folder.claim(summary["animation"]), options.animate)
     failure = realtime_failure(scenario, summary["controller"])
     if failure is not None:
         summary["warnings"].append(failure)
@@ -237,6 +248,11 @@ RESULT_FILES = (
     "piston.png",
     "estimation.png",
     "arm.png",
+    "arm.gif",
+    "arm.mp4",
+    "fish.png",
+    "fish.gif",
+    "fish.mp4",
 )
 
 

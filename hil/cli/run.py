@@ -7,6 +7,7 @@ import math
 import sys
 from pathlib import Path
 
+from hil.animation import FORMATS
 from hil.errors import HilError
 from hil.run import RunOptions, run_scenario
 from hil.scenario import load_scenario, resolve_scenario
@@ -24,7 +25,8 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
         "  hil run my.toml --out runs/try1 --seed 7\n"
         "  hil run --inprocess                      controller in this process, virtual bus\n"
         "  hil run --realtime                       SYNC paced by the wall clock\n"
-        "  hil run --bus loopback:127.0.0.1:29536   join a hub started by `hil bus serve`\n",
+        "  hil run --bus loopback:127.0.0.1:29536   join a hub started by `hil bus serve`\n"
+        "  hil run planar-pipe-1 --animate          also arm.gif: the run seen from above\n",
     )
     parser.add_argument(
         "scenario",
@@ -68,6 +70,14 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--mf4", action="store_true", default=None, help="also write signals.mf4 (needs asammdf)"
     )
+    parser.add_argument(
+        "--animate",
+        nargs="?",
+        const="gif",
+        metavar="gif|mp4",
+        help="also write the robot's animation of the run (arm.gif; mp4 needs ffmpeg on PATH); "
+        "a bare --animate writes a GIF",
+    )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.set_defaults(handler=_run)
 
@@ -75,6 +85,12 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
 def _run(args: argparse.Namespace) -> int:
     if args.out is not None and not args.out.strip():
         raise HilError("--out: an empty folder name; name the results folder")
+    if args.animate is not None and args.animate not in FORMATS and args.scenario is None:
+        # `hil run --animate planar-path` took the scenario for the format
+        raise HilError(
+            f"--animate: unknown format {args.animate!r} (known: {', '.join(FORMATS)}); a "
+            "scenario goes before it: hil run NAME --animate"
+        )
     path = None if args.scenario is None else resolve_scenario(args.scenario)
     scenario = load_scenario(path, seed=args.seed)
     out = Path(args.out) if args.out else Path("runs") / f"{scenario.name}-{scenario.seed}"
@@ -90,6 +106,7 @@ def _run(args: argparse.Namespace) -> int:
             start=args.start,
             mf4=args.mf4,
             overwrite=args.overwrite,
+            animate=args.animate,
         ),
     )
     s = result.summary
@@ -111,7 +128,10 @@ def _run(args: argparse.Namespace) -> int:
         )
     for warning in s["warnings"]:
         print(f"  warning: {warning}", file=sys.stderr)
-    print(f"  results in {result.out}/ (signals.csv, {s['can_log']}, *.png, summary.json)")
+    animation = f", {s['animation']}" if "animation" in s else ""
+    print(
+        f"  results in {result.out}/ (signals.csv, {s['can_log']}, *.png{animation}, summary.json)"
+    )
     return 0
 
 

@@ -3,8 +3,9 @@ interface by name (ARCHITECTURE.md, "Robots").
 
 A robot kind owns, for the plant side: the schema and checks of its `[robot]` section (per
 actuator parameters), its FMUs and device nodes and their connections (`build` -> `Rig`), the
-markers the camera sees, the signals it records and plots, the frames it puts on the bus (for
-the bus load) and its task metrics; and it names its controller side (`controller_config`).
+markers the camera sees, the signals it records, plots and animates, the frames it puts on the
+bus (for the bus load) and its task metrics; and it names its controller side
+(`controller_config`).
 The plant loop, the master, the bus and the recorders know no robot.
 
 Kinds are found in `KINDS` (built in) and in the `softhil.robots` entry-point group, so another
@@ -74,6 +75,9 @@ class Rig:
     figures: list[tuple[str, Callable[[Mapping[str, Any], Path], None]]] = field(
         default_factory=list
     )
+    # the run's animation, where the kind has one: (name, animate(signals, path, fmt)) writing
+    # `<name>.<fmt>` (fmt "gif" or "mp4", hil.animation) for `hil run --animate`
+    animation: tuple[str, Callable[[Mapping[str, Any], Path, str], None]] | None = None
 
     def close(self) -> None:
         for participant in self.participants:

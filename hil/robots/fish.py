@@ -364,6 +364,7 @@ class Fish:
             self.plots(scenario),
             parameters,
             [("fish", lambda signals, path: draw_fish(self, scenario, signals, path))],
+            animation=("fish", lambda signals, path, fmt: _animate(scenario, signals, path, fmt)),
         )
 
     def signals(self, scenario: Scenario) -> list[SignalSpec]:
@@ -464,6 +465,12 @@ class Fish:
         from hil.robots.fish_metrics import fish_metrics
 
         return fish_metrics(self, scenario, signals)
+
+
+def _animate(scenario: Scenario, signals: Mapping[str, Any], path: Path, fmt: str) -> None:
+    from hil.robots.fish_animation import animate_fish
+
+    animate_fish(scenario.name, signals, path, fmt)
 
 
 def draw_fish(robot: Fish, scenario: Scenario, signals: Mapping[str, Any], path: Path) -> None:

@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -641,6 +642,12 @@ class PlanarArm:
             from hil.robots.planar_tasks import draw_arm
 
             figures.append(("arm", lambda signals, path: draw_arm(self, scenario, signals, path)))
+
+        def animate(signals: Mapping[str, Any], path: Path, fmt: str) -> None:
+            from hil.robots.planar_animation import animate_arm
+
+            animate_arm(self, scenario, signals, path, fmt)
+
         return Rig(
             participants,
             list(connections.values()),
@@ -649,6 +656,7 @@ class PlanarArm:
             self.plots(scenario),
             parameters,
             figures,
+            animation=("arm", animate),
         )
 
     def signals(self, scenario: Scenario) -> list[SignalSpec]:
