@@ -211,6 +211,8 @@ def _check_ranges(config: ControllerConfig) -> None:
     timing = config.camera_timing
     if min(timing.period_ticks, timing.control_ticks) < 1 or timing.latency_ticks < 0:
         raise ValueError("camera_timing: period_ticks and control_ticks must be at least 1")
+    if config.torque_std is not None and not config.torque_std > 0:
+        raise ValueError(f"torque_std: must be positive, got {config.torque_std}")
     if config.objects < 0:
         raise ValueError("objects: must not be negative")
     if timing.markers != config.segments + 1 + config.objects:

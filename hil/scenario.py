@@ -445,6 +445,10 @@ def _check(s: Scenario) -> None:
         raise _fail(file, "controller.policy", f"must be one of {', '.join(POLICIES)}")
     if s.controller.timeout <= 0 or s.controller.crossover <= 0:
         raise _fail(file, "controller", "timeout and crossover must be positive")
+    if s.controller.torque_std is not None and not s.controller.torque_std > 0:
+        raise _fail(
+            file, "controller.torque_std", f"must be positive, got {s.controller.torque_std}"
+        )
     for gain in ("kp", "ki"):
         value = getattr(s.controller, gain)
         if value is not None and value < 0:

@@ -86,6 +86,7 @@ def test_the_camera_reports_the_object_marker_after_the_arms(approach_run) -> No
         ("[robot.gripper]\n", "[robot.gripper]\ntheta_open = 2.0\n", r"robot\.gripper\.theta_open"),
         ("[robot.gripper]\n", "", r"robot\.gripper: a grasp task needs the gripper"),
         ("grasp_time = 1.0", "grasp_time = -1.0", r"task\.grasp_time: must be positive"),
+        ("torque_std = 0.01", "torque_std = 0.0", r"controller\.torque_std: must be positive"),
         (
             "objects = [{ radius = 0.0125, mass = 0.005, height = 0.05 }]",
             "objects = [{ x = 0.1, y = 0.1 }]",
@@ -157,3 +158,43 @@ def test_the_kf_reacquires_a_segment_its_model_has_lost() -> None:
     # REACQUIRE pictures at most: the estimate stays near the truth instead of near zero
     assert min(kappas[20:]) > 7.0 and max(kappas[20:]) < 11.0
     assert REACQUIRE > 1  # a single outlier is still gated
+
+
+@pytest.mark.parametrize(
+    ("end", "upright", "finger", "success"),
+    [
+        ((0.1085, 0.2), 1.0, 0.0, True),  # 8.5 mm off, standing, released
+        ((0.1115, 0.2), 1.0, 0.0, False),  # 11.5 mm off
+        ((0.1, 0.2), 0.0, 0.0, False),  # toppled
+        ((0.1, 0.2), 1.0, 0.05, False),  # a finger still on it
+    ],
+)
+def test_grasp_success_is_place_upright_released(end, upright, finger, success) -> None:
+    from types import SimpleNamespace
+
+    from controllers.tasks import PHASE
+    from hil.robots.planar_tasks import _grasp
+
+    pick, place = (0.2, 0.1), (0.1, 0.2)
+    t = np.arange(0.0, 3.0, 0.01)
+    phase = np.select(
+        [t < 1.0, t < 1.5, t < 2.5],
+        [PHASE["moving"], PHASE["grasping"], PHASE["moving"]],
+        PHASE["done"],
+    ).astype(float)
+    carry = np.clip((t - 1.5) / 1.0, 0.0, 1.0)[:, None]
+    xy = np.array(pick) + carry * (np.array(end) - np.array(pick))
+    held = ((t >= 1.2) & (t < 2.6)).astype(float) * 0.3
+    signals = {
+        "object1_x": xy[:, 0],
+        "object1_y": xy[:, 1],
+        "object1_upright": np.where(t < 2.8, 1.0, upright),
+        "finger_force_left": np.where(t < 2.9, held, finger),
+        "finger_force_right": held,
+    }
+    robot = SimpleNamespace(grasp_layout=lambda scenario: (pick, place))
+    metrics = _grasp(robot, None, t, signals, phase)
+    assert metrics["success"] is success
+    assert metrics["place_error"] == pytest.approx(np.hypot(end[0] - 0.1, end[1] - 0.2))
+    assert metrics["grasped"] is True and metrics["approach_disturbance"] == 0.0
+    assert metrics["time_to_place"] == pytest.approx(2.5)

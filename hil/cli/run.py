@@ -153,6 +153,16 @@ def task_line(s: dict[str, object]) -> str:
             f"{_shown(s['tip_error_max'], 1e3, '.2f', ' mm')}; settled {s['targets_settled']} of "
             f"{s['targets']} targets, time to settle {_shown(s['time_to_settle'], 1, '.2f', ' s')}"
         )
+    if "place_error" in s:  # grasp-and-place
+        return (
+            f"{'success' if s['success'] else 'failure'}: object "
+            f"{_shown(s['place_error'], 1e3, '.1f', ' mm')} from its place, "
+            f"{'upright' if s['upright'] else 'toppled'}, "
+            f"{'released' if s['released'] else 'still touched'}; "
+            f"{'grasped' if s['grasped'] else 'not grasped'}, approach disturbed it by "
+            f"{_shown(s['approach_disturbance'], 1e3, '.2f', ' mm')}, done at "
+            f"{_shown(s['time_to_place'], 1, '.1f', ' s')}"
+        )
     if "penetration_max" in s:
         return (
             f"goal {'reached' if s['goal_reached'] else 'not reached'} (time to goal "
