@@ -28,7 +28,7 @@ from typing import Any
 import can
 import numpy as np
 
-from controllers.canbus import connection_closed, failure_text
+from controllers.canbus import connection_closed, failure_text, send_all
 from controllers.curvature import PiGains
 from controllers.estimation import (
     BendModel,
@@ -433,32 +433,45 @@ class ControllerNode:
         self._status_kinds = {kind for kind, _ in self.expected}
         self._frames_taken = 0  # camera frames 0 .. _frames_taken - 1 are done with
 
-    def _send(self, frame: Any, sim_time: float) -> None:
-        message = self.protocol.encode(frame, timestamp=sim_time)
+    def _encode(self, frames: list[Any], sim_time: float) -> list[can.Message]:
+        return [self.protocol.encode(frame, timestamp=sim_time) for frame in frames]
+
+    def _send(self, messages: list[can.Message], sim_time: float) -> None:
+        """Send `messages` in order, in one write where the bus can."""
         try:
-            self.bus.send(message)
+            send_all(self.bus, messages)
         except (OSError, can.CanError) as exc:
+            ids = ", ".join(f"0x{m.arbitration_id:03X}" for m in messages)
             raise ControllerError(
-                f"sending {type(frame).__name__} at t = {sim_time:.3f} s: the bus is gone ({exc})"
+                f"sending {ids} at t = {sim_time:.3f} s: the bus is gone ({exc})"
             ) from exc
-        self.report.frames_sent += 1
+        self.report.frames_sent += len(messages)
 
     def run(self) -> ControllerReport:
-        """Run every cycle of the experiment; raises ControllerError under the strict policy."""
+        """Run every cycle of the experiment; raises ControllerError under the strict policy.
+        In lockstep a cycle's commands go out with the next SYNC, in one write: nothing can
+        tell the difference (the plant latches commands at SYNC, and the order of frames is
+        the same), and it halves the writes and hub wake-ups per cycle. On the real-time clock
+        they go out as soon as they are computed, as on a rig."""
         T = self.config.control_period
         lateness = []
+        deferred: list[can.Message] = []
         for cycle in range(self.config.cycles + 1):
             lateness.append(self.clock.wait_for(cycle))
             t = cycle * T
-            self._send(Sync(cycle), t)
+            self._send([*deferred, *self._encode([Sync(cycle)], t)], t)
+            deferred = []
             frames = self._collect(cycle, t)
             self.report.cycles = cycle
             if cycle == self.config.cycles:
                 break  # the final SYNC lets the plant reach the end time; nothing acts after it
             readings = self.module.readings(self.status)
             estimate = self.estimator.update(t, readings, frames)
-            for frame in self.controller.compute(cycle, t, estimate, readings):
-                self._send(frame, t)
+            commands = self._encode(list(self.controller.compute(cycle, t, estimate, readings)), t)
+            if self.clock.realtime:
+                self._send(commands, t)
+            else:
+                deferred = commands
         if lateness:
             self.report.max_lateness = max(lateness)
             self.report.mean_lateness = float(np.mean(lateness))
