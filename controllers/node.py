@@ -432,46 +432,53 @@ class ControllerNode:
         self.status: dict[tuple[str, int | None], Any] = {}
         self._status_kinds = {kind for kind, _ in self.expected}
         self._frames_taken = 0  # camera frames 0 .. _frames_taken - 1 are done with
+        self._outbox: list[can.Message] = []  # encoded, not yet sent (`_flush`)
+        self._outbox_time = 0.0
 
-    def _encode(self, frames: list[Any], sim_time: float) -> list[can.Message]:
-        return [self.protocol.encode(frame, timestamp=sim_time) for frame in frames]
+    def _send(self, frame: Any, sim_time: float) -> None:
+        """Queue one frame; `_flush` sends the queue in order."""
+        self._outbox.append(self.protocol.encode(frame, timestamp=sim_time))
+        self._outbox_time = sim_time
 
-    def _send(self, messages: list[can.Message], sim_time: float) -> None:
-        """Send `messages` in order, in one write where the bus can."""
+    def _flush(self) -> None:
+        """Send the queued frames in order, in one write where the bus can (`send_all`)."""
+        messages, self._outbox = self._outbox, []
+        if not messages:
+            return
         try:
             send_all(self.bus, messages)
         except (OSError, can.CanError) as exc:
             ids = ", ".join(f"0x{m.arbitration_id:03X}" for m in messages)
             raise ControllerError(
-                f"sending {ids} at t = {sim_time:.3f} s: the bus is gone ({exc})"
+                f"sending {ids} at t = {self._outbox_time:.3f} s: the bus is gone ({exc})"
             ) from exc
         self.report.frames_sent += len(messages)
 
     def run(self) -> ControllerReport:
         """Run every cycle of the experiment; raises ControllerError under the strict policy.
-        In lockstep a cycle's commands go out with the next SYNC, in one write: nothing can
-        tell the difference (the plant latches commands at SYNC, and the order of frames is
-        the same), and it halves the writes and hub wake-ups per cycle. On the real-time clock
-        they go out as soon as they are computed, as on a rig."""
+        In lockstep on a bus that sends batches (softhil's binary records), a cycle's commands
+        go out with the next SYNC, in one write: nothing can tell the difference (the plant
+        latches commands at SYNC, and the order of frames is the same), and it halves the
+        writes and hub wake-ups per cycle. Otherwise (the real-time clock, as on a rig; other
+        buses, where it would save nothing) they go out as soon as they are computed."""
         T = self.config.control_period
         lateness = []
-        deferred: list[can.Message] = []
+        batching = not self.clock.realtime and hasattr(self.bus, "send_batch")
         for cycle in range(self.config.cycles + 1):
             lateness.append(self.clock.wait_for(cycle))
             t = cycle * T
-            self._send([*deferred, *self._encode([Sync(cycle)], t)], t)
-            deferred = []
+            self._send(Sync(cycle), t)
+            self._flush()
             frames = self._collect(cycle, t)
             self.report.cycles = cycle
             if cycle == self.config.cycles:
                 break  # the final SYNC lets the plant reach the end time; nothing acts after it
             readings = self.module.readings(self.status)
             estimate = self.estimator.update(t, readings, frames)
-            commands = self._encode(list(self.controller.compute(cycle, t, estimate, readings)), t)
-            if self.clock.realtime:
-                self._send(commands, t)
-            else:
-                deferred = commands
+            for frame in self.controller.compute(cycle, t, estimate, readings):
+                self._send(frame, t)
+            if not batching:
+                self._flush()
         if lateness:
             self.report.max_lateness = max(lateness)
             self.report.mean_lateness = float(np.mean(lateness))

@@ -318,6 +318,9 @@ class Protocol:
     """Encoder/decoder of softhil frames over the DBC database (strict range checks)."""
 
     _cache: ClassVar[dict[Path, Database]] = {}
+    # compiled codecs by message, for the cached databases' messages (which live as long as
+    # the cache): compiling costs ~0.6 ms a message, a Protocol is made in many places
+    _codecs: ClassVar[dict[int, tuple[Message, _Codec | None]]] = {}
 
     def __init__(self, dbc_path: Path = DBC_PATH) -> None:
         try:
@@ -340,10 +343,7 @@ class Protocol:
             kind, digits = match["kind"], match["index"]
             ftype = _REGISTRY.get(kind)
             index = int(digits) if digits else None
-            try:
-                codec: _Codec | None = _Codec(message)
-            except ValueError:
-                codec = None  # a layout the compiler does not handle: cantools does it
+            codec = Protocol._compiled(message)
             plan = tuple(
                 (
                     signal.name,
@@ -359,6 +359,20 @@ class Protocol:
             self._by_id[message.frame_id] = entry
             self._by_name[message.name] = entry
             self._by_key[(kind, index)] = entry
+
+    @staticmethod
+    def _compiled(message: Message) -> _Codec | None:
+        """The message's compiled codec (None: a layout the compiler does not handle, cantools
+        does it), compiled once per message object."""
+        cached = Protocol._codecs.get(id(message))
+        if cached is not None and cached[0] is message:
+            return cached[1]
+        try:
+            codec: _Codec | None = _Codec(message)
+        except ValueError:
+            codec = None
+        Protocol._codecs[id(message)] = (message, codec)
+        return codec
 
     # ------------------------------------------------------------------ the DBC as data
 
