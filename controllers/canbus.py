@@ -19,6 +19,7 @@ from __future__ import annotations
 import errno
 import logging
 import socket
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import can
@@ -199,3 +200,15 @@ def failure_text(exc: BaseException) -> str:
     the text of its CanError; keep what precedes it."""
     text = str(exc).split("Traceback", 1)[0]
     return " ".join(text.split()) or type(exc).__name__
+
+
+def send_all(bus: can.BusABC, messages: Sequence[can.Message]) -> None:
+    """Send `messages` in order: in one write on a bus that offers ``send_batch`` (softhil's
+    binary records: one system call and one hub wake-up per batch), else one by one. What the
+    receivers see, frames and order, is the same either way."""
+    batch = getattr(bus, "send_batch", None)
+    if batch is not None:
+        batch(messages)
+        return
+    for message in messages:
+        bus.send(message)

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import can
 
-from controllers.canbus import connection_closed, failure_text
+from controllers.canbus import connection_closed, failure_text, send_all
 from controllers.protocol import (
     COUNTER_MODULO,
     EMCY_COMMAND_TIMEOUT,
@@ -247,16 +247,24 @@ class Plant:
         True if the rig records this frame."""
         return self.signals.record_frame(*frame_key(frame), frame_signals(frame))
 
-    def _send(self, frame: Frame) -> None:
+    def _send(self, frames: list[Frame]) -> None:
+        """Encode a SYNC's frames and send them in order, in one write where the bus can
+        (`send_all`), then log them."""
+        at = self.sim_time
+        messages = []
+        for frame in frames:
+            try:
+                messages.append(self.protocol.encode(frame, timestamp=at))
+            except FrameError as exc:
+                raise BusError(f"at t = {at:.3f} s: {exc}") from exc
         try:
-            message = self.protocol.encode(frame, timestamp=self.sim_time)
-        except FrameError as exc:
-            raise BusError(f"at t = {self.sim_time:.3f} s: {exc}") from exc
-        try:
-            self.bus.send(message)
+            send_all(self.bus, messages)
         except (can.CanError, OSError) as exc:
-            raise BusError(f"sending 0x{message.arbitration_id:03X}: {exc}") from exc
-        self.can_log.log(message, self.sim_time, received=False)
+            ids = ", ".join(f"0x{m.arbitration_id:03X}" for m in messages)
+            raise BusError(f"sending {ids}: {exc}") from exc
+        log = self.can_log.log
+        for message in messages:
+            log(message, at, received=False)
 
     def _on_sync(self, cycle: int) -> None:
         sync_tick = cycle * self.scenario.control_ticks
@@ -273,8 +281,7 @@ class Plant:
         values = master.values
         self.signals.begin_row(self.sim_time, {column: values[s] for column, s in self.sources})
         outgoing.sort(key=lambda phase_frame: phase_frame[0])  # stable: rig order within a phase
-        for _, frame in outgoing:
-            self._send(frame)
+        self._send([frame for _, frame in outgoing])
         self._count()
         self.can_log.flush()
         if self.scenario.controller.policy == "strict":

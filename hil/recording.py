@@ -165,8 +165,31 @@ class CanLogger:
         self.sent = 0
         self.received = 0
         self.bits = 0
+        # candump lines are written here directly (`_candump_line`), as python-can's
+        # CanutilsLogWriter writes them (checked byte for byte in the tests) without building a
+        # message per frame; its channel rule: a bare number n is "can<n>"
+        self._candump_channel = f"can{channel}" if channel.isdigit() else channel
+        self._first_stamp: float | None = None
+
+    def _candump_line(self, message: can.Message, stamp: float, received: bool) -> str:
+        """The line CanutilsLogWriter writes for a classic data frame stamped `stamp` [s]: as it
+        does, a stamp before the log's first is written as the first."""
+        if self._first_stamp is None:
+            self._first_stamp = stamp or 0.0
+        elif stamp < self._first_stamp:
+            stamp = self._first_stamp
+        can_id = message.arbitration_id
+        ident = f"{can_id:08X}" if message.is_extended_id else f"{can_id:03X}"
+        return (
+            f"({stamp:f}) {self._candump_channel} {ident}#{bytes(message.data).hex().upper()}"
+            f"{' R' if received else ' T'}\n"
+        )
 
     def log(self, message: can.Message, time: float, received: bool) -> None:
+        if self._record is not None:
+            self._record.write(self._candump_line(message, self.start + time, received))
+            self._count(message, received)
+            return
         stamped = can.Message(
             timestamp=self.start + time,
             arbitration_id=message.arbitration_id,
@@ -179,6 +202,9 @@ class CanLogger:
             self._writer.on_message_received(stamped)
         except OSError as exc:
             raise WriteError(f"{self.path}: cannot write: {exc.strerror or exc}") from None
+        self._count(message, received)
+
+    def _count(self, message: can.Message, received: bool) -> None:
         self.bits += frame_bits(len(message.data))
         if received:
             self.received += 1

@@ -26,7 +26,7 @@ from pathlib import Path
 import can
 import pytest
 
-from controllers.canbus import BusSpec, connection_closed, open_bus
+from controllers.canbus import BusSpec, connection_closed, open_bus, send_all
 from hil.bus import wire
 from hil.bus.binary import SofthilBus, parse_channel
 from hil.bus.loopback import HubProcess, LoopbackHub
@@ -447,3 +447,36 @@ def test_hub_process_serves_both_protocols_and_exits_with_its_pipe() -> None:
         child.stop(timeout=TIMEOUT)
     # stopped by its closed standard input, not killed by the timeout's SIGKILL
     assert child._process.returncode == 0
+
+
+def test_a_batch_arrives_as_its_frames_in_order_in_both_protocols(
+    hub: LoopbackHub, buses: list[can.BusABC]
+) -> None:
+    """send_batch (one write) delivers what send would, frame by frame, to binary and
+    socketcand members; send_all uses it where the bus has it and falls back to send."""
+    a, b = binary(hub, buses), binary(hub, buses)
+    t = ascii_bus(hub, buses)
+    joined(hub, 3)
+    sent = frames(random.Random(4), 40)
+    a.send_batch(sent[:20])
+    send_all(a, sent[20:])
+    for receiver in (b, t):
+        for message in sent:
+            same(receiver.recv(TIMEOUT), message)
+    send_all(t, sent[:3])  # socketcand's bus has no send_batch: one by one
+    for message in sent[:3]:
+        same(a.recv(TIMEOUT), message)
+
+
+def test_a_batch_with_an_invalid_frame_sends_nothing(
+    hub: LoopbackHub, buses: list[can.BusABC]
+) -> None:
+    a, b = binary(hub, buses), binary(hub, buses)
+    joined(hub, 2)
+    good = can.Message(arbitration_id=0x123, is_extended_id=False, data=b"\x01")
+    remote = can.Message(arbitration_id=0x124, is_extended_id=False, is_remote_frame=True)
+    with pytest.raises(can.CanOperationError, match="only classic data frames"):
+        a.send_batch([good, remote])
+    a.send(can.Message(arbitration_id=0x125, is_extended_id=False, data=b"\x02"))
+    received = b.recv(TIMEOUT)
+    assert received is not None and received.arbitration_id == 0x125

@@ -137,3 +137,25 @@ def test_servo_move_converges_with_the_substep(drive_cylinder_fmu) -> None:
     coarse = simulate(drive_cylinder_fmu, 1.0, ["x"], None, move)
     fine = simulate(drive_cylinder_fmu, 1.0, ["x"], {"substep": 1.25e-4 / 4}, move)
     assert np.max(np.abs(coarse["x"] - fine["x"]) / np.abs(fine["x"])) < 1e-6
+
+
+def test_substeps_of_changing_length_integrate_as_accurately_as_equal_ones(
+    drive_cylinder_fmu,
+) -> None:
+    """A servo period that does not divide the step splits every step into substeps of varying
+    length: the solver's cached exponential coefficients must follow the length (a stale cache
+    integrates the electrical pole with the wrong exponential). Against a 4x finer reference
+    the current agrees as closely as with equal substeps."""
+    parameters = {"servo_period": 7e-4, "p_a": 2e4}
+    outputs = ["i_motor", "x"]
+    got = simulate(drive_cylinder_fmu, 0.2, outputs, parameters, lambda t: {"x_ref": 0.03})
+    fine = simulate(
+        drive_cylinder_fmu,
+        0.2,
+        outputs,
+        {**parameters, "substep": 1.25e-4 / 4},
+        lambda t: {"x_ref": 0.03},
+    )
+    span = np.ptp(fine["i_motor"])
+    assert span > 0.1  # the servo drives the motor hard: the pole is exercised
+    assert np.max(np.abs(got["i_motor"] - fine["i_motor"])) < 1e-3 * span

@@ -55,14 +55,21 @@ static double screw_friction_coefficient(const Instance *inst) {
     return 1.0 / V(inst, efficiency) - 1.0;
 }
 
-/* Seal friction force opposing the piston velocity v, smoothed Coulomb + viscous [N]. */
-static double seal_friction(const Instance *inst, double v) {
-    return V(inst, F_coulomb) * tanh(v / V(inst, v_stiction)) + V(inst, c_viscous) * v;
+/* Smoothed sign of the piston velocity v, shared by the seal's Coulomb friction and the screw's
+ * (one tanh per derivative evaluation, not two). */
+static double velocity_sign(const Instance *inst, double v) {
+    return tanh(v / V(inst, v_stiction));
 }
 
-/* Lead screw friction force for a load F at piston velocity v [N], always dissipative. */
-static double screw_friction(const Instance *inst, double load, double v) {
-    return screw_friction_coefficient(inst) * fabs(load) * tanh(v / V(inst, v_stiction));
+/* Seal friction force opposing the piston velocity v, smoothed Coulomb + viscous [N]; sgn is
+ * velocity_sign(v). */
+static double seal_friction(const Instance *inst, double v, double sgn) {
+    return V(inst, F_coulomb) * sgn + V(inst, c_viscous) * v;
+}
+
+/* Lead screw friction force for a load F, sgn = velocity_sign(v) [N], always dissipative. */
+static double screw_friction(const Instance *inst, double load, double sgn) {
+    return screw_friction_coefficient(inst) * fabs(load) * sgn;
 }
 
 static double stored_energy(const Instance *inst, const double y[]) {
@@ -74,9 +81,10 @@ int model_derivatives(const Instance *inst, const double y[], double dy[]) {
     const double r = screw_ratio(inst);
     const double v = r * y[W];
     const double pressure_force = (V(inst, p_a) - V(inst, p_b)) * bore_area(inst);
-    const double seal = seal_friction(inst, v);
+    const double sgn = velocity_sign(inst, v);
+    const double seal = seal_friction(inst, v, sgn);
     const double load = pressure_force + seal;
-    const double screw = screw_friction(inst, load, v);
+    const double screw = screw_friction(inst, load, sgn);
     dy[I] = (s->u - V(inst, R_motor) * y[I] - V(inst, Ke) * y[W]) / V(inst, L_motor);
     dy[W] = (V(inst, Kt) * y[I] - V(inst, b_motor) * y[W] - r * (load + screw)) / V(inst, J);
     dy[X] = v;

@@ -482,26 +482,36 @@ static int nonlinear_part(const Instance *inst, const double y[], double out[]) 
 
 /* One substep of ETDRK4 (Cox and Matthews 2002, J. Comput. Phys. 176, 430) of length h; returns 0
  * if a stage left the model's domain or became non-finite. */
-static int exponential_rk4(Instance *inst, double h) {
-    const OdeSystem *ode = &inst->ode;
-    double *y = ode->y;
-    double Nu[MAX_STATES], Na[MAX_STATES], Nb[MAX_STATES], Nc[MAX_STATES];
-    double a[MAX_STATES], b[MAX_STATES], c[MAX_STATES];
-    double E[MAX_STATES], E2[MAX_STATES], p_half[MAX_STATES], f1[MAX_STATES], f2[MAX_STATES],
-        f3[MAX_STATES];
+static void exponential_coefficients(OdeSystem *ode, double h) {
     size_t j;
+    int same = ode->coef_h == h;
+    for (j = 0; same && j < ode->n; j++) same = ode->coef_lambda[j] == ode->lambda[j];
+    if (same) return;
     for (j = 0; j < ode->n; j++) {
         const double z = ode->lambda[j] * h;
         double phi[3], phi_half[3];
         phi_functions(z, phi);
         phi_functions(0.5 * z, phi_half);
-        E[j] = z == 0.0 ? 1.0 : exp(z);
-        E2[j] = z == 0.0 ? 1.0 : exp(0.5 * z);
-        p_half[j] = 0.5 * h * phi_half[0];
-        f1[j] = h * (phi[0] - 3.0 * phi[1] + 4.0 * phi[2]);
-        f2[j] = h * (phi[1] - 2.0 * phi[2]);
-        f3[j] = h * (-phi[1] + 4.0 * phi[2]);
+        ode->E[j] = z == 0.0 ? 1.0 : exp(z);
+        ode->E2[j] = z == 0.0 ? 1.0 : exp(0.5 * z);
+        ode->p_half[j] = 0.5 * h * phi_half[0];
+        ode->f1[j] = h * (phi[0] - 3.0 * phi[1] + 4.0 * phi[2]);
+        ode->f2[j] = h * (phi[1] - 2.0 * phi[2]);
+        ode->f3[j] = h * (-phi[1] + 4.0 * phi[2]);
+        ode->coef_lambda[j] = ode->lambda[j];
     }
+    ode->coef_h = h;
+}
+
+static int exponential_rk4(Instance *inst, double h) {
+    OdeSystem *ode = &inst->ode;
+    double *y = ode->y;
+    double Nu[MAX_STATES], Na[MAX_STATES], Nb[MAX_STATES], Nc[MAX_STATES];
+    double a[MAX_STATES], b[MAX_STATES], c[MAX_STATES];
+    const double *E = ode->E, *E2 = ode->E2, *p_half = ode->p_half;
+    const double *f1 = ode->f1, *f2 = ode->f2, *f3 = ode->f3;
+    size_t j;
+    exponential_coefficients(ode, h);
     if (!nonlinear_part(inst, y, Nu)) return 0;
     for (j = 0; j < ode->n; j++) a[j] = E2[j] * y[j] + p_half[j] * Nu[j];
     if (!nonlinear_part(inst, a, Na)) return 0;

@@ -33,6 +33,13 @@ typedef struct {
     double lambda[MAX_STATES];  /* stiff diagonal rates [1/s] integrated exactly, 0 if none */
     double max_substep;         /* largest substep [s], the model's `substep` parameter */
     double stability_limit;     /* the substep beyond which the model states the solver diverges */
+    /* the exponential RK4's coefficients for the substep coef_h and the rates coef_lambda: the
+     * substep is nearly always the same, so they are computed once, not every substep (the
+     * same values bit for bit; coef_h = 0 means none yet) */
+    double coef_h;
+    double coef_lambda[MAX_STATES];
+    double E[MAX_STATES], E2[MAX_STATES], p_half[MAX_STATES];
+    double f1[MAX_STATES], f2[MAX_STATES], f3[MAX_STATES];
 } OdeSystem;
 
 typedef enum { PHASE_INSTANTIATED, PHASE_INIT, PHASE_STEP, PHASE_TERMINATED, PHASE_ERROR } Phase;

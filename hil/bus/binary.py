@@ -35,6 +35,7 @@ import contextlib
 import select
 import socket
 import time
+from collections.abc import Sequence
 from typing import Any
 
 import can
@@ -202,6 +203,17 @@ class SofthilBus(can.BusABC):
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         """Send one classic data frame as one record (``timeout`` is not used: loopback TCP
         with a hub that reads everything; a stalled hub surfaces as a closed connection)."""
+        self._write(self._record(msg))
+
+    def send_batch(self, messages: Sequence[can.Message]) -> None:
+        """Send frames in order as consecutive records in one write: one system call and one
+        wake-up of the hub instead of one per frame (the hub forwards what it reads in one go,
+        so the receiver gets them in one read too). Receivers see the same frames in the same
+        order as from `send` one by one; nothing is sent if any frame is invalid."""
+        self._write(b"".join([self._record(msg) for msg in messages]))
+
+    @staticmethod
+    def _record(msg: can.Message) -> bytes:
         if msg.is_remote_frame or msg.is_error_frame or msg.is_fd:
             raise can.CanOperationError(
                 f"softhil bus: only classic data frames are carried, not 0x{msg.arbitration_id:X}"
@@ -213,8 +225,11 @@ class SofthilBus(can.BusABC):
             raise can.CanOperationError(
                 f"softhil bus: frame 0x{can_id:X} has {len(data)} bytes or an id out of range"
             )
+        return encode_record(can_id, msg.is_extended_id, data, msg.timestamp)
+
+    def _write(self, records: bytes) -> None:
         try:
-            self._sock.sendall(encode_record(can_id, msg.is_extended_id, data, msg.timestamp))
+            self._sock.sendall(records)
         except OSError as exc:
             self._closed = True
             raise can.CanOperationError(f"softhil bus: send failed: {exc}") from None

@@ -1,0 +1,51 @@
+"""The CAN log's candump lines, written by hil.recording.CanLogger without python-can's writer
+on the hot path, are python-can's CanutilsLogWriter's lines byte for byte."""
+
+from __future__ import annotations
+
+import random
+from pathlib import Path
+
+import can
+
+from hil.recording import CanLogger
+
+
+def test_candump_lines_are_python_cans_byte_for_byte(tmp_path: Path) -> None:
+    rng = random.Random(3)
+    start = 1433116800.0
+    times = [0.0, *sorted(rng.uniform(0.0, 30.0) for _ in range(200))]
+    times[50] = -0.25  # before the first stamp: the writer writes the first stamp instead
+    logger = CanLogger(tmp_path / "ours.log", start=start)
+    reference = tmp_path / "reference.log"
+    with reference.open("w") as file:
+        writer = can.CanutilsLogWriter(file)
+        for i, t in enumerate(times):
+            extended = rng.random() < 0.3
+            message = can.Message(
+                arbitration_id=rng.randrange(0x20000000 if extended else 0x800),
+                is_extended_id=extended,
+                data=bytes(rng.randrange(256) for _ in range(i % 9)),
+            )
+            received = rng.random() < 0.5
+            logger.log(message, t, received=received)
+            writer.on_message_received(
+                can.Message(
+                    timestamp=start + t,
+                    arbitration_id=message.arbitration_id,
+                    is_extended_id=extended,
+                    data=bytes(message.data),
+                    is_rx=received,
+                    channel="can0",
+                )
+            )
+    logger.close()
+    assert (tmp_path / "ours.log").read_bytes() == reference.read_bytes()
+    assert logger.sent + logger.received == len(times)
+
+
+def test_a_numeric_channel_is_written_as_python_can_writes_it(tmp_path: Path) -> None:
+    logger = CanLogger(tmp_path / "x.log", start=0.0, channel="1")
+    logger.log(can.Message(arbitration_id=0x80, is_extended_id=False, data=b"\x07"), 0.5, True)
+    logger.close()
+    assert (tmp_path / "x.log").read_text() == "(0.500000) can1 080#07 R\n"
