@@ -84,7 +84,11 @@ def test_the_camera_reports_the_object_marker_after_the_arms(approach_run) -> No
             r"robot\.gripper\.finger_colour: unknown key",
         ),
         ("[robot.gripper]\n", "[robot.gripper]\ntheta_open = 2.0\n", r"robot\.gripper\.theta_open"),
-        ("[robot.gripper]\n", "", r"robot\.gripper: a grasp task needs the gripper"),
+        (
+            "[robot.gripper]\ntheta_closed",
+            "[robot.segment]\ntheta_start",
+            r"robot\.gripper: a grasp task needs the gripper",
+        ),
         ("grasp_time = 1.0", "grasp_time = -1.0", r"task\.grasp_time: must be positive"),
         ("torque_std = 0.01", "torque_std = 0.0", r"controller\.torque_std: must be positive"),
         (
@@ -104,9 +108,8 @@ def test_gripper_and_grasp_keys_are_checked(
 
 
 def test_a_gripper_needs_the_environment(tmp_path: Path) -> None:
-    text = GRASP.replace(
-        "[robot.environment]\nobjects = [{ radius = 0.0125, mass = 0.005, height = 0.05 }]\n", ""
-    )
+    start = GRASP.index("[robot.environment]")
+    text = GRASP[:start] + GRASP[GRASP.index("[camera]") :]
     with pytest.raises(ScenarioError, match=r"robot\.gripper: needs \[robot\.environment\]"):
         load_scenario(write(tmp_path, text))
 
