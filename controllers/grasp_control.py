@@ -185,26 +185,24 @@ class GraspControl:
             self._follow(t, carry)
         elif self.phase == PHASE["releasing"] and waited >= self.plan.grasp_time:
             self.leg = 2
-            # back off from where the camera sees the released object; just released, it may
-            # still touch the palm or a finger: then plan with less margin, down to a few
-            # millimetres of overlap (the retreat only backs away from it)
+            # back off from where the camera sees the released object, through the approach
+            # circles, clear of it
             where = (float(self.seen[0]), float(self.seen[1]))
-            for margin in (grasp.MARGIN,):
-                try:
-                    retreat = grasp.plan_retreat(
-                        where,
-                        self.plan.object_radius,
-                        self.reference,
-                        self.heading,
-                        self.lengths,
-                        self.base,
-                        self.lower,
-                        self.upper,
-                        self.gripper.geometry,
-                        margin=margin,
-                    )
-                except ValueError:
-                    continue
+            try:
+                retreat = grasp.plan_retreat(
+                    where,
+                    self.plan.object_radius,
+                    self.reference,
+                    self.heading,
+                    self.lengths,
+                    self.base,
+                    self.lower,
+                    self.upper,
+                    self.gripper.geometry,
+                )
+            except ValueError:
+                retreat = None
+            if retreat is not None:
                 self._follow(t, retreat)
                 return
             # still touching it (pressed into the palm): straight back along the gripper's axis

@@ -210,41 +210,10 @@ def _figure(
 
 def _draw_plan(ax: Any, scene: ArmScene) -> None:
     """The task's targets, lines, goal or pick and place, as planar_tasks.draw_arm draws them."""
-    from matplotlib.patches import Circle
+    from hil.robots.planar_tasks import draw_plan
 
-    plan = scene.plan
-    if plan is None:
-        return
-    if plan.kind == "grasp" and scene.grasp is not None:
-        pick, place = scene.grasp
-        ax.add_patch(
-            Circle(
-                pick,
-                plan.object_radius,
-                fill=False,
-                color="tab:blue",
-                ls="--",
-                label="object, start",
-            )
-        )
-        ax.add_patch(Circle(place, 0.01, fill=False, color="red", label="place (1 cm)"))
-    elif plan.kind == "pipe":
-        ax.plot(*plan.targets[0], "r*", ms=14, label="goal")
-    elif plan.kind == "point_to_point":
-        for k, (x, y) in enumerate(plan.targets):
-            ax.plot(x, y, "rx", ms=9, mew=2, label="targets" if k == 0 else None)
-            ax.annotate(str(k), (x, y), textcoords="offset points", xytext=(5, 5), color="red")
-    else:
-        for k, (a, b) in enumerate(zip(plan.targets, plan.ends, strict=True)):
-            ax.plot(
-                [a[0], b[0]],
-                [a[1], b[1]],
-                "r-",
-                lw=2.5,
-                alpha=0.6,
-                label="paths" if k == 0 else None,
-            )
-            ax.plot(*a, "ro", ms=5)
+    if scene.plan is not None:
+        draw_plan(ax, scene.plan, scene.grasp)
 
 
 def _bounds(

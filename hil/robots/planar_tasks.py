@@ -27,6 +27,7 @@ from controllers import kinematics
 from controllers.tasks import PHASE, point_to_segment
 
 if TYPE_CHECKING:
+    from controllers.tasks import TaskPlan
     from hil.robots.planar_arm import PlanarArm
     from hil.scenario import Scenario
 
@@ -256,33 +257,12 @@ def draw_arm(robot: PlanarArm, scenario: Scenario, signals: Mapping[str, Any], p
     for k, wall in enumerate(plan.walls):
         xy = np.array(wall)
         ax.plot(xy[:, 0], xy[:, 1], color="saddlebrown", lw=3, label="walls" if k == 0 else None)
-    if plan.kind == "grasp":
-        pick, place = robot.grasp_layout(scenario)
-        radius = plan.object_radius
-        ax.add_patch(
-            plt.Circle(pick, radius, fill=False, color="tab:blue", ls="--", label="object, start")
-        )
-        ax.add_patch(plt.Circle(place, 0.01, fill=False, color="red", label="place (1 cm)"))
+    grasp = robot.grasp_layout(scenario) if plan.kind == "grasp" else None
+    draw_plan(ax, plan, grasp)
+    if grasp is not None:
         trail = np.column_stack([signals["object1_x"], signals["object1_y"]])
         ax.plot(trail[:, 0], trail[:, 1], color="tab:blue", lw=1.2, label="object (true)")
-        ax.add_patch(plt.Circle(trail[-1], radius, color="tab:blue", alpha=0.5))
-    elif plan.kind == "pipe":
-        ax.plot(*plan.targets[0], "r*", ms=14, label="goal")
-    elif plan.kind == "point_to_point":
-        for k, (x, y) in enumerate(plan.targets):
-            ax.plot(x, y, "rx", ms=9, mew=2, label="targets" if k == 0 else None)
-            ax.annotate(str(k), (x, y), textcoords="offset points", xytext=(5, 5), color="red")
-    else:
-        for k, (a, b) in enumerate(zip(plan.targets, plan.ends, strict=True)):
-            ax.plot(
-                [a[0], b[0]],
-                [a[1], b[1]],
-                "r-",
-                lw=2.5,
-                alpha=0.6,
-                label="paths" if k == 0 else None,
-            )
-            ax.plot(*a, "ro", ms=5)
+        ax.add_patch(plt.Circle(trail[-1], plan.object_radius, color="tab:blue", alpha=0.5))
     ax.plot(base[0], base[1], "ks", ms=8, label="base")
     ax.set_aspect("equal")
     ax.set_xlabel("x [m]")
@@ -297,3 +277,44 @@ def draw_arm(robot: PlanarArm, scenario: Scenario, signals: Mapping[str, Any], p
     fig.savefig(image, format="png", dpi=110)
     plt.close(fig)
     write_file(path, image.getvalue())
+
+
+def draw_plan(
+    ax: Any,
+    plan: TaskPlan,
+    grasp: tuple[tuple[float, float], tuple[float, float]] | None = None,
+) -> None:
+    """The task on `ax`: numbered targets, path lines, a pipe's goal, or a grasp's object start
+    and place location (`grasp`: (pick, place) [m])."""
+    from matplotlib.patches import Circle
+
+    if plan.kind == "grasp" and grasp is not None:
+        pick, place = grasp
+        ax.add_patch(
+            Circle(
+                pick,
+                plan.object_radius,
+                fill=False,
+                color="tab:blue",
+                ls="--",
+                label="object, start",
+            )
+        )
+        ax.add_patch(Circle(place, 0.01, fill=False, color="red", label="place (1 cm)"))
+    elif plan.kind == "pipe":
+        ax.plot(*plan.targets[0], "r*", ms=14, label="goal")
+    elif plan.kind == "point_to_point":
+        for k, (x, y) in enumerate(plan.targets):
+            ax.plot(x, y, "rx", ms=9, mew=2, label="targets" if k == 0 else None)
+            ax.annotate(str(k), (x, y), textcoords="offset points", xytext=(5, 5), color="red")
+    elif plan.kind == "path":
+        for k, (a, b) in enumerate(zip(plan.targets, plan.ends, strict=True)):
+            ax.plot(
+                [a[0], b[0]],
+                [a[1], b[1]],
+                "r-",
+                lw=2.5,
+                alpha=0.6,
+                label="paths" if k == 0 else None,
+            )
+            ax.plot(*a, "ro", ms=5)
