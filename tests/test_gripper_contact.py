@@ -176,4 +176,5 @@ def test_a_knocked_object_tips_over_and_a_slowly_pushed_one_stands(environment_f
     assert upright == 1.0 and moved > 5e-3  # pushed along, standing
     assert tilt < 0.05
     upright, tilt, moved = knock(environment_fmu, 30.0)
-    assert upright == 0.0 and tilt >= math.atan2(0.02, 0.04)
+    # it falls the moment its centre of mass passes the edge: the tilt is frozen there
+    assert upright == 0.0 and math.atan2(0.02, 0.04) <= tilt < math.atan2(0.02, 0.04) + 0.1
