@@ -22,8 +22,7 @@ drive's (CurvatureMove), and the gripper's setpoint only ramps between its three
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-from types import SimpleNamespace
+from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -182,7 +181,7 @@ class GraspControl:
                 self.gripper.geometry,
             )
             self.heading = carry.heading  # the heading the object is placed with
-            self._follow(t, carry)
+            self._follow(t, carry.waypoints)
         elif self.phase == PHASE["releasing"] and waited >= self.plan.grasp_time:
             self.leg = 2
             # back off from where the camera sees the released object, through the approach
@@ -203,7 +202,7 @@ class GraspControl:
             except ValueError:
                 retreat = None
             if retreat is not None:
-                self._follow(t, retreat)
+                self._follow(t, retreat.waypoints)
                 return
             # still touching it (pressed into the palm): straight back along the gripper's axis
             # to the outer circle, in warm-started steps
@@ -227,7 +226,7 @@ class GraspControl:
                 waypoints.append((result.kappas, pose))
                 previous = result.kappas
             if waypoints:
-                self._follow(t, SimpleNamespace(waypoints=waypoints))
+                self._follow(t, waypoints)
             else:
                 self._enter(t, PHASE["done"])  # no way back: stay, released
 
@@ -247,10 +246,11 @@ class GraspControl:
         )
         self.heading = approach.heading
         self._stroke(t, self.gripper.x_open)
-        self._follow(t, approach)
+        self._follow(t, approach.waypoints)
 
-    def _follow(self, t: float, plan: Any) -> None:
-        self.waypoints = [(np.asarray(k, float), tuple(p)) for k, p in plan.waypoints]
+    def _follow(self, t: float, waypoints: Sequence[tuple[Any, Any]]) -> None:
+        """Move through `waypoints` ((curvatures, tip pose) each), then settle on the last."""
+        self.waypoints = [(np.asarray(k, float), tuple(p)) for k, p in waypoints]
         self.waypoint = 0
         if not self.waypoints:
             self._enter(t, PHASE["settling"])

@@ -94,6 +94,21 @@ def figure_size(low: np.ndarray, high: np.ndarray) -> tuple[float, float]:
     return width, height
 
 
+def top_view(ax: Any, low: np.ndarray, high: np.ndarray, title: str, legend_columns: int) -> Any:
+    """Frame `ax` as the scene seen from above (equal axes from `low` to `high` [m], grid,
+    title, the legend under the figure); returns the time stamp's text artist."""
+    stamp = ax.text(0.02, 0.97, "", transform=ax.transAxes, va="top", family="monospace")
+    ax.set_xlim(low[0], high[0])
+    ax.set_ylim(low[1], high[1])
+    ax.set_aspect("equal")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_title(title)
+    ax.grid(True, alpha=0.3)
+    ax.figure.legend(loc="outside lower center", ncols=legend_columns, fontsize=7)
+    return stamp
+
+
 def write_animation(
     fig: Figure,
     moving: Sequence[Artist],

@@ -35,6 +35,7 @@ from controllers.protocol import (
     Frame,
     Heartbeat,
 )
+from controllers.protocol import Protocol as CanProtocol
 from hil.master import Participant
 from hil.vision import Camera, Picture
 
@@ -233,8 +234,12 @@ class CameraNode:
         field: tuple[tuple[float, float], tuple[float, float]] | None = None,
     ) -> None:
         self._inputs = list(inputs)
-        # the field of view ((x min, x max), (y min, y max)) [m]: a marker outside it is not seen
-        # (the DBC's marker frames carry no more), as a real camera loses what leaves its image
+        # the field of view ((x min, x max), (y min, y max)) [m], by default what the DBC's
+        # marker frames carry: a marker outside it is not seen, as a real camera loses what
+        # leaves its image
+        if field is None:
+            range_of = CanProtocol().signal_range
+            field = (range_of("CameraMarker0", "x"), range_of("CameraMarker0", "y"))
         self.field = field
         self.marker_model = marker_model
         self.camera = camera
@@ -280,8 +285,6 @@ class CameraNode:
     def _in_view(self, point: np.ndarray) -> bool:
         if np.isnan(point).any():
             return False
-        if self.field is None:
-            return True
         (x_lo, x_hi), (y_lo, y_hi) = self.field
         return bool(x_lo <= point[0] <= x_hi and y_lo <= point[1] <= y_hi)
 

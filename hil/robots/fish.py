@@ -286,10 +286,6 @@ class Fish:
             markers,
             scenario.latency_ticks,
             scenario_camera(scenario),
-            field=(
-                Protocol().signal_range("CameraMarker0", "x"),
-                Protocol().signal_range("CameraMarker0", "y"),
-            ),
         )
         fmus: list[FmuParticipant] = []
         parameters: dict[str, Mapping[str, float]] = {}

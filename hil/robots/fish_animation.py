@@ -13,7 +13,14 @@ from typing import Any
 
 import numpy as np
 
-from hil.animation import DPI, figure_size, frame_rows, playback_fps, write_animation
+from hil.animation import (
+    DPI,
+    figure_size,
+    frame_rows,
+    playback_fps,
+    top_view,
+    write_animation,
+)
 
 MARGIN = 0.03  # [m] around the fish's whole way
 
@@ -45,15 +52,7 @@ def animate_fish(name: str, signals: Mapping[str, Any], path: Path, fmt: str) ->
     (path_so_far,) = ax.plot([], [], ":", color="grey", lw=1, label="joint path")
     (fish,) = ax.plot([], [], "-o", color="tab:blue", lw=2.5, ms=3, label="body")
     (nose,) = ax.plot([], [], "^", color="navy", ms=7, label="nose")
-    stamp = ax.text(0.02, 0.97, "", transform=ax.transAxes, va="top", family="monospace")
-    ax.set_xlim(low[0], high[0])
-    ax.set_ylim(low[1], high[1])
-    ax.set_aspect("equal")
-    ax.set_xlabel("x [m]")
-    ax.set_ylabel("y [m]")
-    ax.set_title(f"{name}: the fish from above")
-    ax.grid(True, alpha=0.3)
-    fig.legend(loc="outside lower center", ncols=3, fontsize=7)
+    stamp = top_view(ax, low, high, f"{name}: the fish from above", 3)
 
     def update(k: int) -> None:
         row = rows[k]

@@ -24,7 +24,14 @@ import numpy as np
 
 from controllers import kinematics
 from controllers.gripper import GripperGeometry, finger_points
-from hil.animation import DPI, figure_size, frame_rows, playback_fps, write_animation
+from hil.animation import (
+    DPI,
+    figure_size,
+    frame_rows,
+    playback_fps,
+    top_view,
+    write_animation,
+)
 from hil.robots import environment, gripper
 
 if TYPE_CHECKING:
@@ -177,15 +184,7 @@ def _figure(
         ax.plot([], [], "+", color="red", ms=10, mew=1.5, label="reference")[0]
         for _ in range(any(f.reference is not None for f in frames))
     ]
-    stamp = ax.text(0.02, 0.97, "", transform=ax.transAxes, va="top", family="monospace")
-    ax.set_xlim(low[0], high[0])
-    ax.set_ylim(low[1], high[1])
-    ax.set_aspect("equal")
-    ax.set_xlabel("x [m]")
-    ax.set_ylabel("y [m]")
-    ax.set_title(f"{scene.name}: the arm from above")
-    ax.grid(True, alpha=0.3)
-    fig.legend(loc="outside lower center", ncols=6, fontsize=7)
+    stamp = top_view(ax, low, high, f"{scene.name}: the arm from above", 6)
 
     def update(k: int) -> None:
         f = frames[k]

@@ -182,17 +182,12 @@ class PlanarArm:
 
     def parameters(self, scenario: Scenario, table: str) -> list[dict[str, float]]:
         """Every parameter of each actuator: what the scenario sets, else the FMU's default."""
-        from hil.scenario import fmu_interface
 
         spec: PlanarArmSpec = scenario.robot
         fmu = spec.segment_fmu if table == "segment" else spec.cylinder_fmu
         defaults: dict[str, float] = {}
         for candidate in ("FeaSegment" if table == "segment" else "DriveCylinder", fmu):
-            for name, port in fmu_interface(
-                scenario.source, f"robot.{table}_fmu", candidate
-            ).items():
-                if port.causality == "parameter" and port.start is not None:
-                    defaults[name] = port.start
+            defaults.update(_defaults(scenario, f"robot.{table}_fmu", candidate))
         return [{**defaults, **given} for given in self.given(scenario, table)]
 
     # ------------------------------------------------------------------ checks
@@ -401,33 +396,16 @@ class PlanarArm:
 
     def gripper_cylinder(self, scenario: Scenario) -> dict[str, float]:
         """Every parameter of the gripper's drive cylinder."""
-        from hil.scenario import fmu_interface
-
-        interface = fmu_interface(scenario.source, "robot.gripper.cylinder", "DriveCylinder")
-        defaults = {
-            n: p.start
-            for n, p in interface.items()
-            if p.causality == "parameter" and p.start is not None
-        }
+        defaults = _defaults(scenario, "robot.gripper.cylinder", gripper.CYLINDER_FMU)
         return {**defaults, **gripper.table(scenario, "cylinder")}
 
     def gripper_model(self, scenario: Scenario) -> SegmentModel:
         """The finger pair's static model (as the arm's segment_models)."""
-        from hil.scenario import fmu_interface
-
-        interface = fmu_interface(scenario.source, "robot.gripper.segment", gripper.SEGMENT_FMU)
-        values = {
-            n: p.start
-            for n, p in interface.items()
-            if p.causality == "parameter" and p.start is not None
+        segment = {
+            **_defaults(scenario, "robot.gripper.segment", gripper.SEGMENT_FMU),
+            **gripper.segment_values(scenario),
         }
-        values.update(gripper.segment_values(scenario))
-        cylinder = self.gripper_cylinder(scenario)
-        values.update(bore=cylinder["bore"], stroke=cylinder["stroke"])
-        return SegmentModel(
-            **{k: values[k] for k in SegmentModel.__dataclass_fields__ if k != "x_seal"},
-            x_seal=cylinder["x_start"],
-        )
+        return _segment_model(segment, self.gripper_cylinder(scenario))
 
     def grasp_layout(self, scenario: Scenario) -> tuple[tuple[float, float], tuple[float, float]]:
         """Where a grasp task's object starts and where it is to be placed [m]: the task's
@@ -539,10 +517,6 @@ class PlanarArm:
             marker_model,
             scenario.latency_ticks,
             scenario_camera(scenario),
-            field=(
-                Protocol().signal_range("CameraMarker0", "x"),
-                Protocol().signal_range("CameraMarker0", "y"),
-            ),
         )
         fmus: list[FmuParticipant] = []
         connections: dict[str, Connection] = {}
@@ -758,13 +732,7 @@ class PlanarArm:
         for segment, cylinder in zip(
             self.parameters(scenario, "segment"), self.parameters(scenario, "cylinder"), strict=True
         ):
-            values = {**segment, "bore": cylinder["bore"], "stroke": cylinder["stroke"]}
-            models.append(
-                SegmentModel(
-                    **{k: values[k] for k in SegmentModel.__dataclass_fields__ if k != "x_seal"},
-                    x_seal=cylinder["x_start"],
-                )
-            )
+            models.append(_segment_model(segment, cylinder))
         return models
 
     def controller_config(self, scenario: Scenario) -> ControllerConfig:
@@ -1033,6 +1001,27 @@ class PlanarArm:
 
             return task_space_metrics(self, scenario, signals)
         return curvature_metrics(scenario, signals)
+
+
+def _defaults(scenario: Scenario, key: str, fmu: str) -> dict[str, float]:
+    """The start values of the parameters of FMU `fmu` (named in the scenario at `key`)."""
+    from hil.scenario import fmu_interface
+
+    return {
+        name: port.start
+        for name, port in fmu_interface(scenario.source, key, fmu).items()
+        if port.causality == "parameter" and port.start is not None
+    }
+
+
+def _segment_model(segment: Mapping[str, float], cylinder: Mapping[str, float]) -> SegmentModel:
+    """A segment's static model: its parameters, its cylinder's bore and stroke, its circuit
+    sealed where the piston starts."""
+    values = {**segment, "bore": cylinder["bore"], "stroke": cylinder["stroke"]}
+    return SegmentModel(
+        **{k: values[k] for k in SegmentModel.__dataclass_fields__ if k != "x_seal"},
+        x_seal=cylinder["x_start"],
+    )
 
 
 def _interface(scenario: Scenario, table: str) -> Mapping[str, Any]:
