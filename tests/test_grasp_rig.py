@@ -55,6 +55,21 @@ def test_the_fingers_open_and_the_approach_does_not_touch_the_object(approach_ru
     assert np.all(forces == 0.0)
 
 
+def test_a_grasp_run_is_byte_identical_with_the_controller_in_its_own_process(
+    approach_run, tmp_path: Path
+) -> None:
+    """Same seed, same results in both process modes (issue 12's acceptance): the gripper,
+    the object, its marker and the Environment FMU's contact change nothing of that."""
+    _, _, folder = approach_run
+    text = GRASP.replace("duration = 30.0", "duration = 2.5")
+    summary = run_scenario(
+        load_scenario(write(tmp_path, text)), RunOptions(out=tmp_path / "run", progress=False)
+    ).summary
+    assert summary["controller_process"] == "process"
+    for name in ("can.log", "signals.csv"):
+        assert (tmp_path / "run" / name).read_bytes() == (folder / name).read_bytes(), name
+
+
 def write_tmp(text: str) -> Path:
     import tempfile
 
