@@ -42,7 +42,7 @@ from the Generator passed in).
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -67,6 +67,16 @@ DRAW_ATTEMPTS = 200
 DRAW_SHARE = 0.7  # share of each curvature range that drawn grasp poses need (see draw_targets)
 START_MARGIN = 0.01  # [m] a drawn object's clearance from the arm in its start configuration
 SEPARATION = 0.06  # [m] least distance between a drawn object and its place location
+# [m] a drawn task is kept only if its plans keep this much more than `margin`: the controller
+# plans again from estimates (the object's centre and the arm's start a fraction of a millimetre
+# off, the grasp configuration settled a little off its plan), and a draw on the edge of
+# plannable would fail there
+DRAW_SLACK = 2e-3
+# [1/m] and the approach must also be plannable (with `margin`) from the start configuration
+# shaken by this much per segment, both ways (alternating signs): the controller plans from its
+# estimate of the start, a tenth of a 1/m or so off, and some layouts are plannable from the
+# exact start only
+START_SHAKE = 0.15
 
 
 @dataclass(frozen=True, eq=False)
@@ -517,6 +527,7 @@ def plan_approach(
     radii: Floats | None = None,
     margin: float = MARGIN,
     width: float = ARM_WIDTH,
+    accept: Callable[[GraspPlan], bool] | None = None,
 ) -> GraspPlan:
     """Waypoints that bring the open gripper onto concentric circles shrinking onto the object
     and finally to the grasp pose, never touching the object.
@@ -537,19 +548,23 @@ def plan_approach(
         Clearance kept between the object's disk and the fingers and backbone [m], > 0.
     width
         The arm's backbone width [m] (capsules of radius width / 2).
+    accept
+        What the task needs of an approach beyond clearance (for example that the object can
+        be carried on from its grasp configuration): a clear plan it rejects is passed over for
+        the next best heading.
 
     Returns
     -------
     GraspPlan
         Waypoints on the circles, outer first, ending at the grasp pose (standoff 0), at the
         heading of least motion (the sum of the largest curvature change of each move) among
-        those that can be made clear.
+        those that can be made clear (and that `accept` accepts).
 
     Raises
     ------
     ValueError
         When the object is out of reach, touches the arm now, does not fit the open gripper,
-        or no approach heading gives clear moves.
+        or no approach heading gives clear moves (that `accept` accepts).
     """
     arm = _Arm.of(lengths, base, lower, upper, geometry, width)
     current = np.clip(np.asarray(current_kappas, dtype=float), arm.lower, arm.upper)
@@ -573,7 +588,7 @@ def plan_approach(
     # while that bound is below the best motion found; the best is then checked for clearance
     grasps.sort(key=lambda g: float(np.max(np.abs(g[2] - current))))
     candidates: list[tuple[float, list[_Node]]] = []
-    reachable = 0
+    reachable = rejected = 0
     while True:
         best = min(candidates, key=lambda c: c[0], default=None)
         if grasps and (best is None or float(np.max(np.abs(grasps[0][2] - current))) < best[0]):
@@ -588,10 +603,15 @@ def plan_approach(
         candidates.remove(best)
         chained = _chain(arm, obstacle, current, best[1])
         if chained is not None:
-            return _plan(arm, obstacle, current, circles, *chained)
+            plan = _plan(arm, obstacle, current, circles, *chained)
+            if accept is None or accept(plan):
+                return plan
+            rejected += 1
     raise ValueError(
         f"grasp planning: no approach heading keeps the arm {margin * 1e3:.2f} mm clear of the "
-        f"{where} ({reachable} headings with every circle reachable)"
+        f"{where} ({reachable} headings with every circle reachable"
+        + (f", {rejected} clear but not accepted" if rejected else "")
+        + ")"
     )
 
 
@@ -818,6 +838,8 @@ def draw_grasp_task(
     margin: float = MARGIN,
     width: float = ARM_WIDTH,
     plannable: bool = True,
+    slack: float = DRAW_SLACK,
+    shake: float = START_SHAKE,
     attempts: int = DRAW_ATTEMPTS,
 ) -> tuple[tuple[float, float], tuple[float, float]]:
     """An object position and a place position [m] for a grasp-and-place task.
@@ -828,8 +850,9 @@ def draw_grasp_task(
     keeps `start_margin` [m] from the arm in its start configuration (backbone and open
     fingers); the place is at least `separation` [m] from the object and does not overlap the
     object's start (two radii plus `margin` apart). With `plannable`, the draw is also kept
-    only if `plan_approach` from the start and `plan_carry` (with the retreat) succeed, so the
-    controller can do the task. Deterministic: all randomness comes from `rng`.
+    only if `plan_approach` from the start and `plan_carry` (with the retreat) succeed with
+    `margin + slack`, and `plan_approach` with `margin` from the start shaken by `shake` [1/m]
+    both ways, so the controller, planning with `margin` from its estimates, can do the task. Deterministic: all randomness comes from `rng`.
 
     Raises
     ------
@@ -887,7 +910,7 @@ def draw_grasp_task(
                     lower,
                     upper,
                     geometry,
-                    margin=margin,
+                    margin=margin + slack,
                     width=width,
                 )
                 plan_carry(
@@ -900,9 +923,23 @@ def draw_grasp_task(
                     upper,
                     geometry,
                     object_radius=object_radius,
-                    margin=margin,
+                    margin=margin + slack,
                     width=width,
                 )
+                pattern = np.where(np.arange(start.size) % 2 == 0, shake, -shake)
+                for shaken in (start + pattern, start - pattern):
+                    plan_approach(
+                        centre,
+                        object_radius,
+                        shaken,
+                        lengths,
+                        base,
+                        lower,
+                        upper,
+                        geometry,
+                        margin=margin,
+                        width=width,
+                    )
             except ValueError:
                 continue
         return centre, place

@@ -9,7 +9,11 @@ camera marker (controllers.estimators.ObjectTracker). Stages, each reported in T
      (controllers.grasp.plan_approach: concentric circles around the estimated object that
      shrink onto it without touching it), waypoint after waypoint by realisable curvature moves;
   3. settling: the curvature loops settle on the grasp configuration (the estimated tip within
-     `tolerance` of the plan's tip for `settle_time`, or `max_time` at most);
+     `tolerance` of the plan's tip for `settle_time`, or `max_time` at most); if the camera
+     sees the object where closing fingers would not take hold of it (CAPTURE_SLACK: the arm
+     lags its plan, and a finger can knock the object), the approach is planned again to where
+     it is now (backing straight off first if the arm is too close to plan from), at most
+     MAX_REAPPROACHES times, and then the task ends;
   4. grasping: the fingers close for `grasp_time`; contact alone holds the object;
   5. moving (carry): the held object's centre goes to the place location (plan_carry), then
      settling on the camera's view of the object until it is on target and at rest (see
@@ -17,6 +21,8 @@ camera marker (controllers.estimators.ObjectTracker). Stages, each reported in T
   6. releasing: the fingers open for `grasp_time`;
   7. moving (retreat): the gripper backs off along its axis out of the object's way
      (plan_retreat); then done, holding the last configuration.
+A plan that cannot be made (the object or the place out of reach from where the arm is) ends the
+task in `done` where the arm is (`note` says why) instead of stopping the controller.
 Invariant: every curvature reference stays within the plan's bounds and its rate within each
 drive's (CurvatureMove), and the gripper's setpoint only ramps between its three pistons.
 """
@@ -56,6 +62,19 @@ RETREAT_STEP = 0.005  # [m] between the warm-started poses of a straight retreat
 # where it is now for REST_WINDOW on target (0.6 mm/s: the tracker's noise is ~0.1 mm)
 REST_WINDOW = 0.5
 REST_DRIFT = 3e-4
+# [m] where closing fingers take hold of an object: its centre between the open fingers' inner
+# faces (up to CAPTURE_SLACK of contact penetration: a finger that pushed it has it on its inner
+# face), and at most CAPTURE_BACK behind or CAPTURE_AHEAD ahead of the grasp point along the
+# gripper's axis (towards the palm, or the fingertips: an object whose centre is past them is
+# pushed out; measured, fingers closing on objects pushed 5-7 mm ahead held them all). Settled
+# on the grasp pose with the object seen elsewhere (a finger knocked it), the approach is
+# planned again, at most MAX_REAPPROACHES times, and then the task ends there
+CAPTURE_SLACK = 2e-3
+CAPTURE_BACK = 1e-2
+CAPTURE_AHEAD = 1e-2
+MAX_REAPPROACHES = 3
+# [m] the approach's clearance when none keeps grasp.MARGIN from the arm's estimated start
+APPROACH_MARGIN_FALLBACK = 5e-4
 STROKE_SHARE = 0.5  # of grasp_time the fingers' closing or opening stroke is spread over
 
 
@@ -91,6 +110,9 @@ class GraspControl:
         self.correction = np.zeros(2)  # integrated task-space correction of the goal [m]
         self.seen = self.target.copy()  # the object's latest estimated centre [m]
         self.solution = np.zeros(config.segments)  # the last IK solution (warm start)
+        self.nominal = np.zeros(config.segments)  # the approach plan's grasp configuration
+        self.reapproaches = 0  # approaches planned again because the object had moved
+        self.note = ""  # why the last plan failed (the task ends there if nothing else works)
         # the carried object's recent estimates (time, centre): has it come to rest?
         self.track: list[tuple[float, np.ndarray]] = []
 
@@ -107,7 +129,9 @@ class GraspControl:
             seen = objects is not None and not np.isnan(objects[0]).any()
             if t >= self.plan.acquire_time - 1e-9 and seen:
                 assert objects is not None
-                self._approach(t, kappa, objects[0])
+                if not self._approach(t, kappa, objects[0]):
+                    self.reference = np.clip(kappa, self.lower, self.upper)
+                    self._enter(t, PHASE["done"])  # no approach: stay where the arm is
             else:
                 return self._hold(cycle, estimate, drives)
         self._advance(t, kappa)
@@ -177,16 +201,19 @@ class GraspControl:
             self._settle(t, kappa)
         elif self.phase == PHASE["grasping"] and waited >= self.plan.grasp_time:
             self.leg = 1
-            carry = grasp.plan_carry(
-                self.target,
-                self.reference,
-                self.heading,
-                self.lengths,
-                self.base,
-                self.lower,
-                self.upper,
-                self.gripper.geometry,
-            )
+            carry = None
+            # from where the arm holds the object, else from the approach plan's grasp
+            # configuration (the settling moved the arm a little off it; the first carry move
+            # takes it back)
+            for start in (self.reference, self.nominal):
+                try:
+                    carry = self._plan_carry(start, self.heading)
+                    break
+                except ValueError as exc:
+                    self.note = str(exc)
+            if carry is None:
+                self._enter(t, PHASE["done"])  # no way to the place: stay, holding the object
+                return
             self.heading = carry.heading  # the heading the object is placed with
             self._follow(t, carry.waypoints)
         elif self.phase == PHASE["releasing"] and waited >= self.plan.grasp_time:
@@ -212,48 +239,89 @@ class GraspControl:
                 self._follow(t, retreat.waypoints)
                 return
             # still touching it (pressed into the palm): straight back along the gripper's axis
-            # to the outer circle, in warm-started steps
-            outer = grasp.default_radii(self.plan.object_radius, self.gripper.geometry)[0]
-            x, y, heading = kinematics.forward(self.reference, self.lengths, self.base)[-1]
-            waypoints, previous = [], self.reference
-            for standoff in np.arange(RETREAT_STEP, outer + 1e-9, RETREAT_STEP):
-                back = float(standoff)
-                pose = (x - back * np.cos(heading), y - back * np.sin(heading), float(heading))
-                result = solve_ik(
-                    np.array(pose[:2]),
-                    previous,
+            if not self._back_off(t):
+                self._enter(t, PHASE["done"])  # no way back: stay, released
+
+    def _back_off(self, t: float) -> bool:
+        """Back the gripper straight off along its axis to the outer approach circle, in
+        warm-started steps; False if not even the first step can be solved."""
+        outer = grasp.default_radii(self.plan.object_radius, self.gripper.geometry)[0]
+        x, y, heading = kinematics.forward(self.reference, self.lengths, self.base)[-1]
+        waypoints, previous = [], self.reference
+        for standoff in np.arange(RETREAT_STEP, outer + 1e-9, RETREAT_STEP):
+            back = float(standoff)
+            pose = (x - back * np.cos(heading), y - back * np.sin(heading), float(heading))
+            result = solve_ik(
+                np.array(pose[:2]),
+                previous,
+                self.lengths,
+                self.base,
+                self.lower,
+                self.upper,
+                heading=pose[2],
+            )
+            if not result.converged:
+                break
+            waypoints.append((result.kappas, pose))
+            previous = result.kappas
+        if waypoints:
+            self._follow(t, waypoints)
+        return bool(waypoints)
+
+    def _approach(self, t: float, kappa: np.ndarray, centre: np.ndarray) -> bool:
+        """Plan the approach to the object seen at `centre` from the estimated curvatures
+        `kappa` and start it; False (and `note` says why) if there is none."""
+        start = np.clip(kappa, self.lower, self.upper)
+        approach = None
+        # an approach from whose grasp the object can be carried to the place; with a thinner
+        # margin if the arm's estimated start leaves none (the task was drawn with more)
+        for margin in (grasp.MARGIN, APPROACH_MARGIN_FALLBACK):
+            try:
+                approach = grasp.plan_approach(
+                    (float(centre[0]), float(centre[1])),
+                    self.plan.object_radius,
+                    start,
                     self.lengths,
                     self.base,
                     self.lower,
                     self.upper,
-                    heading=pose[2],
+                    self.gripper.geometry,
+                    margin=margin,
+                    accept=self._carriable,
                 )
-                if not result.converged:
-                    break
-                waypoints.append((result.kappas, pose))
-                previous = result.kappas
-            if waypoints:
-                self._follow(t, waypoints)
-            else:
-                self._enter(t, PHASE["done"])  # no way back: stay, released
-
-    def _approach(self, t: float, kappa: np.ndarray, centre: np.ndarray) -> None:
+                break
+            except ValueError as exc:
+                self.note = str(exc)
+        if approach is None:
+            return False
         self.found = centre.copy()
-        start = np.clip(kappa, self.lower, self.upper)
         self.reference = start.copy()
-        approach = grasp.plan_approach(
-            (float(centre[0]), float(centre[1])),
-            self.plan.object_radius,
+        self.heading = approach.heading
+        self.nominal = np.asarray(approach.waypoints[-1][0], float)
+        self._stroke(t, self.gripper.x_open)
+        self._follow(t, approach.waypoints)
+        return True
+
+    def _carriable(self, approach: grasp.GraspPlan) -> bool:
+        """Whether the object can be carried to the place from `approach`'s grasp."""
+        kappas, pose = approach.waypoints[-1]
+        try:
+            self._plan_carry(np.asarray(kappas, float), float(pose[2]))
+        except ValueError:
+            return False
+        return True
+
+    def _plan_carry(self, start: np.ndarray, heading: float) -> grasp.GraspPlan:
+        return grasp.plan_carry(
+            self.target,
             start,
+            heading,
             self.lengths,
             self.base,
             self.lower,
             self.upper,
             self.gripper.geometry,
         )
-        self.heading = approach.heading
-        self._stroke(t, self.gripper.x_open)
-        self._follow(t, approach.waypoints)
 
     def _follow(self, t: float, waypoints: Sequence[tuple[Any, Any]]) -> None:
         """Move through `waypoints` ((curvatures, tip pose) each), then settle on the last."""
@@ -333,7 +401,18 @@ class GraspControl:
         )
         if not settled and t - self.since < self.plan.max_time:
             return
-        if self.leg == 0:
+        if self.leg == 0 and not self._captured(pose):
+            # the approach knocked the object (the arm lags its plan): go round again to where
+            # the camera sees it now rather than close the fingers on nothing; if the arm is too
+            # close to it to plan from here, back off first (and plan from there)
+            if self.reapproaches >= MAX_REAPPROACHES:
+                self.note = self.note or "the object is not between the fingers"
+                self._enter(t, PHASE["done"])  # nothing to close on: stay, open
+                return
+            self.reapproaches += 1
+            if not self._approach(t, kappa, self.seen) and not self._back_off(t):
+                self.reapproaches = MAX_REAPPROACHES
+        elif self.leg == 0:
             self._stroke(t, self.gripper.x_closed)
             self._enter(t, PHASE["grasping"])
         elif self.leg == 1:
@@ -341,6 +420,19 @@ class GraspControl:
             self._enter(t, PHASE["releasing"])
         else:
             self._enter(t, PHASE["done"])
+
+    def _captured(self, pose: tuple[float, float, float] | None) -> bool:
+        """Whether fingers closing at the grasp pose `pose` take hold of the object where the
+        camera sees it (see CAPTURE_SLACK)."""
+        if pose is None:
+            return True
+        geometry = self.gripper.geometry
+        offset = self.seen - grasp_point(geometry, pose)
+        axis = np.array([np.cos(pose[2]), np.sin(pose[2])])
+        ahead = float(offset @ axis)
+        side = float(offset[1] * axis[0] - offset[0] * axis[1])
+        room = geometry.root_offset - 0.5 * geometry.finger_width - self.plan.object_radius
+        return abs(side) <= room + CAPTURE_SLACK and -CAPTURE_BACK <= ahead <= CAPTURE_AHEAD
 
     def _place(self, t: float, error: np.ndarray) -> None:
         """When to let go of the carried object (`error`: place location minus its estimated

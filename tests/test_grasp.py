@@ -466,6 +466,30 @@ def test_drawn_objects_keep_the_start_margin_from_the_arm(seed: int) -> None:
     assert dense_clearance(START, centre, RADIUS) >= 0.2
 
 
+def test_a_drawn_task_leaves_the_controller_room_to_plan(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The controller plans again from estimates: a kept draw's plans keep DRAW_SLACK beyond
+    the margin, and its approach is plannable from the start shaken by START_SHAKE both ways."""
+    import controllers.grasp as grasp
+
+    calls: list[tuple[float, np.ndarray]] = []
+    original = grasp.plan_approach
+
+    def spy(*args, **kwargs):  # type: ignore[no-untyped-def]
+        calls.append((kwargs["margin"], np.asarray(args[2], float)))
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(grasp, "plan_approach", spy)
+    draw(3)
+    kept = calls[-3:]  # the draw that was kept: its three approaches, in order
+    pattern = np.where(np.arange(START.size) % 2 == 0, 1.0, -1.0) * grasp.START_SHAKE
+    assert kept[0][0] == pytest.approx(grasp.MARGIN + grasp.DRAW_SLACK)
+    assert np.array_equal(kept[0][1], START)
+    assert [m for m, _ in kept[1:]] == [grasp.MARGIN, grasp.MARGIN]
+    assert kept[1][1] == pytest.approx(START + pattern)
+    assert kept[2][1] == pytest.approx(START - pattern)
+    assert grasp.DRAW_SLACK > 0 and grasp.START_SHAKE > 0
+
+
 def test_draw_gives_up_after_its_attempts() -> None:
     with pytest.raises(ValueError, match="no object and place found in 5 draws"):
         draw(1, separation=1.0, attempts=5, plannable=False)

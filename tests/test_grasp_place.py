@@ -110,3 +110,183 @@ def test_the_loop_keeps_correcting_while_waiting_for_rest(config) -> None:
     run(control, config, lambda t: target + [0.001, 0.0], until=0.3)
     assert control.phase == PHASE["settling"]
     assert control.correction[0] < 0.0 and abs(control.correction[1]) < 1e-12
+
+
+# ---------------------------------------------------------------- before closing, and failures
+
+
+def settled_on_the_grasp_pose(config) -> tuple[GraspControl, np.ndarray]:
+    """A controller whose approach (planned for the scenario's object) has reached its grasp
+    pose; the arm's estimated curvatures are exactly that pose's."""
+    from hil.robots.planar_arm import ROBOT
+
+    pick, _ = ROBOT.grasp_layout(load_scenario(resolve_scenario("planar-grasp")))
+    control = GraspControl(config, Protocol())
+    start = np.clip(np.zeros(config.segments), control.lower, control.upper)
+    assert control._approach(0.0, start, np.array(pick))
+    kappa, _ = control.waypoints[-1]
+    control.reference = kappa.copy()
+    control.solution = kappa.copy()
+    control.waypoint = len(control.waypoints) - 1
+    control._enter(0.0, PHASE["settling"])
+    return control, kappa
+
+
+class Rig:
+    """Feeds a controller one cycle after another: the arm's estimate fixed at `kappa`, the
+    object seen at `seen`."""
+
+    def __init__(self, control: GraspControl, config, kappa: np.ndarray) -> None:
+        self.control, self.config, self.kappa = control, config, kappa
+        self.drives = {
+            i + 1: DriveReading(config.x_mid[i], 0.0, 0.0) for i in range(config.segments)
+        }
+        self.cycle = 0
+
+    def run(self, seen, cycles: int) -> None:
+        zeros = np.zeros_like(self.kappa)
+        for _ in range(cycles):
+            self.cycle += 1
+            objects = np.array([seen], float)
+            estimate = Estimate(self.kappa, zeros, zeros, objects=objects)
+            self.control.compute(self.cycle, self.cycle * PERIOD, estimate, self.drives)
+
+
+def test_an_object_where_the_approach_was_planned_for_is_grasped(config) -> None:
+    control, kappa = settled_on_the_grasp_pose(config)
+    found = control.found.copy()
+    Rig(control, config, kappa).run(found + [0.002, 0.0], cycles=60)
+    assert control.phase == PHASE["grasping"] and control.reapproaches == 0
+    assert control.setpoint == config.gripper.x_closed
+
+
+def test_an_object_knocked_away_is_approached_again_where_it_is_now(config) -> None:
+    """A finger knocked the object 15 mm along the gripper's axis during the approach: the
+    controller plans a new approach to where the camera sees it instead of closing on air."""
+    control, kappa = settled_on_the_grasp_pose(config)
+    found = control.found.copy()
+    axis = np.array([np.cos(control.heading), np.sin(control.heading)])
+    knocked = found + 0.015 * axis
+    rig = Rig(control, config, kappa)
+    for _ in range(60):
+        rig.run(knocked, cycles=1)
+        if control.reapproaches:
+            break
+    assert control.reapproaches == 1
+    assert control.phase == PHASE["moving"] and control.leg == 0
+    assert control.found == pytest.approx(knocked)
+    final_pose = control.waypoints[-1][1]
+    from controllers.gripper import grasp_point
+
+    assert grasp_point(control.gripper.geometry, final_pose) == pytest.approx(knocked, abs=1e-6)
+
+
+def test_an_object_knocked_against_a_finger_is_backed_off_from_first(config) -> None:
+    """Knocked 12 mm sideways the object overlaps the open finger: no approach can start from
+    here, so the gripper backs straight off along its axis to the outer approach circle (and
+    plans the approach from there)."""
+    control, kappa = settled_on_the_grasp_pose(config)
+    _, pose = control.waypoints[-1]
+    axis = np.array([np.cos(pose[2]), np.sin(pose[2])])
+    knocked = control.found + 0.012 * np.array([-axis[1], axis[0]])
+    rig = Rig(control, config, kappa)
+    for _ in range(60):  # settles first (settle_time), then looks
+        rig.run(knocked, cycles=1)
+        if control.reapproaches:
+            break
+    assert control.reapproaches == 1 and control.phase == PHASE["moving"]
+    tip = kinematics.forward(kappa, control.lengths, control.base)[-1]
+    outer = grasp_control.grasp.default_radii(config.plan.object_radius, config.gripper.geometry)
+    last = np.array(control.waypoints[-1][1])
+    assert last[:2] == pytest.approx(tip[:2] - outer[0] * axis, abs=1e-9)
+    assert last[2] == pytest.approx(tip[2])
+
+
+def test_after_max_reapproaches_an_object_out_of_hold_ends_the_task(config) -> None:
+    """Knocked away again after MAX_REAPPROACHES approaches (or out of reach): the fingers are
+    not closed on nothing; the task ends where the arm is, open."""
+    control, kappa = settled_on_the_grasp_pose(config)
+    control.reapproaches = grasp_control.MAX_REAPPROACHES
+    found = control.found.copy()
+    Rig(control, config, kappa).run(found + [0.0, 0.015], cycles=60)
+    assert control.phase == PHASE["done"] and control.leg == 0
+    assert control.note == "the object is not between the fingers"
+    assert control.setpoint == config.gripper.x_open
+
+
+def test_an_unreachable_place_ends_the_task_holding_the_object(config) -> None:
+    """No carry to the place from the grasp (nor from the plan's grasp configuration): the
+    controller stays where it is, holding, rather than raising in the middle of a run."""
+    control, kappa = settled_on_the_grasp_pose(config)
+    control.target = np.array([5.0, 5.0])  # moved out of reach once the approach was planned
+    control._stroke(0.0, config.gripper.x_closed)
+    control._enter(0.0, PHASE["grasping"])
+    Rig(control, config, kappa).run(control.found, int(config.plan.grasp_time / PERIOD) + 2)
+    assert control.phase == PHASE["done"] and control.leg == 1
+    assert "beyond the arm's reach" in control.note
+    assert control.setpoint == config.gripper.x_closed  # still holding
+
+
+def test_a_carry_the_held_configuration_cannot_make_starts_from_the_plans_grasp(config) -> None:
+    """Settling left the arm where no straight carry reaches the place (here: stretched
+    straight): the carry is planned from the approach plan's grasp configuration instead, its
+    first move taking the arm back there."""
+    control, kappa = settled_on_the_grasp_pose(config)
+    control.reference = np.zeros(config.segments)
+    with pytest.raises(ValueError, match="no place heading carries"):
+        control._plan_carry(control.reference, control.heading)
+    expected = control._plan_carry(control.nominal, control.heading).waypoints
+    control._stroke(0.0, config.gripper.x_closed)
+    control._enter(0.0, PHASE["grasping"])
+    Rig(control, config, kappa).run(control.found, int(config.plan.grasp_time / PERIOD) + 2)
+    assert control.leg == 1 and control.phase == PHASE["moving"]
+    assert np.array_equal(control.waypoints[0][0], expected[0][0])
+
+
+def test_the_approach_is_one_from_which_the_object_can_be_carried(config) -> None:
+    """An approach whose grasp leaves no carry to the place is not taken."""
+    from dataclasses import replace
+
+    far = replace(config, plan=replace(config.plan, targets=((5.0, 5.0),)))
+    control = GraspControl(far, Protocol())
+    found = np.array(settled_on_the_grasp_pose(config)[0].found)
+    start = np.clip(np.zeros(far.segments), control.lower, control.upper)
+    assert not control._approach(0.0, start, found)
+    assert "clear but not accepted" in control.note
+    assert control.phase == PHASE["idle"]
+
+
+def test_an_object_out_of_reach_ends_the_task_where_the_arm_is(config) -> None:
+    control = GraspControl(config, Protocol())
+    kappa = np.clip(np.zeros(config.segments), control.lower, control.upper)
+    Rig(control, config, kappa).run((2.0, 2.0), cycles=int(config.plan.acquire_time / PERIOD) + 2)
+    assert control.phase == PHASE["done"]
+    assert "beyond the arm's reach" in control.note
+
+
+@pytest.mark.parametrize(
+    ("ahead", "side", "captured"),
+    [
+        (0.0, 0.0, True),
+        (0.005, 0.0, True),  # knocked 5 mm forward: still between the fingers
+        (-0.009, 0.0, True),  # pressed towards the palm
+        (0.0, 0.0035, True),
+        (0.0, -0.007, True),  # pushed onto a finger's inner face: still between them
+        (0.0, 0.009, False),  # beyond a finger's inner face: knocked past it
+        (0.0, -0.009, False),
+        (0.008, 0.0, True),  # pushed towards the fingertips
+        (0.012, 0.0, False),  # past the fingertips: closing pushes it out
+        (-0.012, 0.0, False),
+    ],
+)
+def test_the_fingers_take_hold_of_an_object_only_between_them(
+    config, ahead: float, side: float, captured: bool
+) -> None:
+    control, _ = settled_on_the_grasp_pose(config)
+    _, pose = control.waypoints[-1]
+    from controllers.gripper import grasp_point
+
+    axis = np.array([np.cos(pose[2]), np.sin(pose[2])])
+    left = np.array([-axis[1], axis[0]])
+    control.seen = grasp_point(control.gripper.geometry, pose) + ahead * axis + side * left
+    assert control._captured(pose) is captured
