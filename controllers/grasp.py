@@ -852,7 +852,8 @@ def draw_grasp_task(
     object's start (two radii plus `margin` apart). With `plannable`, the draw is also kept
     only if `plan_approach` from the start and `plan_carry` (with the retreat) succeed with
     `margin + slack`, and `plan_approach` with `margin` from the start shaken by `shake` [1/m]
-    both ways, so the controller, planning with `margin` from its estimates, can do the task. Deterministic: all randomness comes from `rng`.
+    both ways, so the controller, planning with `margin` from its estimates, can do the task.
+    Deterministic: all randomness comes from `rng`.
 
     Raises
     ------

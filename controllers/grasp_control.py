@@ -29,6 +29,7 @@ drive's (CurvatureMove), and the gripper's setpoint only ramps between its three
 
 from __future__ import annotations
 
+from collections import deque
 from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
@@ -114,7 +115,7 @@ class GraspControl:
         self.reapproaches = 0  # approaches planned again because the object had moved
         self.note = ""  # why the last plan failed (the task ends there if nothing else works)
         # the carried object's recent estimates (time, centre): has it come to rest?
-        self.track: list[tuple[float, np.ndarray]] = []
+        self.track: deque[tuple[float, np.ndarray]] = deque()
 
     # ------------------------------------------------------------------ the cycle
 
@@ -447,7 +448,7 @@ class GraspControl:
         max_time it lets go wherever the object is."""
         self.track.append((t, self.seen.copy()))
         while self.track and self.track[0][0] < t - REST_WINDOW - 1e-9:
-            self.track.pop(0)
+            self.track.popleft()
         timeout = t - self.since >= self.plan.max_time
         on_target = float(np.linalg.norm(error)) <= self.plan.tolerance
         if not on_target and not timeout:
@@ -455,7 +456,8 @@ class GraspControl:
             return
         if self.on_target_since is None:
             self.on_target_since = t
-        spread = max(float(np.linalg.norm(c - self.seen)) for _, c in self.track)
+        centres = np.array([c for _, c in self.track])
+        spread = float(np.max(np.linalg.norm(centres - self.seen, axis=1)))
         rested = t - self.on_target_since >= REST_WINDOW - 1e-9 and spread <= REST_DRIFT
         if rested or timeout:
             self._stroke(t, self.gripper.x_open)
