@@ -114,19 +114,26 @@ def environment_parameters(scenario: Scenario) -> dict[str, float]:
     }
 
 
-def connections(scenario: Scenario) -> list[tuple[str, str]]:
-    """The gripper's drive, cylinder and finger pair, and the fingers in the world's contact."""
-    n = node(scenario)
+def drive_connections(n: int, body: str) -> list[tuple[str, str]]:
+    """(source, target) wiring of drive node `n`: its device, its DriveCylinder `cylinder{n}`
+    and the FeaSegment `body` the cylinder's gas drives (a segment, or the finger pair)."""
     return [
-        (f"cylinder{n}.x", "gripper.x_piston"),
-        ("gripper.p_a", f"cylinder{n}.p_a"),
-        ("gripper.p_b", f"cylinder{n}.p_b"),
+        (f"cylinder{n}.x", f"{body}.x_piston"),
+        (f"{body}.p_a", f"cylinder{n}.p_a"),
+        (f"{body}.p_b", f"cylinder{n}.p_b"),
         (f"drive{n}.x_ref", f"cylinder{n}.x_ref"),
         (f"drive{n}.enable", f"cylinder{n}.enable"),
         (f"cylinder{n}.x", f"drive{n}.x"),
-        ("gripper.p_a", f"drive{n}.p_a"),
-        ("gripper.p_b", f"drive{n}.p_b"),
+        (f"{body}.p_a", f"drive{n}.p_a"),
+        (f"{body}.p_b", f"drive{n}.p_b"),
         (f"cylinder{n}.fault", f"drive{n}.servo_fault"),
+    ]
+
+
+def connections(scenario: Scenario) -> list[tuple[str, str]]:
+    """The gripper's drive, cylinder and finger pair, and the fingers in the world's contact."""
+    return [
+        *drive_connections(node(scenario), "gripper"),
         ("gripper.theta", "environment.gripper_theta"),
         ("gripper.theta_dot", "environment.gripper_theta_dot"),
         ("environment.gripper_tau_ext", "gripper.tau_ext"),

@@ -556,15 +556,7 @@ class PlanarArm:
                 parameters[f"cylinder{n}"] = cylinders[n - 1]
                 parameters[f"segment{n}"] = {**segments[n - 1], **segment_values}
                 for source, target in (
-                    (f"cylinder{n}.x", f"segment{n}.x_piston"),
-                    (f"segment{n}.p_a", f"cylinder{n}.p_a"),
-                    (f"segment{n}.p_b", f"cylinder{n}.p_b"),
-                    (f"drive{n}.x_ref", f"cylinder{n}.x_ref"),
-                    (f"drive{n}.enable", f"cylinder{n}.enable"),
-                    (f"cylinder{n}.x", f"drive{n}.x"),
-                    (f"segment{n}.p_a", f"drive{n}.p_a"),
-                    (f"segment{n}.p_b", f"drive{n}.p_b"),
-                    (f"cylinder{n}.fault", f"drive{n}.servo_fault"),
+                    *gripper.drive_connections(n, f"segment{n}"),
                     (f"segment{n}.kappa", f"camera.kappa_{n}"),
                 ):
                     connections[target] = Connection(source, target)
