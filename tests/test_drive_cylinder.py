@@ -135,7 +135,7 @@ def test_servo_move_converges_with_the_substep(drive_cylinder_fmu) -> None:
         return {"x_ref": 0.025 + 0.01 * math.sin(2 * math.pi * t), "p_a": 20e3, "p_b": -15e3}
 
     coarse = simulate(drive_cylinder_fmu, 1.0, ["x"], None, move)
-    fine = simulate(drive_cylinder_fmu, 1.0, ["x"], {"substep": 1.25e-4 / 4}, move)
+    fine = simulate(drive_cylinder_fmu, 1.0, ["x"], {"substep": 5e-4 / 4}, move)
     assert np.max(np.abs(coarse["x"] - fine["x"]) / np.abs(fine["x"])) < 1e-6
 
 
@@ -153,7 +153,7 @@ def test_substeps_of_changing_length_integrate_as_accurately_as_equal_ones(
         drive_cylinder_fmu,
         0.2,
         outputs,
-        {**parameters, "substep": 1.25e-4 / 4},
+        {**parameters, "substep": 5e-4 / 4},
         lambda t: {"x_ref": 0.03},
     )
     span = np.ptp(fine["i_motor"])

@@ -178,6 +178,7 @@ static fmi2Status initialize_from_values(Instance *inst) {
     memset(&inst->ode, 0, sizeof inst->ode);
     status = model_initialize(inst, &inst->ode);
     if (status == fmi2OK && (inst->ode.n > MAX_STATES || (inst->ode.n > 0 && !inst->ode.y) ||
+                             inst->ode.nb > MAX_BLOCK || inst->ode.nb > inst->ode.n ||
                              !(inst->ode.max_substep > 0.0))) {
         log_message(inst, fmi2Error, "model_initialize: inconsistent ODE system (%zu states)",
                     inst->ode.n);
@@ -472,20 +473,89 @@ static void phi_functions(double z, double phi[3]) {
     }
 }
 
-/* N(y) = f(y) - lambda y, the part the exponential RK4 treats explicitly. */
+/* N(y) = f(y) - L y, the part the exponential RK4 treats explicitly: L is the block A on the
+ * first nb states and the diagonal lambda on the rest. */
 static int nonlinear_part(const Instance *inst, const double y[], double out[]) {
-    size_t j;
+    const OdeSystem *ode = &inst->ode;
+    size_t j, k;
     if (!model_derivatives(inst, y, out)) return 0;
-    for (j = 0; j < inst->ode.n; j++) out[j] -= inst->ode.lambda[j] * y[j];
+    for (j = 0; j < ode->nb; j++) {
+        double linear = 0.0;
+        for (k = 0; k < ode->nb; k++) linear += ode->A[j][k] * y[k];
+        out[j] -= linear;
+    }
+    for (j = ode->nb; j < ode->n; j++) out[j] -= ode->lambda[j] * y[j];
     return 1;
 }
 
-/* One substep of ETDRK4 (Cox and Matthews 2002, J. Comput. Phys. 176, 430) of length h; returns 0
- * if a stage left the model's domain or became non-finite. */
+#define MAX_AUGMENTED (4 * MAX_BLOCK)
+
+/* C = A B for m x m matrices (m <= MAX_AUGMENTED); C may not alias A or B. */
+static void matrix_product(size_t m, double A[][MAX_AUGMENTED], double B[][MAX_AUGMENTED],
+                           double C[][MAX_AUGMENTED]) {
+    size_t i, j, k;
+    for (i = 0; i < m; i++) {
+        for (j = 0; j < m; j++) {
+            double sum = 0.0;
+            for (k = 0; k < m; k++) sum += A[i][k] * B[k][j];
+            C[i][j] = sum;
+        }
+    }
+}
+
+/* e^M and phi_1..phi_3 of an nb x nb matrix M, from the exponential of the augmented matrix
+ * W = [[M, I, 0, 0], [0, 0, I, 0], [0, 0, 0, I], [0, 0, 0, 0]], whose first block row is
+ * [e^M, phi_1(M), phi_2(M), phi_3(M)] (Al-Mohy and Higham 2011, SIAM J. Sci. Comput. 33, 488,
+ * theorem 2.1). exp(W) by scaling and squaring with a degree-18 Taylor polynomial once
+ * ||W / 2^s||_1 <= 1/2 (truncation below 1e-21). out[k] receives phi_k, out[0] = e^M. */
+static void block_phi_functions(size_t nb, double M[MAX_BLOCK][MAX_BLOCK],
+                                double out[4][MAX_BLOCK][MAX_BLOCK]) {
+    double W[MAX_AUGMENTED][MAX_AUGMENTED], T[MAX_AUGMENTED][MAX_AUGMENTED];
+    double P[MAX_AUGMENTED][MAX_AUGMENTED];
+    const size_t m = 4 * nb;
+    double norm = 0.0, scale = 1.0;
+    size_t i, j, b;
+    int squarings = 0, degree;
+    memset(W, 0, sizeof W);
+    for (i = 0; i < nb; i++) {
+        for (j = 0; j < nb; j++) W[i][j] = M[i][j];
+        for (b = 1; b < 4; b++) W[(b - 1) * nb + i][b * nb + i] = 1.0;
+    }
+    for (j = 0; j < m; j++) {
+        double column = 0.0;
+        for (i = 0; i < m; i++) column += fabs(W[i][j]);
+        if (column > norm) norm = column;
+    }
+    while (norm * scale > 0.5) {
+        scale *= 0.5;
+        squarings++;
+    }
+    for (i = 0; i < m; i++)
+        for (j = 0; j < m; j++) W[i][j] *= scale;
+    /* Horner: T = I + W/1 (I + W/2 (I + ... (I + W/18))) */
+    for (i = 0; i < m; i++)
+        for (j = 0; j < m; j++) T[i][j] = i == j ? 1.0 : 0.0;
+    for (degree = 18; degree >= 1; degree--) {
+        matrix_product(m, W, T, P);
+        for (i = 0; i < m; i++)
+            for (j = 0; j < m; j++) T[i][j] = (i == j ? 1.0 : 0.0) + P[i][j] / degree;
+    }
+    for (; squarings > 0; squarings--) {
+        matrix_product(m, T, T, P);
+        memcpy(T, P, sizeof T);
+    }
+    for (b = 0; b < 4; b++)
+        for (i = 0; i < nb; i++)
+            for (j = 0; j < nb; j++) out[b][i][j] = T[i][b * nb + j];
+}
+
+/* The coefficients of one ETDRK4 substep of length h (Cox and Matthews 2002, J. Comput. Phys.
+ * 176, 430): scalars for the diagonal states, matrices for the block. */
 static void exponential_coefficients(OdeSystem *ode, double h) {
-    size_t j;
+    size_t j, k;
     int same = ode->coef_h == h;
     for (j = 0; same && j < ode->n; j++) same = ode->coef_lambda[j] == ode->lambda[j];
+    if (same && ode->nb > 0) same = memcmp(ode->coef_A, ode->A, sizeof ode->A) == 0;
     if (same) return;
     for (j = 0; j < ode->n; j++) {
         const double z = ode->lambda[j] * h;
@@ -500,26 +570,84 @@ static void exponential_coefficients(OdeSystem *ode, double h) {
         ode->f3[j] = h * (-phi[1] + 4.0 * phi[2]);
         ode->coef_lambda[j] = ode->lambda[j];
     }
+    if (ode->nb > 0) {
+        double M[MAX_BLOCK][MAX_BLOCK], M_half[MAX_BLOCK][MAX_BLOCK];
+        double phi[4][MAX_BLOCK][MAX_BLOCK], phi_half[4][MAX_BLOCK][MAX_BLOCK];
+        memset(M, 0, sizeof M);
+        memset(M_half, 0, sizeof M_half);
+        for (j = 0; j < ode->nb; j++) {
+            for (k = 0; k < ode->nb; k++) {
+                M[j][k] = ode->A[j][k] * h;
+                M_half[j][k] = 0.5 * M[j][k];
+            }
+        }
+        block_phi_functions(ode->nb, M, phi);
+        block_phi_functions(ode->nb, M_half, phi_half);
+        for (j = 0; j < ode->nb; j++) {
+            for (k = 0; k < ode->nb; k++) {
+                ode->bE[j][k] = phi[0][j][k];
+                ode->bE2[j][k] = phi_half[0][j][k];
+                ode->bp_half[j][k] = 0.5 * h * phi_half[1][j][k];
+                ode->bf1[j][k] = h * (phi[1][j][k] - 3.0 * phi[2][j][k] + 4.0 * phi[3][j][k]);
+                ode->bf2[j][k] = h * (phi[2][j][k] - 2.0 * phi[3][j][k]);
+                ode->bf3[j][k] = h * (-phi[2][j][k] + 4.0 * phi[3][j][k]);
+            }
+        }
+        memcpy(ode->coef_A, ode->A, sizeof ode->A);
+    }
     ode->coef_h = h;
 }
 
+/* out = M v over the block (nb entries). */
+static void block_apply(size_t nb, double M[MAX_BLOCK][MAX_BLOCK], const double v[],
+                        double out[]) {
+    size_t j, k;
+    for (j = 0; j < nb; j++) {
+        double sum = 0.0;
+        for (k = 0; k < nb; k++) sum += M[j][k] * v[k];
+        out[j] = sum;
+    }
+}
+
+/* One substep of ETDRK4 of length h; returns 0 if a stage left the model's domain or became
+ * non-finite. The block states take the same stages with matrix coefficients. */
 static int exponential_rk4(Instance *inst, double h) {
     OdeSystem *ode = &inst->ode;
     double *y = ode->y;
     double Nu[MAX_STATES], Na[MAX_STATES], Nb[MAX_STATES], Nc[MAX_STATES];
     double a[MAX_STATES], b[MAX_STATES], c[MAX_STATES];
+    double t1[MAX_BLOCK], t2[MAX_BLOCK], t3[MAX_BLOCK], t4[MAX_BLOCK], w[MAX_BLOCK];
     const double *E = ode->E, *E2 = ode->E2, *p_half = ode->p_half;
     const double *f1 = ode->f1, *f2 = ode->f2, *f3 = ode->f3;
+    const size_t nb = ode->nb;
     size_t j;
     exponential_coefficients(ode, h);
     if (!nonlinear_part(inst, y, Nu)) return 0;
-    for (j = 0; j < ode->n; j++) a[j] = E2[j] * y[j] + p_half[j] * Nu[j];
+    block_apply(nb, ode->bE2, y, t1);
+    block_apply(nb, ode->bp_half, Nu, t2);
+    for (j = 0; j < nb; j++) a[j] = t1[j] + t2[j];
+    for (j = nb; j < ode->n; j++) a[j] = E2[j] * y[j] + p_half[j] * Nu[j];
     if (!nonlinear_part(inst, a, Na)) return 0;
-    for (j = 0; j < ode->n; j++) b[j] = E2[j] * y[j] + p_half[j] * Na[j];
+    block_apply(nb, ode->bp_half, Na, t2);
+    for (j = 0; j < nb; j++) b[j] = t1[j] + t2[j];
+    for (j = nb; j < ode->n; j++) b[j] = E2[j] * y[j] + p_half[j] * Na[j];
     if (!nonlinear_part(inst, b, Nb)) return 0;
-    for (j = 0; j < ode->n; j++) c[j] = E2[j] * a[j] + p_half[j] * (2.0 * Nb[j] - Nu[j]);
+    for (j = 0; j < nb; j++) w[j] = 2.0 * Nb[j] - Nu[j];
+    block_apply(nb, ode->bE2, a, t1);
+    block_apply(nb, ode->bp_half, w, t2);
+    for (j = 0; j < nb; j++) c[j] = t1[j] + t2[j];
+    for (j = nb; j < ode->n; j++) c[j] = E2[j] * a[j] + p_half[j] * (2.0 * Nb[j] - Nu[j]);
     if (!nonlinear_part(inst, c, Nc)) return 0;
-    for (j = 0; j < ode->n; j++) {
+    block_apply(nb, ode->bE, y, t1);
+    block_apply(nb, ode->bf1, Nu, t2);
+    for (j = 0; j < nb; j++) w[j] = Na[j] + Nb[j];
+    block_apply(nb, ode->bf2, w, t3);
+    block_apply(nb, ode->bf3, Nc, t4);
+    for (j = 0; j < nb; j++) {
+        y[j] = t1[j] + t2[j] + 2.0 * t3[j] + t4[j];
+        if (!isfinite(y[j])) return 0;
+    }
+    for (j = nb; j < ode->n; j++) {
         y[j] = E[j] * y[j] + f1[j] * Nu[j] + 2.0 * f2[j] * (Na[j] + Nb[j]) + f3[j] * Nc[j];
         if (!isfinite(y[j])) return 0;
     }

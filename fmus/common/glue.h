@@ -26,20 +26,30 @@ typedef struct {
 
 /* Continuous states of a model and how the fixed-step solver treats them (see below). */
 #define MAX_STATES 32
+#define MAX_BLOCK 4
 
 typedef struct {
     size_t n;                   /* number of continuous states, <= MAX_STATES */
     double *y;                  /* the states, inside the model's state struct */
-    double lambda[MAX_STATES];  /* stiff diagonal rates [1/s] integrated exactly, 0 if none */
+    /* the stiff linear part integrated exactly: the first nb states (nb <= MAX_BLOCK) form a
+     * coupled linear block with the dense matrix A [1/s]; every later state j may have its own
+     * diagonal rate lambda[j] [1/s] (0 if none; lambda of block states is unused) */
+    size_t nb;
+    double A[MAX_BLOCK][MAX_BLOCK];
+    double lambda[MAX_STATES];
     double max_substep;         /* largest substep [s], the model's `substep` parameter */
     double stability_limit;     /* the substep beyond which the model states the solver diverges */
-    /* the exponential RK4's coefficients for the substep coef_h and the rates coef_lambda: the
-     * substep is nearly always the same, so they are computed once, not every substep (the
-     * same values bit for bit; coef_h = 0 means none yet) */
+    /* the exponential RK4's coefficients for the substep coef_h, the rates coef_lambda and the
+     * block coef_A: the substep is nearly always the same, so they are computed once, not every
+     * substep (the same values bit for bit; coef_h = 0 means none yet). Diagonal states keep
+     * scalars, the block keeps the same coefficients as matrices (functions of h A). */
     double coef_h;
     double coef_lambda[MAX_STATES];
+    double coef_A[MAX_BLOCK][MAX_BLOCK];
     double E[MAX_STATES], E2[MAX_STATES], p_half[MAX_STATES];
     double f1[MAX_STATES], f2[MAX_STATES], f3[MAX_STATES];
+    double bE[MAX_BLOCK][MAX_BLOCK], bE2[MAX_BLOCK][MAX_BLOCK], bp_half[MAX_BLOCK][MAX_BLOCK];
+    double bf1[MAX_BLOCK][MAX_BLOCK], bf2[MAX_BLOCK][MAX_BLOCK], bf3[MAX_BLOCK][MAX_BLOCK];
 } OdeSystem;
 
 typedef enum { PHASE_INSTANTIATED, PHASE_INIT, PHASE_STEP, PHASE_TERMINATED, PHASE_ERROR } Phase;
@@ -67,8 +77,10 @@ void log_message(Instance *inst, fmi2Status status, const char *fmt, ...);
  * live in the model's state struct; a model supplies only its derivatives, its discrete updates
  * (sampled firmware, input events) and its checks. The solver is the exponential RK4 of Cox and
  * Matthews (2002): each state may declare a stiff linear rate lambda_j (dy_j/dt = lambda_j y_j +
- * N_j(y)) that is integrated exactly over a substep; with every lambda_j = 0 it is the classical
- * RK4. */
+ * N_j(y)), and the first nb states a coupled stiff linear block A (dy/dt = A y + N(y)), that are
+ * integrated exactly over a substep; with nb = 0 and every lambda_j = 0 it is the classical RK4.
+ * A coupled block matters when stiff states drive each other (a motor's current and speed): a
+ * diagonal rate alone leaves the coupling explicit, and its error then limits the substep. */
 
 size_t model_state_size(void);
 /* Checks parameters beyond their declared ranges, sets the initial state, fills `ode` and sets the
