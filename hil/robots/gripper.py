@@ -43,7 +43,6 @@ GRIPPER_SEGMENT: dict[str, float] = {
     "V_ch0": 3e-6,
     "C_a": 5e-11,
     "theta_max": 1.4,
-    "substep": 2.5e-4,  # the light finger pair's bending mode is stable below 4e-4 s
 }
 GEOMETRY_KEYS = tuple(f.name for f in dataclasses.fields(GripperGeometry))
 OWN_TABLES = ("segment", "cylinder")
