@@ -40,15 +40,31 @@
 /* continuous states, in this order in State.y */
 enum { THETA, OMEGA, M_A, M_B, S_A, S_B, E_DAMP, E_HEAT, W_EXT, N_STATES };
 
+/* A channel at gauge pressure g: its bend sensitivity G(g) = dV/dtheta [m^3/rad] and its torque
+ * per unit sign H(g) = int_0^g G(s) ds [N m]. */
+typedef struct {
+    double G, H;
+} Channel;
+
+typedef struct {
+    double g[2];        /* gauge pressures of a and b [Pa] */
+    double V[2];        /* gas volumes [m^3] */
+    Channel channel[2]; /* the channels at those pressures */
+} GasState;
+
 typedef struct {
     double y[N_STATES]; /* theta [rad], omega [rad/s], masses [kg], theta_s [K m^3(n-1)/kg^(n-1)],
                            energies [J] */
     double x;           /* piston position applied in this step [m] */
     double W_piston;    /* work done by the piston on the gas [J] */
     double E_impact;    /* kinetic energy lost at the mechanical limit [J] */
-    /* the stored energy model_outputs computed, and at which (x, y) exactly: the next step's
-     * isentropic-compression work starts from it instead of solving the same gas state again */
+    /* the last gas state solved outside the integrator (model_outputs at the end of a step, the
+     * isentropic compression at the start of the next) and its stored energy, with the (x, y) it
+     * was solved at exactly: the compression's work starts from it, and the first stage of the
+     * next substep, which evaluates the same (x, y), takes it instead of solving again (the same
+     * bits: the solve is a deterministic function of (x, y)) */
     double cached_y[N_STATES], cached_x, cached_energy;
+    GasState cached_gas;
     int cached;
 } State;
 
@@ -62,13 +78,8 @@ static double bending_inertia(const Instance *inst) {
     return V(inst, mass) * V(inst, length) * V(inst, length) / 20.0;
 }
 
-/* A channel at gauge pressure g: its bend sensitivity G(g) = dV/dtheta [m^3/rad] and its torque
- * per unit sign H(g) = int_0^g G(s) ds [N m], from one expm1 under vacuum (G and H at the same g,
- * as the energy balance needs). */
-typedef struct {
-    double G, H;
-} Channel;
-
+/* The channel at gauge pressure g, from one expm1 under vacuum (G and H at the same g, as the
+ * energy balance needs). */
 static Channel channel_at(const Instance *inst, double g) {
     const double beta = V(inst, vacuum_factor), pc = V(inst, p_collapse), G_a = V(inst, G_a);
     Channel channel;
@@ -168,12 +179,6 @@ static int gas_pressure(const Instance *inst, double V0, double sign, double the
     return 0;
 }
 
-typedef struct {
-    double g[2];          /* gauge pressures of a and b [Pa] */
-    double V[2];          /* gas volumes [m^3] */
-    Channel channel[2];   /* the channels at those pressures */
-} GasState;
-
 static const double SIGN[2] = {+1.0, -1.0};
 
 static double swept_length(const Instance *inst, double x, int side) {
@@ -212,7 +217,11 @@ int model_derivatives(const Instance *inst, const double y[], double dy[]) {
     const double limit = V(inst, theta_max), n = V(inst, n_poly);
     GasState gas;
     int side;
-    if (!gas_state(inst, s->x, y, &gas)) return 0;
+    if (s->cached && s->cached_x == s->x && memcmp(s->cached_y, y, sizeof s->y) == 0) {
+        gas = s->cached_gas;
+    } else if (!gas_state(inst, s->x, y, &gas)) {
+        return 0;
+    }
     dy[THETA] = y[OMEGA];
     dy[OMEGA] = (bending_torque(&gas) + V(inst, tau_ext) - V(inst, k_bend) * y[THETA] -
                  V(inst, d_bend) * y[OMEGA]) /
@@ -304,8 +313,18 @@ static int applied_piston_position(Instance *inst, double *x) {
 
 /* A new piston position is a sudden isentropic compression: the work done on the gas is the
  * change of the stored energy at fixed masses, invariants and bend. */
+/* Keeps the gas state just solved at (s->x, s->y) and its stored energy. */
+static void remember(State *s, const GasState *gas, double energy) {
+    s->cached = 1;
+    s->cached_x = s->x;
+    s->cached_energy = energy;
+    s->cached_gas = *gas;
+    memcpy(s->cached_y, s->y, sizeof s->y);
+}
+
 fmi2Status model_step_start(Instance *inst) {
     State *s = (State *)inst->state;
+    GasState gas;
     double x, before, after;
     if (!applied_piston_position(inst, &x)) return fmi2Error;
     if (x == s->x) return fmi2OK;
@@ -314,12 +333,14 @@ fmi2Status model_step_start(Instance *inst) {
     } else if (!stored_energy(inst, s->x, s->y, &before)) {
         before = NAN;
     }
-    if (!isfinite(before) || !stored_energy(inst, x, s->y, &after)) {
+    if (!isfinite(before) || !gas_state(inst, x, s->y, &gas)) {
         log_message(inst, fmi2Error, "no physical gas state at piston position %g m", x);
         return fmi2Error;
     }
+    after = energy_of(inst, s->y, &gas);
     s->W_piston += after - before;
     s->x = x;
+    remember(s, &gas, after);
     return fmi2OK;
 }
 
@@ -342,10 +363,7 @@ fmi2Status model_outputs(Instance *inst) {
     V(inst, v_a) = gas.V[0];
     V(inst, v_b) = gas.V[1];
     energy = energy_of(inst, y, &gas); /* the gas state just solved: one solve, not two */
-    s->cached = 1;
-    s->cached_x = s->x;
-    s->cached_energy = energy;
-    memcpy(s->cached_y, y, sizeof s->y);
+    remember(s, &gas, energy);
     V(inst, E_stored) = energy;
     V(inst, W_piston) = s->W_piston;
     V(inst, W_ext) = y[W_EXT];
