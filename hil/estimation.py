@@ -150,6 +150,8 @@ def _plot(
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from hil.plots import stack_layout
+
     t = signals["time"]
     n = config.segments
     chosen = scores[config.estimator]
@@ -157,13 +159,15 @@ def _plot(
     missing = np.zeros((len(cycles), n), dtype=bool)
     residual_t, residual = [], []
     for c, (time_c, _, frames) in enumerate(cycles):
+        if not frames:
+            continue
+        predicted = kinematics.markers(chosen.kappa[c], config.lengths, config.base)
         for frame in frames:
             seen = frame.seen
             missing[c] |= ~(seen[:-1] & seen[1:])
-            predicted = kinematics.markers(chosen.kappa[c], config.lengths, config.base)
-            for m in np.nonzero(seen)[0]:
-                residual_t.append(time_c)
-                residual.append(1e3 * float(np.linalg.norm(frame.points[m] - predicted[m])))
+            distance = np.linalg.norm(frame.points[seen] - predicted[seen], axis=1)
+            residual_t.extend([time_c] * len(distance))
+            residual.extend((1e3 * distance).tolist())
     raw = scores["raw"].kappa
     fig, axes = plt.subplots(n + 1, 1, figsize=(9, 2.6 * (n + 1) + 0.6), sharex=True)
     for i in range(n):
@@ -191,6 +195,6 @@ def _plot(
     axes[-1].set_ylabel(f"marker residual\nvs {config.estimator} [mm]")
     axes[-1].set_xlabel("time [s]")
     axes[-1].grid(True, alpha=0.3)
-    fig.tight_layout()
+    stack_layout(fig)
     fig.savefig(run / "estimation.png", dpi=100)
     plt.close(fig)
