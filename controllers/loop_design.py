@@ -10,6 +10,9 @@ of the estimate (`estimator_delay`). Its phase margin is 90 deg - wc D, so the c
 phase margin target is wc = (pi/2 - PM) / D, capped at `max_crossover_hz`. Margins are computed
 on L with D as a Pade approximant. The drive's inner position servo (>= 10 Hz closed-loop
 bandwidth, PHYSICS.md section 1) is left out: its lag adds to D at the crossovers used here.
+
+The gains are closed-form (`outer_loop_gains`, what every run needs); python-control, which takes
+1-2 s to import, is imported only where margins are measured (`design_outer_loop`, `hil tune`).
 """
 
 from __future__ import annotations
@@ -17,11 +20,14 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import control
 import numpy as np
 
 from controllers.curvature import PiGains, SegmentModel
+
+if TYPE_CHECKING:
+    import control
 
 
 def estimator_delay(name: str, control_period: float, latency_compensation: bool = True) -> float:
@@ -69,11 +75,30 @@ def loop_transfer(
     model: SegmentModel, gains: PiGains, delay: float, pade_order: int = 5
 ) -> control.TransferFunction:
     """Open loop C(s) G(s) e^{-s D} with the delay as a Pade approximant."""
+    import control
+
     K, tau = model.static_gain(), model.time_constant()
     plant = control.tf([K], [tau, 1.0])
     pi = control.tf([gains.Kp, gains.Ki], [1.0, 0.0])
     num, den = control.pade(delay, pade_order) if delay > 0.0 else ([1.0], [1.0])
     return pi * plant * control.tf(num, den)
+
+
+def outer_loop_gains(
+    model: SegmentModel,
+    delay: float,
+    phase_margin_deg: float = 60.0,
+    max_crossover_hz: float = 2.0,
+) -> PiGains:
+    """Pole-cancelling PI whose crossover gives `phase_margin_deg` with the effective delay
+    `delay` [s], no faster than `max_crossover_hz` (see `curvature.design_pi`)."""
+    if not 0.0 < phase_margin_deg < 90.0:
+        raise ValueError(f"phase_margin_deg: must be within (0, 90), got {phase_margin_deg}")
+    wc_cap = 2.0 * math.pi * max_crossover_hz
+    wc = wc_cap if delay <= 0.0 else min(wc_cap, math.radians(90.0 - phase_margin_deg) / delay)
+    tau = model.time_constant()
+    Kp = wc * tau / model.static_gain()
+    return PiGains(Kp=Kp, Ki=Kp / tau)
 
 
 def design_outer_loop(
@@ -83,16 +108,10 @@ def design_outer_loop(
     max_crossover_hz: float = 2.0,
     pade_order: int = 5,
 ) -> LoopDesign:
-    """Pole-cancelling PI whose crossover gives `phase_margin_deg` with the effective delay
-    `delay` [s], no faster than `max_crossover_hz` (see `curvature.design_pi`); margins measured
-    on the Pade loop."""
-    if not 0.0 < phase_margin_deg < 90.0:
-        raise ValueError(f"phase_margin_deg: must be within (0, 90), got {phase_margin_deg}")
-    wc_cap = 2.0 * math.pi * max_crossover_hz
-    wc = wc_cap if delay <= 0.0 else min(wc_cap, math.radians(90.0 - phase_margin_deg) / delay)
-    tau = model.time_constant()
-    Kp = wc * tau / model.static_gain()
-    gains = PiGains(Kp=Kp, Ki=Kp / tau)
+    """`outer_loop_gains` with its margins measured on the Pade loop."""
+    import control
+
+    gains = outer_loop_gains(model, delay, phase_margin_deg, max_crossover_hz)
     gm, pm, _, wpc = control.margin(loop_transfer(model, gains, delay, pade_order))
     return LoopDesign(gains, float(wpc) / (2.0 * math.pi), float(gm), float(pm), delay)
 

@@ -20,7 +20,7 @@ import numpy as np
 from controllers import kinematics
 from controllers.curvature import PiGains, SegmentModel
 from controllers.estimation import BendModel, CameraNoise
-from controllers.loop_design import design_outer_loop, effective_delay, estimator_delay
+from controllers.loop_design import effective_delay, estimator_delay, outer_loop_gains
 from controllers.node import CameraTiming, ControllerConfig, GripperConfig
 from controllers.protocol import Protocol
 from controllers.tasks import TASK_KINDS, TaskPlan, draw_paths, draw_targets
@@ -740,7 +740,7 @@ class PlanarArm:
         for model in models:
             # the design of `hil tune`: a pole-cancelling PI at the scenario's crossover, or
             # lower where the estimator's effective delay leaves less than 60 deg of phase
-            designed = design_outer_loop(model, delay, max_crossover_hz=c.crossover).gains
+            designed = outer_loop_gains(model, delay, max_crossover_hz=c.crossover)
             gains.append(
                 PiGains(
                     Kp=c.kp if c.kp is not None else designed.Kp,
