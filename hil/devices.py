@@ -282,11 +282,12 @@ class CameraNode:
             self.frame_index, self.frame_index * self.period_ticks
         )
 
-    def _in_view(self, point: np.ndarray) -> bool:
-        if np.isnan(point).any():
-            return False
+    def _in_view(self, points: np.ndarray) -> list[int]:
+        """The markers seen: present (no NaN coordinate) and inside the field of view."""
         (x_lo, x_hi), (y_lo, y_hi) = self.field
-        return bool(x_lo <= point[0] <= x_hi and y_lo <= point[1] <= y_hi)
+        x, y = points[:, 0], points[:, 1]
+        inside = (x_lo <= x) & (x <= x_hi) & (y_lo <= y) & (y <= y_hi)
+        return np.flatnonzero(inside & ~np.isnan(points).any(axis=1)).tolist()  # type: ignore[no-any-return]
 
     def accepts(self, frame: Frame) -> bool:
         return False
@@ -302,10 +303,9 @@ class CameraNode:
             _, picture = self.queue.popleft()
             index, points = picture.frame_index, picture.points
             offset = (sync.tick - picture.exposure_tick) * self.macro_step
-            seen = [m for m in range(len(points)) if self._in_view(points[m])]
+            seen = self._in_view(points)
             mask = sum(1 << m for m in seen)
             frames.append((MEASUREMENT, CameraFrame(index, offset, mask, len(seen))))
-            for m in seen:
-                x, y = points[m][0], points[m][1]
-                frames.append((MEASUREMENT, CameraMarker(m, float(x), float(y), index, offset)))
+            for m, (x, y) in zip(seen, points[seen, :2].tolist(), strict=True):
+                frames.append((MEASUREMENT, CameraMarker(m, x, y, index, offset)))
         return frames
