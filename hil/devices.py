@@ -282,12 +282,17 @@ class CameraNode:
             self.frame_index, self.frame_index * self.period_ticks
         )
 
-    def _in_view(self, points: np.ndarray) -> list[int]:
-        """The markers seen: present (no NaN coordinate) and inside the field of view."""
+    def _in_view(self, points: list[list[float]]) -> list[int]:
+        """The markers seen: inside the field of view and present (no NaN coordinate); on the
+        picture's points as floats (a handful of markers: cheaper than array operations)."""
         (x_lo, x_hi), (y_lo, y_hi) = self.field
-        x, y = points[:, 0], points[:, 1]
-        inside = (x_lo <= x) & (x <= x_hi) & (y_lo <= y) & (y <= y_hi)
-        return np.flatnonzero(inside & ~np.isnan(points).any(axis=1)).tolist()  # type: ignore[no-any-return]
+        return [
+            m
+            for m, point in enumerate(points)
+            if x_lo <= point[0] <= x_hi
+            and y_lo <= point[1] <= y_hi
+            and not any(map(math.isnan, point))
+        ]
 
     def accepts(self, frame: Frame) -> bool:
         return False
@@ -303,9 +308,10 @@ class CameraNode:
             _, picture = self.queue.popleft()
             index, points = picture.frame_index, picture.points
             offset = (sync.tick - picture.exposure_tick) * self.macro_step
-            seen = self._in_view(points)
+            rows = points.tolist()
+            seen = self._in_view(rows)
             mask = sum(1 << m for m in seen)
             frames.append((MEASUREMENT, CameraFrame(index, offset, mask, len(seen))))
-            for m, (x, y) in zip(seen, points[seen, :2].tolist(), strict=True):
-                frames.append((MEASUREMENT, CameraMarker(m, x, y, index, offset)))
+            for m in seen:
+                frames.append((MEASUREMENT, CameraMarker(m, rows[m][0], rows[m][1], index, offset)))
         return frames
