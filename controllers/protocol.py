@@ -451,6 +451,8 @@ class Protocol:
         self._by_id: dict[int, _Entry] = {}
         self._by_name: dict[str, _Entry] = {}
         self._by_key: dict[tuple[str, int | None], _Entry] = {}
+        # the typed frames' generated decoders by CAN id, filled as ids are first decoded
+        self._unpackers: dict[int, Callable[[bytes], Frame]] = {}
         for message in database.messages:
             match = _NAME.match(message.name)
             assert match is not None  # the pattern matches every string
@@ -583,10 +585,16 @@ class Protocol:
                 f"{message.name} ({frame_name(msg.arbitration_id)}): {len(msg.data)} data bytes, "
                 f"the DBC says {message.length}"
             )
+        unpack = self._unpackers.get(msg.arbitration_id)
+        if unpack is not None:
+            return unpack(msg.data)
         ftype = entry.type
         if entry.codec is not None:
-            if ftype is not None:  # decoded and built in one call
-                return entry.codec.unpacker(ftype, entry.index)(msg.data)
+            if ftype is not None:  # decoded and built in one call, from now on
+                unpack = self._unpackers[msg.arbitration_id] = entry.codec.unpacker(
+                    ftype, entry.index
+                )
+                return unpack(msg.data)
             values = entry.codec.decode(msg.data)
         else:
             values = dict(
