@@ -179,6 +179,7 @@ class CanLogger:
         # message per frame; its channel rule: a bare number n is "can<n>"
         self._candump_channel = f"can{channel}" if channel.isdigit() else channel
         self._first_stamp: float | None = None
+        self._idents: dict[tuple[int, bool], str] = {}  # the id as written, by (id, extended)
 
     def _candump_line(self, message: can.Message, stamp: float, received: bool) -> str:
         """The line CanutilsLogWriter writes for a classic data frame stamped `stamp` [s]: as it
@@ -187,8 +188,11 @@ class CanLogger:
             self._first_stamp = stamp or 0.0
         elif stamp < self._first_stamp:
             stamp = self._first_stamp
-        can_id = message.arbitration_id
-        ident = f"{can_id:08X}" if message.is_extended_id else f"{can_id:03X}"
+        ident = self._idents.get((message.arbitration_id, message.is_extended_id))
+        if ident is None:
+            can_id = message.arbitration_id
+            ident = f"{can_id:08X}" if message.is_extended_id else f"{can_id:03X}"
+            self._idents[(can_id, message.is_extended_id)] = ident
         return (
             f"({stamp:f}) {self._candump_channel} {ident}#{bytes(message.data).hex().upper()}"
             f"{' R' if received else ' T'}\n"
