@@ -456,8 +456,9 @@ class ArmUnscentedEstimator(_LatencyFilter):
         start = self.base[2] + np.cumsum(theta, axis=1) - theta
         half = 0.5 * theta
         direction = start + half
-        safe = np.where(half == 0.0, 1.0, half)
-        chord = self.lengths * np.where(half == 0.0, 1.0, np.sin(safe) / safe)
+        straight = half == 0.0
+        safe = np.where(straight, 1.0, half)
+        chord = self.lengths * np.where(straight, 1.0, np.sin(safe) / safe)
         ends = np.empty((*theta.shape, 2))
         ends[..., 0] = self.base[0] + np.cumsum(chord * np.cos(direction), axis=1)
         ends[..., 1] = self.base[1] + np.cumsum(chord * np.sin(direction), axis=1)
