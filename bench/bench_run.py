@@ -34,9 +34,10 @@ wraps the methods that enter a layer (`budget_wrappers`) for the instrumented ru
 restores them after, so the code under test holds no timing hooks and costs nothing when not
 measured. A stack of open layers charges every interval between two clock reads to the layer
 on top, so the layers add up to the loop's total exactly. Chosen over cProfile, whose per-call
-overhead (about 60 % here) falls unevenly on many-small-call Python layers and C calls, and so
-distorts the shares; the wrappers cost about 0.5 us per wrapped call (~190 per SYNC on 6
-segments), reported as the instrumented run's overhead over the plain one.
+overhead (about 60 % of this loop) falls on every Python call, so on the layers made of many
+small calls far more than on the C calls (the FMUs, numpy), which distorts the shares; the
+wrappers time only ~190 calls per SYNC (6 segments), a few microseconds each, charged to the
+layers around them: the report gives the instrumented loop's time beside the plain one's.
 
 Run from the checkout: PYTHONPATH=. python bench/bench_run.py [--repeat 3] [--seconds 2]
 [--no-closed-loop] [--no-transport] [--no-budget] [--budget-only] [--json out.json]
