@@ -291,6 +291,11 @@ class LayerBudget:
     original back. Between `start` and `stop`, each interval between two clock reads is charged
     to the innermost open layer ("other" when none is), so `seconds` adds up to `total`.
 
+    A wrapper costs time of its own: `inner` [s] per call inside its layer (from its first clock
+    read to its last) and `outer` [s] per call in the layer that called it. `corrected` takes
+    both out of the layers they were charged to (`nested` counts the wrapped calls each layer
+    made); `calibrate` measures them on a wrapped no-op.
+
     Parameters
     ----------
     clock
@@ -301,11 +306,13 @@ class LayerBudget:
         self.clock = clock
         self.seconds = dict.fromkeys(BUDGET_LAYERS, 0.0)  # of the last start..stop
         self.calls = dict.fromkeys(BUDGET_LAYERS, 0)
+        self.nested = dict.fromkeys(BUDGET_LAYERS, 0)  # wrapped calls made from each layer
         self.total = 0.0
         # the accumulators run whenever a wrapped method runs (before the loop too: building
         # the master publishes); `start` zeroes them in place, `stop` copies them out
         self._seconds = dict(self.seconds)
         self._calls = dict(self.calls)
+        self._nested = dict(self.nested)
         self._stack = ["other"]
         self._mark = [0.0]  # the last clock read, in a list the wrappers update in place
         self._started = 0.0
@@ -313,7 +320,7 @@ class LayerBudget:
 
     def start(self) -> None:
         for layer in BUDGET_LAYERS:
-            self._seconds[layer], self._calls[layer] = 0.0, 0
+            self._seconds[layer], self._calls[layer], self._nested[layer] = 0.0, 0, 0
         self._started = self._mark[0] = self.clock()
 
     def stop(self) -> None:
@@ -321,7 +328,42 @@ class LayerBudget:
         self._seconds[self._stack[-1]] += now - self._mark[0]
         self._mark[0] = now
         self.seconds, self.calls = dict(self._seconds), dict(self._calls)
+        self.nested = dict(self._nested)
         self.total = now - self._started
+
+    def corrected(self, inner: float, outer: float) -> dict[str, float]:
+        """`seconds` less the wrappers' own time [s]: `inner` per call of the layer, `outer` per
+        wrapped call it made (floored at 0)."""
+        return {
+            layer: max(0.0, seconds - self.calls[layer] * inner - self.nested[layer] * outer)
+            for layer, seconds in self.seconds.items()
+        }
+
+    @staticmethod
+    def calibrate(calls: int = 20000) -> tuple[float, float]:
+        """(inner, outer) [s per call]: a wrapped no-op called `calls` times; outer is what the
+        calling loop spent beyond the same loop over the bare no-op."""
+
+        class Probe:
+            def noop(self) -> None:
+                pass
+
+        probe = Probe()
+        bare = probe.noop
+        start = time.perf_counter()
+        for _ in range(calls):
+            bare()
+        loop = time.perf_counter() - start
+        budget = LayerBudget()
+        budget.wrap(Probe, "noop", "codec")
+        wrapped = probe.noop
+        budget.start()
+        for _ in range(calls):
+            wrapped()
+        budget.stop()
+        budget.restore()
+        inner = budget.seconds["codec"] / calls
+        return inner, max(0.0, budget.seconds["other"] - loop) / calls
 
     def wrap(self, owner: object, name: str, layer: str) -> None:
         if layer not in self.seconds:
@@ -329,10 +371,11 @@ class LayerBudget:
         # on a class the plain function (the wrapper binds as a method), on an instance the
         # bound method
         original = getattr(owner, name)
-        clock, seconds, calls, stack, mark = (
+        clock, seconds, calls, nested, stack, mark = (
             self.clock,
             self._seconds,
             self._calls,
+            self._nested,
             self._stack,
             self._mark,
         )
@@ -341,6 +384,7 @@ class LayerBudget:
             # inlined, not method calls: the wrapper's own cost is what distorts the budget
             now = clock()
             seconds[stack[-1]] += now - mark[0]
+            nested[stack[-1]] += 1
             stack.append(layer)
             calls[layer] += 1
             mark[0] = now
@@ -425,8 +469,9 @@ def budget_scenario(scenario: Scenario, seconds: float, segments: int = 6) -> Sc
 
 def sync_budget(scenario: Scenario) -> dict[str, Any]:
     """The scenario's closed loop in-process, plain and instrumented: per layer the exclusive
-    wall time per SYNC [us], its share of the instrumented loop and its entries per SYNC, with
-    both loops' totals [us per SYNC]. A first plain run warms up (FMU loading, first calls)."""
+    wall time per SYNC [us] with the wrappers' own time taken out (`LayerBudget.corrected`),
+    its share of the corrected total, its entries per SYNC and its time as measured; both
+    loops' totals [us per SYNC]. A first plain run warms up (FMU loading, first calls)."""
     walls = []
     for _ in range(2):
         with tempfile.TemporaryDirectory() as out:
@@ -440,20 +485,26 @@ def sync_budget(scenario: Scenario) -> dict[str, Any]:
             timed = run_scenario(scenario, options).summary
     finally:
         budget.restore()
+    inner, outer = LayerBudget.calibrate()
+    corrected = budget.corrected(inner, outer)
+    total = sum(corrected.values())
     syncs = scenario.cycles + 1
     return {
         "segments": scenario.robot.segments,
         "syncs": syncs,
         "plain_us_per_sync": walls[-1] / syncs * 1e6,
         "instrumented_us_per_sync": float(timed["wall_time"]) / syncs * 1e6,
-        "total_us_per_sync": budget.total / syncs * 1e6,
+        "wrapper_us_per_call": {"inner": inner * 1e6, "outer": outer * 1e6},
+        "measured_us_per_sync": budget.total / syncs * 1e6,
+        "total_us_per_sync": total / syncs * 1e6,
         "layers": {
             layer: {
                 "us_per_sync": seconds / syncs * 1e6,
-                "share": seconds / budget.total,
+                "share": seconds / total,
                 "calls_per_sync": budget.calls[layer] / syncs,
+                "measured_us_per_sync": budget.seconds[layer] / syncs * 1e6,
             }
-            for layer, seconds in budget.seconds.items()
+            for layer, seconds in corrected.items()
         },
     }
 
@@ -462,15 +513,20 @@ def print_budget(report: Mapping[str, Any]) -> None:
     print(
         f"per-SYNC budget, {report['segments']} segments in-process, {report['syncs']} SYNCs: "
         f"plain {report['plain_us_per_sync']:.0f} us/SYNC, instrumented "
-        f"{report['instrumented_us_per_sync']:.0f} us/SYNC"
+        f"{report['instrumented_us_per_sync']:.0f} us/SYNC; the wrappers' own time taken out "
+        f"({report['wrapper_us_per_call']['inner']:.2f} us in the layer, "
+        f"{report['wrapper_us_per_call']['outer']:.2f} us in its caller, per call)"
     )
-    print(f"{'layer':>16s} {'us/SYNC':>9s} {'share':>7s} {'calls/SYNC':>11s}")
+    print(f"{'layer':>16s} {'us/SYNC':>9s} {'share':>7s} {'calls/SYNC':>11s} {'measured':>9s}")
     for layer, row in report["layers"].items():
         print(
             f"{layer:>16s} {row['us_per_sync']:9.1f} {row['share'] * 100:6.1f}% "
-            f"{row['calls_per_sync']:11.1f}"
+            f"{row['calls_per_sync']:11.1f} {row['measured_us_per_sync']:9.1f}"
         )
-    print(f"{'total':>16s} {report['total_us_per_sync']:9.1f} {100.0:6.1f}%")
+    print(
+        f"{'total':>16s} {report['total_us_per_sync']:9.1f} {100.0:6.1f}% {'':11s} "
+        f"{report['measured_us_per_sync']:9.1f}"
+    )
 
 
 def median(repeat: int, f: Callable[[], float]) -> float:

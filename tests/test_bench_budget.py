@@ -58,6 +58,11 @@ def test_exclusive_attribution_with_a_fake_clock() -> None:
     assert budget.seconds["bus"] == 11.0  # 108 -> 119
     assert budget.calls == {**dict.fromkeys(BUDGET_LAYERS, 0), "codec": 1, "bus": 1}
     assert budget.total == 1120.0 == sum(budget.seconds.values())
+    # the outer call was made from other, the inner one from codec; the wrappers' own time out
+    assert budget.nested == {**dict.fromkeys(BUDGET_LAYERS, 0), "other": 1, "codec": 1}
+    corrected = budget.corrected(inner=1.0, outer=2.0)
+    assert (corrected["other"], corrected["codec"], corrected["bus"]) == (5.0, 1099.0, 10.0)
+    assert budget.corrected(inner=20.0, outer=0.0)["bus"] == 0.0  # floored
     budget.restore()
     assert "work" not in vars(Outer) and Outer.work is Inner.work  # inherited: deleted again
     assert Inner.work.__name__ == "work" and Outer.run.__name__ == "run"
