@@ -20,10 +20,27 @@ to a hub in a child process (the default); a row "hub thread" runs the hub as a 
 plant instead (SOFTHIL_HUB=thread), the alternative it was chosen over.
 Before all that, the transport alone: the round trip of one frame from this process through the
 hub (a child process) to an echoing peer process and back, for socketcand's ASCII and for the
-binary records, in microseconds (median of --repeat batches).
+binary records, in microseconds (median of --repeat batches). For 6 segments in-process the
+closed loop also runs with `[controller] estimator` = raw and kf besides the default ukf, so the
+estimator's share of the loop shows.
+
+Last, the per-SYNC budget by layer: the 6-segment closed loop in-process, once plain and once
+instrumented, its wall time per SYNC split into layers (`BUDGET_LAYERS`): the FMUs in C (the
+kernel), the master's bookkeeping, the camera model, the DBC codec (both sides), the direct bus,
+the recording, the controller's estimator and control law, the plant's and the controller's
+node logic (dispatch, device firmware, frame collection), and the rest of the loop (other).
+Instrumentation: perf_counter accumulators with exclusive attribution (`LayerBudget`): the bench
+wraps the methods that enter a layer (`budget_wrappers`) for the instrumented run only and
+restores them after, so the code under test holds no timing hooks and costs nothing when not
+measured. A stack of open layers charges every interval between two clock reads to the layer
+on top, so the layers add up to the loop's total exactly. Chosen over cProfile, whose per-call
+overhead (about 60 % of this loop) falls on every Python call, so on the layers made of many
+small calls far more than on the C calls (the FMUs, numpy), which distorts the shares; the
+wrappers time only ~190 calls per SYNC (6 segments), a few microseconds each, charged to the
+layers around them: the report gives the instrumented loop's time beside the plain one's.
 
 Run from the checkout: PYTHONPATH=. python bench/bench_run.py [--repeat 3] [--seconds 2]
-[--no-closed-loop] [--no-transport] [--json out.json]
+[--no-closed-loop] [--no-transport] [--no-budget] [--budget-only] [--json out.json]
 """
 
 from __future__ import annotations
@@ -39,9 +56,10 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -248,6 +266,269 @@ def round_trip(kind: str, frames: int, repeat: int) -> float:
         hub.stop()
 
 
+# ---------------------------------------------------------------------------- per-SYNC budget
+
+BUDGET_LAYERS = (
+    "FMUs (kernel)",
+    "master",
+    "camera",
+    "codec",
+    "bus",
+    "recording",
+    "estimator",
+    "control law",
+    "plant node",
+    "controller node",
+    "other",
+)
+
+
+class LayerBudget:
+    """Exclusive wall time per layer [s], from perf_counter accumulators.
+
+    `wrap(owner, name, layer)` replaces the callable attribute `name` of `owner` (a class or an
+    instance) by one that opens `layer` for the duration of the call; `restore` puts every
+    original back. Between `start` and `stop`, each interval between two clock reads is charged
+    to the innermost open layer ("other" when none is), so `seconds` adds up to `total`.
+
+    A wrapper costs time of its own: `inner` [s] per call inside its layer (from its first clock
+    read to its last) and `outer` [s] per call in the layer that called it. `corrected` takes
+    both out of the layers they were charged to (`nested` counts the wrapped calls each layer
+    made); `calibrate` measures them on a wrapped no-op.
+
+    Parameters
+    ----------
+    clock
+        Monotonic clock [s]; injectable so that the attribution can be checked exactly.
+    """
+
+    def __init__(self, clock: Callable[[], float] = time.perf_counter) -> None:
+        self.clock = clock
+        self.seconds = dict.fromkeys(BUDGET_LAYERS, 0.0)  # of the last start..stop
+        self.calls = dict.fromkeys(BUDGET_LAYERS, 0)
+        self.nested = dict.fromkeys(BUDGET_LAYERS, 0)  # wrapped calls made from each layer
+        self.total = 0.0
+        # the accumulators run whenever a wrapped method runs (before the loop too: building
+        # the master publishes); `start` zeroes them in place, `stop` copies them out
+        self._seconds = dict(self.seconds)
+        self._calls = dict(self.calls)
+        self._nested = dict(self.nested)
+        self._stack = ["other"]
+        self._mark = [0.0]  # the last clock read, in a list the wrappers update in place
+        self._started = 0.0
+        self._patches: list[tuple[object, str, object]] = []
+
+    def start(self) -> None:
+        for layer in BUDGET_LAYERS:
+            self._seconds[layer], self._calls[layer], self._nested[layer] = 0.0, 0, 0
+        self._started = self._mark[0] = self.clock()
+
+    def stop(self) -> None:
+        now = self.clock()
+        self._seconds[self._stack[-1]] += now - self._mark[0]
+        self._mark[0] = now
+        self.seconds, self.calls = dict(self._seconds), dict(self._calls)
+        self.nested = dict(self._nested)
+        self.total = now - self._started
+
+    def corrected(self, inner: float, outer: float) -> dict[str, float]:
+        """`seconds` less the wrappers' own time [s]: `inner` per call of the layer, `outer` per
+        wrapped call it made (floored at 0)."""
+        return {
+            layer: max(0.0, seconds - self.calls[layer] * inner - self.nested[layer] * outer)
+            for layer, seconds in self.seconds.items()
+        }
+
+    @staticmethod
+    def calibrate(calls: int = 20000) -> tuple[float, float]:
+        """(inner, outer) [s per call]: a wrapped no-op called `calls` times; outer is what the
+        calling loop spent beyond the same loop over the bare no-op."""
+
+        class Probe:
+            def noop(self) -> None:
+                pass
+
+        probe = Probe()
+        bare = probe.noop
+        start = time.perf_counter()
+        for _ in range(calls):
+            bare()
+        loop = time.perf_counter() - start
+        budget = LayerBudget()
+        budget.wrap(Probe, "noop", "codec")
+        wrapped = probe.noop
+        budget.start()
+        for _ in range(calls):
+            wrapped()
+        budget.stop()
+        budget.restore()
+        inner = budget.seconds["codec"] / calls
+        return inner, max(0.0, budget.seconds["other"] - loop) / calls
+
+    def wrap(self, owner: object, name: str, layer: str) -> None:
+        if layer not in self.seconds:
+            raise ValueError(f"{layer!r} is not a budget layer ({', '.join(BUDGET_LAYERS)})")
+        # on a class the plain function (the wrapper binds as a method), on an instance the
+        # bound method
+        original = getattr(owner, name)
+        clock, seconds, calls, nested, stack, mark = (
+            self.clock,
+            self._seconds,
+            self._calls,
+            self._nested,
+            self._stack,
+            self._mark,
+        )
+
+        def timed(*args: object, **kwargs: object) -> object:
+            # inlined, not method calls: the wrapper's own cost is what distorts the budget
+            now = clock()
+            seconds[stack[-1]] += now - mark[0]
+            nested[stack[-1]] += 1
+            stack.append(layer)
+            calls[layer] += 1
+            mark[0] = now
+            try:
+                return original(*args, **kwargs)
+            finally:
+                now = clock()
+                seconds[stack.pop()] += now - mark[0]
+                mark[0] = now
+
+        self.patch(owner, name, timed)
+
+    def patch(self, owner: object, name: str, value: object) -> None:
+        """Set `owner.name` to `value` until `restore`."""
+        self._patches.append((owner, name, vars(owner).get(name, _INHERITED)))
+        setattr(owner, name, value)
+
+    def restore(self) -> None:
+        for owner, name, original in reversed(self._patches):
+            if original is _INHERITED:
+                delattr(owner, name)
+            else:
+                setattr(owner, name, original)
+        self._patches.clear()
+
+
+_INHERITED = object()  # an attribute the owner did not hold itself: restored by deleting
+
+
+def budget_wrappers(budget: LayerBudget) -> None:
+    """Wrap the entries of every layer of an in-process run, on the classes (before the run
+    builds its objects); the controller's estimator and control law per instance, when the
+    plant's driven run starts (`Plant.run_driven`'s driver is the controller node's `run`),
+    which also brackets the budget's total."""
+    from controllers.node import ControllerNode
+    from controllers.protocol import Protocol
+    from hil.bus.direct import DirectBus
+    from hil.devices import CameraNode
+    from hil.kernel import Kernel
+    from hil.plant import Plant
+    from hil.recording import CanLogger, SignalRecorder
+
+    for owner, names, layer in (
+        (Kernel, ("advance",), "FMUs (kernel)"),
+        (FmuParticipant, ("step", "set_inputs", "get_outputs"), "FMUs (kernel)"),
+        (Master, ("advance_to", "publish", "inputs_of"), "master"),
+        (CameraNode, ("step", "act"), "camera"),
+        (Protocol, ("encode", "decode"), "codec"),
+        (DirectBus, ("send", "recv"), "bus"),
+        (CanLogger, ("log", "flush"), "recording"),
+        (SignalRecorder, ("begin_row", "record_frame", "end_row"), "recording"),
+        (Plant, ("handle",), "plant node"),
+        (ControllerNode, ("_collect", "_send", "_flush"), "controller node"),
+    ):
+        for name in names:
+            budget.wrap(owner, name, layer)
+    run_driven = Plant.run_driven
+
+    def bracketed(plant: Plant, driver: Callable[[], object], *args: Any) -> Any:
+        node = getattr(driver, "__self__", None)
+        if isinstance(node, ControllerNode):
+            budget.wrap(node.estimator, "update", "estimator")
+            budget.wrap(node.controller, "compute", "control law")
+        budget.start()
+        try:
+            return run_driven(plant, driver, *args)
+        finally:
+            budget.stop()
+
+    budget.patch(Plant, "run_driven", bracketed)
+
+
+def budget_scenario(scenario: Scenario, seconds: float, segments: int = 6) -> Scenario:
+    """The default task on `segments` segments for `seconds` of simulated time (whole control
+    periods), its sine moved past the end: the closed loop's benchmark scenario."""
+    period = scenario.timing.control_period
+    duration = round(seconds / period) * period
+    robot = replace(scenario.robot, segments=segments)
+    task = replace(scenario.task, sine=replace(scenario.task.sine, start=duration))
+    return replace(scenario, robot=robot, duration=duration, task=task)
+
+
+def sync_budget(scenario: Scenario) -> dict[str, Any]:
+    """The scenario's closed loop in-process, plain and instrumented: per layer the exclusive
+    wall time per SYNC [us] with the wrappers' own time taken out (`LayerBudget.corrected`),
+    its share of the corrected total, its entries per SYNC and its time as measured; both
+    loops' totals [us per SYNC]. A first plain run warms up (FMU loading, first calls)."""
+    walls = []
+    for _ in range(2):
+        with tempfile.TemporaryDirectory() as out:
+            options = RunOptions(out=Path(out), inprocess=True, progress=False)
+            walls.append(float(run_scenario(scenario, options).summary["wall_time"]))
+    budget = LayerBudget()
+    budget_wrappers(budget)
+    try:
+        with tempfile.TemporaryDirectory() as out:
+            options = RunOptions(out=Path(out), inprocess=True, progress=False)
+            timed = run_scenario(scenario, options).summary
+    finally:
+        budget.restore()
+    inner, outer = LayerBudget.calibrate()
+    corrected = budget.corrected(inner, outer)
+    total = sum(corrected.values())
+    syncs = scenario.cycles + 1
+    return {
+        "segments": scenario.robot.segments,
+        "syncs": syncs,
+        "plain_us_per_sync": walls[-1] / syncs * 1e6,
+        "instrumented_us_per_sync": float(timed["wall_time"]) / syncs * 1e6,
+        "wrapper_us_per_call": {"inner": inner * 1e6, "outer": outer * 1e6},
+        "measured_us_per_sync": budget.total / syncs * 1e6,
+        "total_us_per_sync": total / syncs * 1e6,
+        "layers": {
+            layer: {
+                "us_per_sync": seconds / syncs * 1e6,
+                "share": seconds / total,
+                "calls_per_sync": budget.calls[layer] / syncs,
+                "measured_us_per_sync": budget.seconds[layer] / syncs * 1e6,
+            }
+            for layer, seconds in corrected.items()
+        },
+    }
+
+
+def print_budget(report: Mapping[str, Any]) -> None:
+    print(
+        f"per-SYNC budget, {report['segments']} segments in-process, {report['syncs']} SYNCs: "
+        f"plain {report['plain_us_per_sync']:.0f} us/SYNC, instrumented "
+        f"{report['instrumented_us_per_sync']:.0f} us/SYNC; the wrappers' own time taken out "
+        f"({report['wrapper_us_per_call']['inner']:.2f} us in the layer, "
+        f"{report['wrapper_us_per_call']['outer']:.2f} us in its caller, per call)"
+    )
+    print(f"{'layer':>16s} {'us/SYNC':>9s} {'share':>7s} {'calls/SYNC':>11s} {'measured':>9s}")
+    for layer, row in report["layers"].items():
+        print(
+            f"{layer:>16s} {row['us_per_sync']:9.1f} {row['share'] * 100:6.1f}% "
+            f"{row['calls_per_sync']:11.1f} {row['measured_us_per_sync']:9.1f}"
+        )
+    print(
+        f"{'total':>16s} {report['total_us_per_sync']:9.1f} {100.0:6.1f}% {'':11s} "
+        f"{report['measured_us_per_sync']:9.1f}"
+    )
+
+
 def median(repeat: int, f: Callable[[], float]) -> float:
     return statistics.median(f() for _ in range(repeat))
 
@@ -262,10 +543,20 @@ def main() -> int:
     parser.add_argument(
         "--no-transport", action="store_true", help="skip the transport round-trip rows"
     )
+    parser.add_argument("--no-budget", action="store_true", help="skip the per-SYNC budget")
+    parser.add_argument(
+        "--budget-only", action="store_true", help="only the per-SYNC budget (6 segments)"
+    )
     parser.add_argument("--json", type=Path, help="also write the figures as JSON")
     args = parser.parse_args()
     scenario = load_scenario()
     scenario = replace(scenario, bus=replace(scenario.bus, kind="loopback", port=0))
+    if args.budget_only:
+        budget = sync_budget(budget_scenario(scenario, args.seconds))
+        print_budget(budget)
+        if args.json:
+            args.json.write_text(json.dumps({"budget": budget}, indent=2) + "\n")
+        return 0
     h = scenario.timing.step
     sync_ticks = scenario.control_ticks
     ticks = round(args.seconds / h) // sync_ticks * sync_ticks
@@ -326,27 +617,36 @@ def main() -> int:
         print(f"closed loop, default task: {duration:g} s simulated; real-time factor (RTF)")
         print(f"{'layer':44s} {'segments':>8s} {'wall [s]':>9s} {'RTF':>7s} {'x pure C':>9s}")
         for n in SEGMENTS:
-            robot = replace(scenario.robot, segments=n)
-            task = replace(scenario.task, sine=replace(scenario.task.sine, start=duration))
-            arm = replace(scenario, robot=robot, duration=duration, task=task)
+            arm = budget_scenario(scenario, args.seconds, n)
             base = rows[str(n)]["pure C"]["wall_time"] / ticks  # per macro step, n segments
-            for inprocess, hub in ((True, "process"), (False, "process"), (False, "thread")):
-                for kernel in (True, False) if n == 1 and hub == "process" else (True,):
-                    name = "hil run --inprocess" if inprocess else "hil run (separate process)"
-                    name += "" if kernel else " SOFTHIL_KERNEL=0"
-                    name += ", hub thread" if hub == "thread" else ""
-                    wall = median(
-                        args.repeat,
-                        lambda i=inprocess, k=kernel, a=arm, b=hub: full_run(a, i, k, b),
-                    )
-                    ratio = wall / (base * round(duration / h))
-                    closed[f"{name} / {n}"] = {
-                        "segments": n,
-                        "wall_time": wall,
-                        "real_time_factor": duration / wall,
-                        "ratio_to_pure_c": ratio,
-                    }
-                    print(f"{name:44s} {n:8d} {wall:9.3f} {duration / wall:7.1f} {ratio:9.2f}")
+            variants = [(True, "process", True, None), (False, "process", True, None)]
+            variants += [(False, "process", False, None)] if n == 1 else []
+            variants += [(False, "thread", True, None)]
+            # the estimator's share: the same loop with the cheaper estimators
+            variants += [(True, "process", True, e) for e in ("raw", "kf")] if n == 6 else []
+            for inprocess, hub, kernel, estimator in variants:
+                name = "hil run --inprocess" if inprocess else "hil run (separate process)"
+                name += "" if kernel else " SOFTHIL_KERNEL=0"
+                name += ", hub thread" if hub == "thread" else ""
+                name += f", estimator {estimator}" if estimator else ""
+                run = arm
+                if estimator:
+                    run = replace(arm, controller=replace(arm.controller, estimator=estimator))
+                wall = median(
+                    args.repeat, lambda i=inprocess, k=kernel, a=run, b=hub: full_run(a, i, k, b)
+                )
+                ratio = wall / (base * round(duration / h))
+                closed[f"{name} / {n}"] = {
+                    "segments": n,
+                    "wall_time": wall,
+                    "real_time_factor": duration / wall,
+                    "ratio_to_pure_c": ratio,
+                }
+                print(f"{name:44s} {n:8d} {wall:9.3f} {duration / wall:7.1f} {ratio:9.2f}")
+    budget: dict[str, Any] = {}
+    if not args.no_budget:
+        budget = sync_budget(budget_scenario(scenario, args.seconds))
+        print_budget(budget)
     if args.json:
         report = {
             "machine": {"cpus": os.cpu_count(), "load_average": os.getloadavg()},
@@ -355,6 +655,7 @@ def main() -> int:
             "segments": rows,
             "slopes": slopes,
             "closed_loop": closed,
+            "budget": budget,
         }
         args.json.write_text(json.dumps(report, indent=2) + "\n")
     return 0

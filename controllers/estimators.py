@@ -417,6 +417,10 @@ class ArmUnscentedEstimator(_LatencyFilter):
         lambda_ = self.points_fn.alpha**2 * (2 * n + self.points_fn.kappa) - 2 * n
         self._spread = lambda_ + 2 * n  # as filterpy computes it
         self._arm_cache: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        # constants of the update, built once: the covariance weights as a diagonal matrix and
+        # the measurement noise sigma^2 I by measurement size
+        self._Wc_diagonal = np.diag(self.points_fn.Wc)
+        self._noise: dict[int, np.ndarray] = {}
 
     def _initial(self) -> tuple[np.ndarray, np.ndarray]:
         var_theta, var_omega = self._initial_variances()
@@ -452,8 +456,9 @@ class ArmUnscentedEstimator(_LatencyFilter):
         start = self.base[2] + np.cumsum(theta, axis=1) - theta
         half = 0.5 * theta
         direction = start + half
-        safe = np.where(half == 0.0, 1.0, half)
-        chord = self.lengths * np.where(half == 0.0, 1.0, np.sin(safe) / safe)
+        straight = half == 0.0
+        safe = np.where(straight, 1.0, half)
+        chord = self.lengths * np.where(straight, 1.0, np.sin(safe) / safe)
         ends = np.empty((*theta.shape, 2))
         ends[..., 0] = self.base[0] + np.cumsum(chord * np.cos(direction), axis=1)
         ends[..., 1] = self.base[1] + np.cumsum(chord * np.sin(direction), axis=1)
@@ -507,7 +512,10 @@ class ArmUnscentedEstimator(_LatencyFilter):
         sigmas_h = predicted[:, np.repeat(keep, 2)]
         zp = np.dot(Wm, sigmas_h)
         dz = sigmas_h - zp[np.newaxis, :]
-        S = np.dot(dz.T, np.dot(np.diag(Wc), dz)) + self.sigma**2 * np.eye(2 * which.size)
+        noise = self._noise.get(which.size)
+        if noise is None:
+            noise = self._noise[which.size] = self.sigma**2 * np.eye(2 * which.size)
+        S = np.dot(dz.T, np.dot(self._Wc_diagonal, dz)) + noise
         Pxz = ((sigmas - x) * Wc[:, np.newaxis]).T @ dz
         K = Pxz @ np.linalg.inv(S)
         y = points[which].ravel() - zp

@@ -52,7 +52,6 @@ from controllers.protocol import (
     Sync,
     TaskState,
     frame_key,
-    frame_signals,
 )
 from controllers.tasks import TaskPlan
 from controllers.trajectories import CurvatureProfile, Sine
@@ -569,7 +568,10 @@ class ControllerNode:
                 continue
             key = frame_key(frame)
             if key[0] in self._status_kinds:
-                echo = int(frame_signals(frame)["counter"])
+                # the echoed counter, without building every signal's value (frame_signals)
+                echo = int(
+                    frame.signals["counter"] if isinstance(frame, GenericFrame) else frame.counter
+                )
                 if echo == counter and key not in needed:
                     self._intrusion(
                         f"a second {_name(key)} for SYNC {cycle}: another node "

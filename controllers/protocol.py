@@ -18,6 +18,7 @@ Invariant: every frame on the bus decodes to exactly one frame object, or `decod
 
 from __future__ import annotations
 
+import functools
 import math
 import re
 import typing
@@ -62,6 +63,22 @@ class FrameType:
 _REGISTRY: dict[str, FrameType] = {}
 
 
+def _to_bool(value: Any) -> bool:
+    return bool(int(value))
+
+
+def _to_int(value: Any) -> int:
+    return int(value)
+
+
+# the converters as expressions, for the generated decoders (`_Codec.unpacker`)
+_CONVERSIONS: dict[Callable[[Any], Any], str] = {
+    _to_bool: "bool(int({}))",
+    _to_int: "int({})",
+    float: "float({})",
+}
+
+
 def frame_type(kind: str, index: str | None = None) -> Callable[[type], type]:
     """Register a frozen dataclass as the typed frame of DBC kind `kind` (its messages are
     `kind` or `kind<N>`); `index` names the field that holds N."""
@@ -71,13 +88,7 @@ def frame_type(kind: str, index: str | None = None) -> Callable[[type], type]:
         converters: dict[str, Callable[[Any], Any]] = {}
         for f in fields(cls):
             hint = hints[f.name]
-            converters[f.name] = (
-                (lambda v: bool(int(v)))
-                if hint is bool
-                else (lambda v: int(v))
-                if hint is int
-                else float
-            )
+            converters[f.name] = _to_bool if hint is bool else _to_int if hint is int else float
         _REGISTRY[kind] = FrameType(kind, cls, index, converters)
         cls.kind = kind  # type: ignore[attr-defined]
         return cls
@@ -236,7 +247,11 @@ class _Codec:
 
     `encode` and `decode` are generated per message (straight-line code, the layout's constants
     bound by name): the same arithmetic, in the same order, as a loop over the signals would do,
-    without the loop's unpacking and lookups."""
+    without the loop's unpacking and lookups. `pack` is `encode` preceded by the checks
+    `Protocol.encode` makes of a frame's values (missing, bool, wrapping sequence number,
+    non-finite), and `unpacker(ftype, index)` is `decode` followed by the construction of the
+    typed frame (converters and index field), both generated on first use: a frame goes from
+    object to bytes and back in one call each."""
 
     def __init__(self, message: Message) -> None:
         self.message = message
@@ -260,8 +275,42 @@ class _Codec:
                     math.inf if s.maximum is None else s.maximum,
                 )
             )
+        self.plan = _plan(message)
         self.encode: Callable[[Mapping[str, Any]], bytes] = self._compile_encode()
         self.decode: Callable[[bytes], dict[str, Any]] = self._compile_decode()
+        self._pack: Callable[[Mapping[str, Any]], bytes] | None = None
+        self._unpackers: dict[tuple[type, int | None], Callable[[bytes], Any]] = {}
+
+    @property
+    def pack(self) -> Callable[[Mapping[str, Any]], bytes]:
+        """`encode` with `Protocol.encode`'s checks of a frame's values first."""
+        if self._pack is None:
+            self._pack = self._compile_encode(checked=True)
+        return self._pack
+
+    def unpacker(self, ftype: FrameType, index: int | None) -> Callable[[bytes], Any]:
+        """`decode` into the frame type `ftype` of index `index`, as `Protocol.decode` builds it."""
+        key = (ftype.cls, index)
+        unpack = self._unpackers.get(key)
+        if unpack is None:
+            unpack = self._unpackers[key] = self._compile_unpack(ftype, index)
+        return unpack
+
+    def _missing(self, name: str) -> FrameError:
+        return FrameError(
+            f"{self.message.name} ({frame_name(self.message.frame_id)}): no value for signal {name}"
+        )
+
+    def _not_finite(self, name: str, value: float) -> FrameError:
+        return FrameError(
+            f"{self.message.name} ({frame_name(self.message.frame_id)}): {name} is {value}"
+        )
+
+    def _index_mismatch(self, field: str, value: Any) -> FrameError:
+        return FrameError(
+            f"{self.message.name} ({frame_name(self.message.frame_id)}): {field} {value} does "
+            "not match the CAN id"
+        )
 
     def _range_error(self, name: str, value: float, lo: float, hi: float) -> FrameError:
         side = f"greater than or equal to {lo}" if value < lo else f"smaller than or equal to {hi}"
@@ -270,16 +319,34 @@ class _Codec:
             f'"{name}" value {side} in message "{self.message.name}", but got {value}.'
         )
 
-    def _compile_encode(self) -> Callable[[Mapping[str, Any]], bytes]:
+    def _compile_encode(self, checked: bool = False) -> Callable[[Mapping[str, Any]], bytes]:
         space: dict[str, Any] = {"_error": self._range_error, "_round": round, "_divmod": divmod}
+        space.update({"_missing": self._missing, "_not_finite": self._not_finite})
+        space["_INFINITE"] = (math.inf, -math.inf)
         lines = ["def encode(values):", "    bits = 0"]
         for k, (name, start, mask, _, _, scale, offset, identity, lo, hi) in enumerate(
             self.signals
         ):
             space.update({f"N{k}": name, f"LO{k}": lo, f"HI{k}": hi})
             space.update({f"S{k}": scale, f"O{k}": offset})
+            if checked:  # Protocol.encode's checks, in its order
+                modulus = self.plan[k][1]
+                lines += [
+                    f"    if N{k} not in values:",
+                    f"        raise _missing(N{k})",
+                    f"    value = values[N{k}]",
+                    "    if isinstance(value, bool):",
+                    "        value = int(value)",
+                ]
+                if modulus is not None:
+                    lines += ["    elif isinstance(value, int):", f"        value %= {modulus}"]
+                lines += [
+                    "    elif value != value or value in _INFINITE:",
+                    f"        raise _not_finite(N{k}, value)",
+                ]
+            else:
+                lines.append(f"    value = values[N{k}]")
             lines += [
-                f"    value = values[N{k}]",
                 f"    if not LO{k} <= value <= HI{k}:",
                 f"        raise _error(N{k}, value, LO{k}, HI{k})",
             ]
@@ -310,6 +377,44 @@ class _Codec:
         lines.append("    return values")
         exec("\n".join(lines), space)  # noqa: S102 - code built above from the DBC's integers
         return space["decode"]  # type: ignore[no-any-return]
+
+    def _compile_unpack(self, ftype: FrameType, index: int | None) -> Callable[[bytes], Any]:
+        """`decode` then the typed frame: each value through its field's converter (bool(int(v)),
+        int(v) or float(v)), the index field from the CAN id (a signal of that name must match
+        it), as keyword arguments."""
+        space: dict[str, Any] = {"_from_bytes": int.from_bytes, "_cls": ftype.cls}
+        space["_mismatch"] = functools.partial(self._index_mismatch, ftype.index_field)
+        space["_INDEX"] = index
+        lines = ["def unpack(data):", "    bits = _from_bytes(data, 'little')"]
+        arguments = []
+        for k, (name, start, mask, length, signed, scale, offset, identity, _, _) in enumerate(
+            self.signals
+        ):
+            space.update({f"S{k}": scale, f"O{k}": offset})
+            lines.append(f"    raw = (bits >> {start}) & {mask}")
+            if signed:
+                lines += [f"    if raw >> {length - 1}:", f"        raw -= {1 << length}"]
+            value = "raw" if identity else f"raw * S{k} + O{k}"
+            convert = ftype.converters[name]
+            kind = _CONVERSIONS.get(convert)
+            if kind is None:  # a converter made elsewhere: called by name
+                space[f"C{k}"] = convert
+                lines.append(f"    v{k} = C{k}({value})")
+            else:
+                lines.append(f"    v{k} = {kind.format(value)}")
+            arguments.append(f"{name}=v{k}")
+        if ftype.index_field is not None:
+            position = next(
+                (k for k, s in enumerate(self.signals) if s[0] == ftype.index_field), None
+            )
+            if position is None:
+                arguments.append(f"{ftype.index_field}=_INDEX")
+            else:
+                lines += [f"    if v{position} != _INDEX:", f"        raise _mismatch(v{position})"]
+                arguments[position] = f"{ftype.index_field}=_INDEX"
+        lines.append(f"    return _cls({', '.join(arguments)})")
+        exec("\n".join(lines), space)  # noqa: S102 - code built above from the DBC's integers
+        return space["unpack"]  # type: ignore[no-any-return]
 
 
 @dataclass(frozen=True)
@@ -346,6 +451,8 @@ class Protocol:
         self._by_id: dict[int, _Entry] = {}
         self._by_name: dict[str, _Entry] = {}
         self._by_key: dict[tuple[str, int | None], _Entry] = {}
+        # the typed frames' generated decoders by CAN id, filled as ids are first decoded
+        self._unpackers: dict[int, Callable[[bytes], Frame]] = {}
         for message in database.messages:
             match = _NAME.match(message.name)
             assert match is not None  # the pattern matches every string
@@ -353,16 +460,7 @@ class Protocol:
             ftype = _REGISTRY.get(kind)
             index = int(digits) if digits else None
             codec = Protocol._compiled(message)
-            plan = tuple(
-                (
-                    signal.name,
-                    int(signal.maximum or COUNTER_MODULO - 1) + 1
-                    if signal.name in WRAPPING_SIGNALS
-                    else None,
-                )
-                for signal in message.signals
-            )
-            entry = _Entry(kind, index, message, ftype, codec, plan)
+            entry = _Entry(kind, index, message, ftype, codec, _plan(message))
             if ftype is not None:
                 _check_layout(entry)
             self._by_id[message.frame_id] = entry
@@ -443,6 +541,13 @@ class Protocol:
         given: Mapping[str, Any] = (
             frame.signals if isinstance(frame, GenericFrame) else frame.__dict__
         )
+        if entry.codec is not None:  # the checks below and the encoding, in one call
+            return can.Message(
+                arbitration_id=message.frame_id,
+                data=entry.codec.pack(given),
+                is_extended_id=False,
+                timestamp=timestamp,
+            )
         signals: dict[str, Any] = {}
         for name, modulus in entry.plan:
             if name not in given:
@@ -459,13 +564,10 @@ class Protocol:
                     f"{message.name} ({frame_name(message.frame_id)}): {name} is {value}"
                 )
             signals[name] = value
-        if entry.codec is not None:
-            data = entry.codec.encode(signals)
-        else:
-            try:
-                data = message.encode(signals, strict=True)
-            except (cantools.database.EncodeError, ValueError, KeyError) as exc:
-                raise FrameError(f"{message.name} ({frame_name(message.frame_id)}): {exc}") from exc
+        try:
+            data = message.encode(signals, strict=True)
+        except (cantools.database.EncodeError, ValueError, KeyError) as exc:
+            raise FrameError(f"{message.name} ({frame_name(message.frame_id)}): {exc}") from exc
         return can.Message(
             arbitration_id=message.frame_id, data=data, is_extended_id=False, timestamp=timestamp
         )
@@ -483,13 +585,21 @@ class Protocol:
                 f"{message.name} ({frame_name(msg.arbitration_id)}): {len(msg.data)} data bytes, "
                 f"the DBC says {message.length}"
             )
+        unpack = self._unpackers.get(msg.arbitration_id)
+        if unpack is not None:
+            return unpack(msg.data)
+        ftype = entry.type
         if entry.codec is not None:
-            values = entry.codec.decode(bytes(msg.data))
+            if ftype is not None:  # decoded and built in one call, from now on
+                unpack = self._unpackers[msg.arbitration_id] = entry.codec.unpacker(
+                    ftype, entry.index
+                )
+                return unpack(msg.data)
+            values = entry.codec.decode(msg.data)
         else:
             values = dict(
                 message.decode(bytes(msg.data), decode_choices=False, scaling=True)  # type: ignore[arg-type]
             )
-        ftype = entry.type
         if ftype is None:
             return GenericFrame(entry.kind, entry.index, values)
         kwargs = {name: ftype.converters[name](v) for name, v in values.items()}
@@ -501,6 +611,19 @@ class Protocol:
                 )
             kwargs[ftype.index_field] = entry.index
         return ftype.cls(**kwargs)
+
+
+def _plan(message: Message) -> tuple[tuple[str, int | None], ...]:
+    """(signal name, modulus of a wrapping sequence number or None), in the DBC's order."""
+    return tuple(
+        (
+            signal.name,
+            int(signal.maximum or COUNTER_MODULO - 1) + 1
+            if signal.name in WRAPPING_SIGNALS
+            else None,
+        )
+        for signal in message.signals
+    )
 
 
 def _check_layout(entry: _Entry) -> None:

@@ -282,11 +282,17 @@ class CameraNode:
             self.frame_index, self.frame_index * self.period_ticks
         )
 
-    def _in_view(self, point: np.ndarray) -> bool:
-        if np.isnan(point).any():
-            return False
+    def _in_view(self, points: list[list[float]]) -> list[int]:
+        """The markers seen: inside the field of view and present (no NaN coordinate); on the
+        picture's points as floats (a handful of markers: cheaper than array operations)."""
         (x_lo, x_hi), (y_lo, y_hi) = self.field
-        return bool(x_lo <= point[0] <= x_hi and y_lo <= point[1] <= y_hi)
+        return [
+            m
+            for m, point in enumerate(points)
+            if x_lo <= point[0] <= x_hi
+            and y_lo <= point[1] <= y_hi
+            and not any(map(math.isnan, point))
+        ]
 
     def accepts(self, frame: Frame) -> bool:
         return False
@@ -302,10 +308,10 @@ class CameraNode:
             _, picture = self.queue.popleft()
             index, points = picture.frame_index, picture.points
             offset = (sync.tick - picture.exposure_tick) * self.macro_step
-            seen = [m for m in range(len(points)) if self._in_view(points[m])]
+            rows = points.tolist()
+            seen = self._in_view(rows)
             mask = sum(1 << m for m in seen)
             frames.append((MEASUREMENT, CameraFrame(index, offset, mask, len(seen))))
             for m in seen:
-                x, y = points[m][0], points[m][1]
-                frames.append((MEASUREMENT, CameraMarker(m, float(x), float(y), index, offset)))
+                frames.append((MEASUREMENT, CameraMarker(m, rows[m][0], rows[m][1], index, offset)))
         return frames

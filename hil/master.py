@@ -18,8 +18,9 @@ start of the tick (Jacobi), so the result does not depend on the order of partic
 
 from __future__ import annotations
 
+import operator
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from types import MappingProxyType
 from typing import Protocol
@@ -165,6 +166,11 @@ class Master:
             driven.add(c.target)
             self._connections[target].append((variable, c.source, c.gain, c.offset))
         self._driven = driven
+        # "participant.variable" of every output, by participant and output (built once: a
+        # publish at every SYNC would otherwise format each key anew)
+        self._output_keys = {
+            p.name: {n: f"{p.name}.{n}" for n in p.output_names()} for p in participants
+        }
         self.values: dict[str, float] = {}
         self._view = MappingProxyType(self.values)  # what observers get: read-only
         self._kernel: kernel_module.Kernel | None = None
@@ -222,6 +228,7 @@ class Master:
         self._slow = [p for p in self.participants.values() if p not in fast]
         self._fast_keys = [f"{p.name}.{n}" for p in fast for n in p.output_names()]
         self._fast_slots = [self._slots[key] for key in self._fast_keys]
+        self._fresh = _items(self._fast_slots)
         return kernel
 
     def _endpoint(self, name: str, kind: str) -> tuple[str, str]:
@@ -266,12 +273,17 @@ class Master:
 
     def _publish(self, participant: Participant) -> None:
         outputs = participant.get_outputs()
-        for name, value in outputs.items():
-            self.values[f"{participant.name}.{name}"] = value
+        keys = self._output_keys[participant.name]
+        published = [
+            (keys.get(name) or f"{participant.name}.{name}", value)
+            for name, value in outputs.items()
+        ]
+        self.values.update(published)
         if self._kernel_synced:
             array = self._kernel.values  # type: ignore[union-attr]
-            for name, value in outputs.items():
-                slot = self._slots.get(f"{participant.name}.{name}")
+            slots = self._slots
+            for key, value in published:
+                slot = slots.get(key)
                 if slot is not None:
                     array[slot] = value
 
@@ -352,9 +364,7 @@ class Master:
         try:
             kernel.advance(k_begin, k_end)
         finally:
-            array = kernel.values
-            fresh = [array[i] for i in self._fast_slots]
-            self.values.update(zip(self._fast_keys, fresh, strict=True))
+            self.values.update(zip(self._fast_keys, self._fresh(kernel.values), strict=True))
             self.tick = kernel.ticks_done
 
     def _step_participants(
@@ -380,3 +390,10 @@ class Master:
         self.tick = k + 1
         for observer in self.observers:
             observer.observe(self.tick, self._view)
+
+
+def _items(slots: Sequence[int]) -> Callable[[Sequence[float]], Sequence[float]]:
+    """The values at `slots` of an array, in one call (operator.itemgetter, always a tuple)."""
+    if len(slots) > 1:
+        return operator.itemgetter(*slots)
+    return lambda array: tuple(array[i] for i in slots)

@@ -245,7 +245,10 @@ class Plant:
     def _record_reported(self, frame: Frame) -> bool:
         """Record what the controller reports about itself (the rig's frame-sourced signals);
         True if the rig records this frame."""
-        return self.signals.record_frame(*frame_key(frame), frame_signals(frame))
+        kind, index = frame_key(frame)
+        if not self.signals.records(kind, index):  # most frames: no need of their values
+            return False
+        return self.signals.record_frame(kind, index, frame_signals(frame))
 
     def _send(self, frames: list[Frame]) -> None:
         """Encode a SYNC's frames and send them in order, in one write where the bus can

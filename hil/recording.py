@@ -43,7 +43,12 @@ class SignalRecorder:
         self.path = path
         self.specs = list(specs)
         self.columns = ["time"] + [s.column for s in self.specs]
-        self._by_frame = {s.frame: s.column for s in self.specs if s.frame is not None}
+        # the recorded signals of each frame (kind, index): (signal, column) pairs
+        self._by_frame: dict[tuple[str, int | None], list[tuple[str, str]]] = {}
+        for s in self.specs:
+            if s.frame is not None:
+                kind, index, name = s.frame
+                self._by_frame.setdefault((kind, index), []).append((name, s.column))
         units = io.StringIO()
         writer = csv.writer(units, lineterminator="\n")
         writer.writerow(["signal", "unit", "description"])
@@ -65,23 +70,28 @@ class SignalRecorder:
         self.end_row()
         self._row = {"time": time, **values}
 
+    def records(self, kind: str, index: int | None) -> bool:
+        """Whether any signal of frame (kind, index) has a column."""
+        return (kind, index) in self._by_frame
+
     def record_frame(self, kind: str, index: int | None, values: dict[str, float]) -> bool:
         """Values a frame reported (the controller's state), for the open row; True if any of
         the frame's signals is recorded."""
         recorded = False
-        for name, value in values.items():
-            column = self._by_frame.get((kind, index, name))
-            if column is not None:
+        for name, column in self._by_frame.get((kind, index), ()):
+            if name in values:
                 recorded = True
                 if self._row is not None:
-                    self._row[column] = value
+                    self._row[column] = values[name]
         return recorded
 
     def end_row(self) -> None:
         if self._row is None:
             return
-        values = [self._row.get(c, math.nan) for c in self.columns]
-        self._writer.writerow([_format(v) for v in values])
+        row = self._row
+        values = [row.get(c, math.nan) for c in self.columns]
+        # a NaN float is an empty cell, everything else its repr (v != v: NaN, as math.isnan)
+        self._writer.writerow(["" if isinstance(v, float) and v != v else repr(v) for v in values])
         now = time.monotonic()
         if now - self._flushed > FLUSH_INTERVAL:  # blocks of whole records, not a write a SYNC
             self._file.flush()
@@ -115,8 +125,7 @@ class SignalRecorder:
         mdf.save(str(path), overwrite=True)
 
 
-def _format(value: float) -> str:
-    return "" if isinstance(value, float) and math.isnan(value) else repr(value)
+_FRAME_BITS = [frame_bits(dlc) for dlc in range(65)]  # by data length (CAN FD: up to 64)
 
 
 class _AscWriter(can.ASCWriter):
@@ -170,6 +179,7 @@ class CanLogger:
         # message per frame; its channel rule: a bare number n is "can<n>"
         self._candump_channel = f"can{channel}" if channel.isdigit() else channel
         self._first_stamp: float | None = None
+        self._idents: dict[tuple[int, bool], str] = {}  # the id as written, by (id, extended)
 
     def _candump_line(self, message: can.Message, stamp: float, received: bool) -> str:
         """The line CanutilsLogWriter writes for a classic data frame stamped `stamp` [s]: as it
@@ -178,8 +188,11 @@ class CanLogger:
             self._first_stamp = stamp or 0.0
         elif stamp < self._first_stamp:
             stamp = self._first_stamp
-        can_id = message.arbitration_id
-        ident = f"{can_id:08X}" if message.is_extended_id else f"{can_id:03X}"
+        ident = self._idents.get((message.arbitration_id, message.is_extended_id))
+        if ident is None:
+            can_id = message.arbitration_id
+            ident = f"{can_id:08X}" if message.is_extended_id else f"{can_id:03X}"
+            self._idents[(can_id, message.is_extended_id)] = ident
         return (
             f"({stamp:f}) {self._candump_channel} {ident}#{bytes(message.data).hex().upper()}"
             f"{' R' if received else ' T'}\n"
@@ -205,7 +218,7 @@ class CanLogger:
         self._count(message, received)
 
     def _count(self, message: can.Message, received: bool) -> None:
-        self.bits += frame_bits(len(message.data))
+        self.bits += _FRAME_BITS[len(message.data)]
         if received:
             self.received += 1
         else:

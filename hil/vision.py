@@ -210,10 +210,14 @@ class Camera:
         dropped = np.asarray(self._rng_dropout.random(markers) < e.dropout)
         outlier = np.asarray(self._rng_outlier.random(markers) < e.outlier_rate)
         direction = self._rng_outlier.normal(0.0, 1.0, (markers, dims))
-        direction /= np.maximum(np.linalg.norm(direction, axis=1, keepdims=True), 1e-300)
         occluded = self._occluded(time, markers)
         points = true_points + noise
-        points[outlier] += e.outlier_distance * direction[outlier]
+        # most pictures have neither outliers nor missing markers: skip the masked updates (row
+        # by row, so the rows that are updated get the same values either way)
+        if outlier.any():
+            direction /= np.maximum(np.linalg.norm(direction, axis=1, keepdims=True), 1e-300)
+            points[outlier] += e.outlier_distance * direction[outlier]
         missing = dropped | occluded
-        points[missing] = np.nan
+        if missing.any():
+            points[missing] = np.nan
         return Picture(frame_index, tick, time, points, dropped, occluded, outlier & ~missing)

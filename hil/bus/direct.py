@@ -42,7 +42,7 @@ class DirectBus(can.BusABC):
             is_extended_id=msg.is_extended_id,
             is_remote_frame=msg.is_remote_frame,
             dlc=msg.dlc,
-            data=bytes(msg.data),
+            data=bytearray(msg.data),  # the copy the message keeps (it converts bytes to one)
             channel=peer.channel_info,
         )
         if peer.handler is not None:

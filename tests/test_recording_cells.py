@@ -1,0 +1,41 @@
+"""The signals CSV's cells: a value's repr, an empty cell for NaN or a column nobody filled;
+frame-sourced columns filled from the frame they name only (hil/recording.py).
+
+Invariant checked: equal rows give equal bytes (repr round-trips every float), and a missing
+value is an empty cell, not "nan".
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+from hil.recording import SignalRecorder
+from hil.robots import SignalSpec
+
+
+def test_cells_and_frame_columns(tmp_path: Path) -> None:
+    specs = [
+        SignalSpec("kappa", "1/m", "true curvature", source="segment1.kappa"),
+        SignalSpec("kappa_ref", "1/m", "reference", frame=("ControllerState", 1, "kappa_ref")),
+        SignalSpec("kappa_est", "1/m", "estimate", frame=("ControllerState", 1, "kappa_est")),
+        SignalSpec("fault", "", "fault bits", source="drive1.fault"),
+        SignalSpec("kappa_ref2", "1/m", "reference 2", frame=("ControllerState", 2, "kappa_ref")),
+    ]
+    recorder = SignalRecorder(tmp_path / "signals.csv", specs)
+    assert recorder.records("ControllerState", 1)
+    assert not recorder.records("ControllerState", 3) and not recorder.records("DriveStatus", 1)
+    recorder.begin_row(0.01, {"kappa": 0.1 + 0.2, "fault": 3})
+    # a frame with no recorded signal changes nothing; kappa_est is not given
+    assert not recorder.record_frame("ControllerState", 3, {"kappa_ref": 5.0})
+    assert not recorder.record_frame("ControllerState", 2, {"counter": 7})
+    assert recorder.record_frame("ControllerState", 2, {"kappa_ref": 4.0})
+    assert recorder.record_frame("ControllerState", 1, {"kappa_ref": -2.5, "counter": 7})
+    recorder.begin_row(0.02, {"kappa": math.nan, "fault": 0})  # ends the first row
+    recorder.close()
+    lines = (tmp_path / "signals.csv").read_text().splitlines()
+    assert lines == [
+        "time,kappa,kappa_ref,kappa_est,fault,kappa_ref2",
+        "0.01,0.30000000000000004,-2.5,,3,4.0",
+        "0.02,,,,0,",
+    ]
