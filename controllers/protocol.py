@@ -33,6 +33,7 @@ import cantools
 from cantools.database.can import Database, Message
 
 DBC_PATH = Path(str(files("controllers") / "softhil.dbc"))
+Data = bytes | bytearray  # a frame's payload: python-can gives either
 
 SYNC_ID = 0x080  # the SYNC message's id in the DBC (CANopen's); checked by the tests
 COUNTER_MODULO = 256
@@ -277,9 +278,9 @@ class _Codec:
             )
         self.plan = _plan(message)
         self.encode: Callable[[Mapping[str, Any]], bytes] = self._compile_encode()
-        self.decode: Callable[[bytes], dict[str, Any]] = self._compile_decode()
+        self.decode: Callable[[Data], dict[str, Any]] = self._compile_decode()
         self._pack: Callable[[Mapping[str, Any]], bytes] | None = None
-        self._unpackers: dict[tuple[type, int | None], Callable[[bytes], Any]] = {}
+        self._unpackers: dict[tuple[type, int | None], Callable[[Data], Any]] = {}
 
     @property
     def pack(self) -> Callable[[Mapping[str, Any]], bytes]:
@@ -288,7 +289,7 @@ class _Codec:
             self._pack = self._compile_encode(checked=True)
         return self._pack
 
-    def unpacker(self, ftype: FrameType, index: int | None) -> Callable[[bytes], Any]:
+    def unpacker(self, ftype: FrameType, index: int | None) -> Callable[[Data], Any]:
         """`decode` into the frame type `ftype` of index `index`, as `Protocol.decode` builds it."""
         key = (ftype.cls, index)
         unpack = self._unpackers.get(key)
@@ -306,7 +307,7 @@ class _Codec:
             f"{self.message.name} ({frame_name(self.message.frame_id)}): {name} is {value}"
         )
 
-    def _index_mismatch(self, field: str, value: Any) -> FrameError:
+    def _index_mismatch(self, field: str | None, value: Any) -> FrameError:
         return FrameError(
             f"{self.message.name} ({frame_name(self.message.frame_id)}): {field} {value} does "
             "not match the CAN id"
@@ -363,7 +364,7 @@ class _Codec:
         exec("\n".join(lines), space)  # noqa: S102 - code built above from the DBC's integers
         return space["encode"]  # type: ignore[no-any-return]
 
-    def _compile_decode(self) -> Callable[[bytes], dict[str, Any]]:
+    def _compile_decode(self) -> Callable[[Data], dict[str, Any]]:
         space: dict[str, Any] = {"_from_bytes": int.from_bytes}
         lines = ["def decode(data):", "    bits = _from_bytes(data, 'little')", "    values = {}"]
         for k, (name, start, mask, length, signed, scale, offset, identity, _, _) in enumerate(
@@ -378,7 +379,7 @@ class _Codec:
         exec("\n".join(lines), space)  # noqa: S102 - code built above from the DBC's integers
         return space["decode"]  # type: ignore[no-any-return]
 
-    def _compile_unpack(self, ftype: FrameType, index: int | None) -> Callable[[bytes], Any]:
+    def _compile_unpack(self, ftype: FrameType, index: int | None) -> Callable[[Data], Any]:
         """`decode` then the typed frame: each value through its field's converter (bool(int(v)),
         int(v) or float(v)), the index field from the CAN id (a signal of that name must match
         it), as keyword arguments."""
@@ -452,7 +453,7 @@ class Protocol:
         self._by_name: dict[str, _Entry] = {}
         self._by_key: dict[tuple[str, int | None], _Entry] = {}
         # the typed frames' generated decoders by CAN id, filled as ids are first decoded
-        self._unpackers: dict[int, Callable[[bytes], Frame]] = {}
+        self._unpackers: dict[int, Callable[[Data], Frame]] = {}
         for message in database.messages:
             match = _NAME.match(message.name)
             assert match is not None  # the pattern matches every string

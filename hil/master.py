@@ -23,7 +23,7 @@ import os
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from types import MappingProxyType
-from typing import Protocol
+from typing import Any, Protocol
 
 from hil import kernel as kernel_module
 from hil.errors import BuildError, HilError
@@ -392,7 +392,7 @@ class Master:
             observer.observe(self.tick, self._view)
 
 
-def _items(slots: Sequence[int]) -> Callable[[Sequence[float]], Sequence[float]]:
+def _items(slots: Sequence[int]) -> Callable[[Any], Sequence[float]]:
     """The values at `slots` of an array, in one call (operator.itemgetter, always a tuple)."""
     if len(slots) > 1:
         return operator.itemgetter(*slots)
