@@ -1,8 +1,9 @@
-"""Helpers shared by the tests: FMU simulation, socket timeouts."""
+"""Helpers shared by the tests: FMU simulation, socket timeouts, interruptible children."""
 
 from __future__ import annotations
 
 import contextlib
+import signal
 import socket
 from collections.abc import Callable, Iterator, Mapping
 
@@ -56,3 +57,12 @@ def blocking_sockets_time_out(timeout: float = SOCKET_TIMEOUT) -> Iterator[None]
         yield
     finally:
         socket.setdefaulttimeout(previous)
+
+
+def interruptible() -> None:
+    """`preexec_fn` of a child the test stops with SIGINT: SIGINT at its default in the child,
+    as in a terminal. A shell without job control starts background jobs (pytest on CI, say)
+    with SIGINT ignored, the child inherits that across exec, and Python then keeps the
+    inherited "ignored" instead of installing its KeyboardInterrupt handler: the child would
+    never see the test's Ctrl-C."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)

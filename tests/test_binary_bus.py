@@ -30,7 +30,7 @@ from controllers.canbus import BusSpec, connection_closed, open_bus, send_all
 from hil.bus import wire
 from hil.bus.binary import SofthilBus, parse_channel
 from hil.bus.loopback import HubProcess, LoopbackHub
-from tests.helpers import blocking_sockets_time_out
+from tests.helpers import blocking_sockets_time_out, interruptible
 
 ROOT = Path(__file__).resolve().parents[1]
 TIMEOUT = 10.0  # upper bound of any single wait; never reached when things work
@@ -413,6 +413,7 @@ def test_python_can_logger_reaches_the_bus_by_interface_name(
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
+        preexec_fn=interruptible,  # it is stopped with SIGINT below
     )
     try:
         assert logger.stdout is not None

@@ -41,7 +41,7 @@ from hil.bustools.vcan import socketcan_available
 from hil.cli import main
 from hil.errors import BusError, HilError
 from hil.recording import CanLogger
-from tests.helpers import blocking_sockets_time_out
+from tests.helpers import blocking_sockets_time_out, interruptible
 
 ROOT = Path(__file__).resolve().parents[1]
 TIMEOUT = 10.0
@@ -752,6 +752,7 @@ def test_dump_attached_to_a_run_on_an_external_hub_sees_every_frame(tmp_path: Pa
             stderr=subprocess.PIPE,
             text=True,
             env={**os.environ, "PYTHONUNBUFFERED": "1"},
+            preexec_fn=interruptible,  # it is stopped with SIGINT below
         )
         probe = open_bus(BusSpec.parse(f"loopback:{hub.port}"))
         listening = threading.Event()

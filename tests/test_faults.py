@@ -33,6 +33,7 @@ from hil.cli import main as hil_main
 from hil.run import controller_config
 from hil.scenario import DEFAULT_SCENARIO, load_scenario
 from hil.summary import realtime_failure
+from tests.helpers import interruptible
 
 DEFAULT_TEXT = DEFAULT_SCENARIO.read_text()
 REPO = Path(__file__).resolve().parents[1]
@@ -311,15 +312,8 @@ def hil_process(*argv: str) -> subprocess.Popen[str]:
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
-        preexec_fn=_interruptible,
+        preexec_fn=interruptible,
     )
-
-
-def _interruptible() -> None:
-    """SIGINT at its default in the child, as in a terminal: a shell without job control starts
-    background jobs (pytest on CI, say) with SIGINT ignored, and Python keeps an inherited
-    'ignored' instead of installing its KeyboardInterrupt handler."""
-    signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
 def test_injected_commands_on_the_hub_from_a_second_client(tmp_path: Path) -> None:
