@@ -241,6 +241,11 @@ def frame_name(frame_id: int) -> str:
     return f"0x{frame_id:03X}"
 
 
+def _frame_error(message: Message, text: str) -> FrameError:
+    """A FrameError that names the message and its CAN id, then says `text`."""
+    return FrameError(f"{message.name} ({frame_name(message.frame_id)}): {text}")
+
+
 class _Codec:
     """One message's encode/decode, compiled from its DBC layout: plain integer arithmetic on the
     little-endian payload, the same rounding and range checks as cantools (strict), several
@@ -298,26 +303,20 @@ class _Codec:
         return unpack
 
     def _missing(self, name: str) -> FrameError:
-        return FrameError(
-            f"{self.message.name} ({frame_name(self.message.frame_id)}): no value for signal {name}"
-        )
+        return _frame_error(self.message, f"no value for signal {name}")
 
     def _not_finite(self, name: str, value: float) -> FrameError:
-        return FrameError(
-            f"{self.message.name} ({frame_name(self.message.frame_id)}): {name} is {value}"
-        )
+        return _frame_error(self.message, f"{name} is {value}")
 
     def _index_mismatch(self, field: str | None, value: Any) -> FrameError:
-        return FrameError(
-            f"{self.message.name} ({frame_name(self.message.frame_id)}): {field} {value} does "
-            "not match the CAN id"
-        )
+        return _frame_error(self.message, f"{field} {value} does not match the CAN id")
 
     def _range_error(self, name: str, value: float, lo: float, hi: float) -> FrameError:
         side = f"greater than or equal to {lo}" if value < lo else f"smaller than or equal to {hi}"
-        return FrameError(
-            f"{self.message.name} ({frame_name(self.message.frame_id)}): Expected signal "
-            f'"{name}" value {side} in message "{self.message.name}", but got {value}.'
+        return _frame_error(
+            self.message,
+            f'Expected signal "{name}" value {side} in message "{self.message.name}", '
+            f"but got {value}.",
         )
 
     def _compile_encode(self, checked: bool = False) -> Callable[[Mapping[str, Any]], bytes]:
@@ -552,23 +551,19 @@ class Protocol:
         signals: dict[str, Any] = {}
         for name, modulus in entry.plan:
             if name not in given:
-                raise FrameError(
-                    f"{message.name} ({frame_name(message.frame_id)}): no value for signal {name}"
-                )
+                raise _frame_error(message, f"no value for signal {name}")
             value = given[name]
             if isinstance(value, bool):
                 value = int(value)
             elif modulus is not None and isinstance(value, int):
                 value %= modulus
             elif value != value or value in (math.inf, -math.inf):  # NaN or infinite
-                raise FrameError(
-                    f"{message.name} ({frame_name(message.frame_id)}): {name} is {value}"
-                )
+                raise _frame_error(message, f"{name} is {value}")
             signals[name] = value
         try:
             data = message.encode(signals, strict=True)
         except (cantools.database.EncodeError, ValueError, KeyError) as exc:
-            raise FrameError(f"{message.name} ({frame_name(message.frame_id)}): {exc}") from exc
+            raise _frame_error(message, str(exc)) from exc
         return can.Message(
             arbitration_id=message.frame_id, data=data, is_extended_id=False, timestamp=timestamp
         )
@@ -582,9 +577,8 @@ class Protocol:
             raise FrameError(f"unknown CAN id {frame_name(msg.arbitration_id)}")
         message = entry.message
         if len(msg.data) != message.length:
-            raise FrameError(
-                f"{message.name} ({frame_name(msg.arbitration_id)}): {len(msg.data)} data bytes, "
-                f"the DBC says {message.length}"
+            raise _frame_error(
+                message, f"{len(msg.data)} data bytes, the DBC says {message.length}"
             )
         unpack = self._unpackers.get(msg.arbitration_id)
         if unpack is not None:
@@ -606,9 +600,9 @@ class Protocol:
         kwargs = {name: ftype.converters[name](v) for name, v in values.items()}
         if ftype.index_field is not None:
             if ftype.index_field in kwargs and kwargs[ftype.index_field] != entry.index:
-                raise FrameError(
-                    f"{message.name} ({frame_name(msg.arbitration_id)}): {ftype.index_field} "
-                    f"{kwargs[ftype.index_field]} does not match the CAN id"
+                raise _frame_error(
+                    message,
+                    f"{ftype.index_field} {kwargs[ftype.index_field]} does not match the CAN id",
                 )
             kwargs[ftype.index_field] = entry.index
         return ftype.cls(**kwargs)
