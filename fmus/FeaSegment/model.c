@@ -94,6 +94,20 @@ static Channel channel_at(const Instance *inst, double g) {
     return channel;
 }
 
+/* The bend sensitivity G(g) and its slope dG/dg [m^3/(rad Pa)] from one exp: what the Newton
+ * solves of the gas pressure need at every iteration. */
+static double sensitivity_and_slope(const Instance *inst, double g, double *slope) {
+    const double G_a = V(inst, G_a), beta = V(inst, vacuum_factor), pc = V(inst, p_collapse);
+    double e;
+    if (g >= 0.0) {
+        *slope = 0.0;
+        return G_a;
+    }
+    e = exp(g / pc);
+    *slope = G_a * (1.0 - beta) / pc * e;
+    return G_a * (beta + (1.0 - beta) * e);
+}
+
 /* Rigid part of a side's volume (without the bend and compliance terms) [m^3]. */
 static double base_volume(const Instance *inst, double swept_length) {
     return bore_area(inst) * swept_length + V(inst, V_dead) + V(inst, V_ch0);
@@ -126,14 +140,10 @@ static int gas_pressure(const Instance *inst, double V0, double sign, double the
                 *gauge = g;
                 return 1;
             }
-            const double G_a = V(inst, G_a), beta = V(inst, vacuum_factor);
-            const double pc = V(inst, p_collapse), slope = G_a * (1.0 - beta) / pc;
             for (iteration = 0; iteration < 30; iteration++) {
-                /* one exp per iteration serves G(g) and G'(g) */
-                const double e = exp(g / pc);
-                const double G = g >= 0.0 ? G_a : G_a * (beta + (1.0 - beta) * e);
+                double dG;
+                const double G = sensitivity_and_slope(inst, g, &dG);
                 const double p = p_atm + g, vol = V0 + sign * G * theta + C * g;
-                const double dG = slope * e;
                 const double dF = vol + p * (C + sign * dG * theta);
                 double step;
                 if (!(p > 0.0) || !(vol > 0.0) || !(dF > 0.0)) break;
@@ -155,10 +165,9 @@ static int gas_pressure(const Instance *inst, double V0, double sign, double the
         g = exp(target - n * log(rigid)) - p_atm;
     }
     for (iteration = 0; iteration < 60; iteration++) {
-        const double p = p_atm + g, vol = V0 + sign * channel_at(inst, g).G * theta + C * g;
-        const double dG = g < 0.0 ? (V(inst, G_a) * (1.0 - V(inst, vacuum_factor)) /
-                                     V(inst, p_collapse) * exp(g / V(inst, p_collapse)))
-                                  : 0.0;
+        double dG;
+        const double G = sensitivity_and_slope(inst, g, &dG);
+        const double p = p_atm + g, vol = V0 + sign * G * theta + C * g;
         double f, df, next;
         if (!(p > 0.0) || !(vol > 0.0)) {
             g = 0.5 * (g + lo); /* back into the domain */
@@ -311,8 +320,6 @@ static int applied_piston_position(Instance *inst, double *x) {
     return 1;
 }
 
-/* A new piston position is a sudden isentropic compression: the work done on the gas is the
- * change of the stored energy at fixed masses, invariants and bend. */
 /* Keeps the gas state just solved at (s->x, s->y) and its stored energy. */
 static void remember(State *s, const GasState *gas, double energy) {
     s->cached = 1;
@@ -322,6 +329,8 @@ static void remember(State *s, const GasState *gas, double energy) {
     memcpy(s->cached_y, s->y, sizeof s->y);
 }
 
+/* A new piston position is a sudden isentropic compression: the work done on the gas is the
+ * change of the stored energy at fixed masses, invariants and bend. */
 fmi2Status model_step_start(Instance *inst) {
     State *s = (State *)inst->state;
     GasState gas;
