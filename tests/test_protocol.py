@@ -334,6 +334,13 @@ def test_non_finite_values_are_rejected(
         protocol.encode(make(value))
 
 
+def test_a_frame_without_one_of_its_signals_is_rejected_naming_it(protocol: Protocol) -> None:
+    # a generic frame (a kind with no typed class) can lack a signal; it is named, not a KeyError
+    frame = GenericFrame("ValveCommand", 2, {"open_time": 0.0125, "counter": 0x33})
+    with pytest.raises(FrameError, match=r"^ValveCommand2 \(0x212\): no value for signal vent$"):
+        protocol.encode(frame)
+
+
 @pytest.mark.parametrize(
     ("frame", "message"),
     [
