@@ -550,25 +550,33 @@ static void block_phi_functions(size_t nb, double M[MAX_BLOCK][MAX_BLOCK],
 }
 
 /* The coefficients of one ETDRK4 substep of length h (Cox and Matthews 2002, J. Comput. Phys.
- * 176, 430): scalars for the diagonal states, matrices for the block. */
-static void exponential_coefficients(OdeSystem *ode, double h) {
-    size_t j, k;
-    int same = ode->coef_h == h;
-    for (j = 0; same && j < ode->n; j++) same = ode->coef_lambda[j] == ode->lambda[j];
-    if (same && ode->nb > 0) same = memcmp(ode->coef_A, ode->A, sizeof ode->A) == 0;
-    if (same) return;
+ * 176, 430): scalars for the diagonal states, matrices for the block. A set computed for the same
+ * h, rates and block is reused; otherwise the set is computed into the next slot. */
+static const Coefficients *exponential_coefficients(OdeSystem *ode, double h) {
+    Coefficients *set;
+    size_t j, k, slot;
+    for (slot = 0; slot < COEF_SLOTS; slot++) {
+        int same;
+        set = &ode->coef[slot];
+        same = set->h == h;
+        for (j = 0; same && j < ode->n; j++) same = set->lambda[j] == ode->lambda[j];
+        if (same && ode->nb > 0) same = memcmp(set->A, ode->A, sizeof ode->A) == 0;
+        if (same) return set;
+    }
+    set = &ode->coef[ode->coef_next];
+    ode->coef_next = (ode->coef_next + 1) % COEF_SLOTS;
     for (j = 0; j < ode->n; j++) {
         const double z = ode->lambda[j] * h;
         double phi[3], phi_half[3];
         phi_functions(z, phi);
         phi_functions(0.5 * z, phi_half);
-        ode->E[j] = z == 0.0 ? 1.0 : exp(z);
-        ode->E2[j] = z == 0.0 ? 1.0 : exp(0.5 * z);
-        ode->p_half[j] = 0.5 * h * phi_half[0];
-        ode->f1[j] = h * (phi[0] - 3.0 * phi[1] + 4.0 * phi[2]);
-        ode->f2[j] = h * (phi[1] - 2.0 * phi[2]);
-        ode->f3[j] = h * (-phi[1] + 4.0 * phi[2]);
-        ode->coef_lambda[j] = ode->lambda[j];
+        set->E[j] = z == 0.0 ? 1.0 : exp(z);
+        set->E2[j] = z == 0.0 ? 1.0 : exp(0.5 * z);
+        set->p_half[j] = 0.5 * h * phi_half[0];
+        set->f1[j] = h * (phi[0] - 3.0 * phi[1] + 4.0 * phi[2]);
+        set->f2[j] = h * (phi[1] - 2.0 * phi[2]);
+        set->f3[j] = h * (-phi[1] + 4.0 * phi[2]);
+        set->lambda[j] = ode->lambda[j];
     }
     if (ode->nb > 0) {
         double M[MAX_BLOCK][MAX_BLOCK], M_half[MAX_BLOCK][MAX_BLOCK];
@@ -585,21 +593,22 @@ static void exponential_coefficients(OdeSystem *ode, double h) {
         block_phi_functions(ode->nb, M_half, phi_half);
         for (j = 0; j < ode->nb; j++) {
             for (k = 0; k < ode->nb; k++) {
-                ode->bE[j][k] = phi[0][j][k];
-                ode->bE2[j][k] = phi_half[0][j][k];
-                ode->bp_half[j][k] = 0.5 * h * phi_half[1][j][k];
-                ode->bf1[j][k] = h * (phi[1][j][k] - 3.0 * phi[2][j][k] + 4.0 * phi[3][j][k]);
-                ode->bf2[j][k] = h * (phi[2][j][k] - 2.0 * phi[3][j][k]);
-                ode->bf3[j][k] = h * (-phi[2][j][k] + 4.0 * phi[3][j][k]);
+                set->bE[j][k] = phi[0][j][k];
+                set->bE2[j][k] = phi_half[0][j][k];
+                set->bp_half[j][k] = 0.5 * h * phi_half[1][j][k];
+                set->bf1[j][k] = h * (phi[1][j][k] - 3.0 * phi[2][j][k] + 4.0 * phi[3][j][k]);
+                set->bf2[j][k] = h * (phi[2][j][k] - 2.0 * phi[3][j][k]);
+                set->bf3[j][k] = h * (-phi[2][j][k] + 4.0 * phi[3][j][k]);
             }
         }
-        memcpy(ode->coef_A, ode->A, sizeof ode->A);
+        memcpy(set->A, ode->A, sizeof ode->A);
     }
-    ode->coef_h = h;
+    set->h = h;
+    return set;
 }
 
 /* out = M v over the block (nb entries). */
-static void block_apply(size_t nb, double M[MAX_BLOCK][MAX_BLOCK], const double v[],
+static void block_apply(size_t nb, const double M[MAX_BLOCK][MAX_BLOCK], const double v[],
                         double out[]) {
     size_t j, k;
     for (j = 0; j < nb; j++) {
@@ -617,32 +626,32 @@ static int exponential_rk4(Instance *inst, double h) {
     double Nu[MAX_STATES], Na[MAX_STATES], Nb[MAX_STATES], Nc[MAX_STATES];
     double a[MAX_STATES], b[MAX_STATES], c[MAX_STATES];
     double t1[MAX_BLOCK], t2[MAX_BLOCK], t3[MAX_BLOCK], t4[MAX_BLOCK], w[MAX_BLOCK];
-    const double *E = ode->E, *E2 = ode->E2, *p_half = ode->p_half;
-    const double *f1 = ode->f1, *f2 = ode->f2, *f3 = ode->f3;
+    const Coefficients *coef = exponential_coefficients(ode, h);
+    const double *E = coef->E, *E2 = coef->E2, *p_half = coef->p_half;
+    const double *f1 = coef->f1, *f2 = coef->f2, *f3 = coef->f3;
     const size_t nb = ode->nb;
     size_t j;
-    exponential_coefficients(ode, h);
     if (!nonlinear_part(inst, y, Nu)) return 0;
-    block_apply(nb, ode->bE2, y, t1);
-    block_apply(nb, ode->bp_half, Nu, t2);
+    block_apply(nb, coef->bE2, y, t1);
+    block_apply(nb, coef->bp_half, Nu, t2);
     for (j = 0; j < nb; j++) a[j] = t1[j] + t2[j];
     for (j = nb; j < ode->n; j++) a[j] = E2[j] * y[j] + p_half[j] * Nu[j];
     if (!nonlinear_part(inst, a, Na)) return 0;
-    block_apply(nb, ode->bp_half, Na, t2);
+    block_apply(nb, coef->bp_half, Na, t2);
     for (j = 0; j < nb; j++) b[j] = t1[j] + t2[j];
     for (j = nb; j < ode->n; j++) b[j] = E2[j] * y[j] + p_half[j] * Na[j];
     if (!nonlinear_part(inst, b, Nb)) return 0;
     for (j = 0; j < nb; j++) w[j] = 2.0 * Nb[j] - Nu[j];
-    block_apply(nb, ode->bE2, a, t1);
-    block_apply(nb, ode->bp_half, w, t2);
+    block_apply(nb, coef->bE2, a, t1);
+    block_apply(nb, coef->bp_half, w, t2);
     for (j = 0; j < nb; j++) c[j] = t1[j] + t2[j];
     for (j = nb; j < ode->n; j++) c[j] = E2[j] * a[j] + p_half[j] * (2.0 * Nb[j] - Nu[j]);
     if (!nonlinear_part(inst, c, Nc)) return 0;
-    block_apply(nb, ode->bE, y, t1);
-    block_apply(nb, ode->bf1, Nu, t2);
+    block_apply(nb, coef->bE, y, t1);
+    block_apply(nb, coef->bf1, Nu, t2);
     for (j = 0; j < nb; j++) w[j] = Na[j] + Nb[j];
-    block_apply(nb, ode->bf2, w, t3);
-    block_apply(nb, ode->bf3, Nc, t4);
+    block_apply(nb, coef->bf2, w, t3);
+    block_apply(nb, coef->bf3, Nc, t4);
     for (j = 0; j < nb; j++) {
         y[j] = t1[j] + t2[j] + 2.0 * t3[j] + t4[j];
         if (!isfinite(y[j])) return 0;
@@ -650,6 +659,20 @@ static int exponential_rk4(Instance *inst, double h) {
     for (j = nb; j < ode->n; j++) {
         y[j] = E[j] * y[j] + f1[j] * Nu[j] + 2.0 * f2[j] * (Na[j] + Nb[j]) + f3[j] * Nc[j];
         if (!isfinite(y[j])) return 0;
+    }
+    return 1;
+}
+
+/* One substep of length h, in the equal parts the model asks for at its start (`parts`, rounded
+ * up to a power of two, at most MAX_PARTS), each followed by the model's projection; returns 0
+ * as exponential_rk4 does. */
+static int refined_substep(Instance *inst, double h) {
+    const int asked = inst->ode.n > 0 && inst->ode.parts ? inst->ode.parts(inst, h) : 1;
+    int parts = 1, k;
+    while (parts < asked && parts < MAX_PARTS) parts *= 2;
+    for (k = 0; k < parts; k++) {
+        if (inst->ode.n > 0 && !exponential_rk4(inst, h / parts)) return 0;
+        model_after_substep(inst, h / parts);
     }
     return 1;
 }
@@ -667,14 +690,13 @@ static fmi2Status solve_step(Instance *inst, double h) {
         if (!(dt < remaining)) dt = remaining;
         n = ceil(dt / inst->ode.max_substep - 1e-9);
         if (n > 1.0) dt /= n;
-        if (inst->ode.n > 0 && !exponential_rk4(inst, dt)) {
+        if (!refined_substep(inst, dt)) {
             log_message(inst, fmi2Error,
                         "the integrator diverged at t = %g (substep %g s, limit %g s): the state "
                         "became non-finite or left the model's domain",
                         t, dt, inst->ode.stability_limit);
             return fmi2Error;
         }
-        model_after_substep(inst, dt);
         remaining -= dt;
         t += dt;
     }

@@ -28,6 +28,25 @@ typedef struct {
 #define MAX_STATES 32
 #define MAX_BLOCK 4
 
+/* The exponential RK4's coefficients for one substep length h, the rates lambda and the block A
+ * (Diagonal states keep scalars, the block keeps the same coefficients as matrices, functions of
+ * h A); h = 0 means none yet. */
+typedef struct {
+    double h;
+    double lambda[MAX_STATES];
+    double A[MAX_BLOCK][MAX_BLOCK];
+    double E[MAX_STATES], E2[MAX_STATES], p_half[MAX_STATES];
+    double f1[MAX_STATES], f2[MAX_STATES], f3[MAX_STATES];
+    double bE[MAX_BLOCK][MAX_BLOCK], bE2[MAX_BLOCK][MAX_BLOCK], bp_half[MAX_BLOCK][MAX_BLOCK];
+    double bf1[MAX_BLOCK][MAX_BLOCK], bf2[MAX_BLOCK][MAX_BLOCK], bf3[MAX_BLOCK][MAX_BLOCK];
+} Coefficients;
+
+/* coefficient sets kept: the substep and its refinements by 2, 4 and 8 (see `parts`) */
+#define COEF_SLOTS 4
+#define MAX_PARTS 8
+
+struct Instance;
+
 typedef struct {
     size_t n;                   /* number of continuous states, <= MAX_STATES */
     double *y;                  /* the states, inside the model's state struct */
@@ -39,17 +58,15 @@ typedef struct {
     double lambda[MAX_STATES];
     double max_substep;         /* largest substep [s], the model's `substep` parameter */
     double stability_limit;     /* the substep beyond which the model states the solver diverges */
-    /* the exponential RK4's coefficients for the substep coef_h, the rates coef_lambda and the
-     * block coef_A: the substep is nearly always the same, so they are computed once, not every
-     * substep (the same values bit for bit; coef_h = 0 means none yet). Diagonal states keep
-     * scalars, the block keeps the same coefficients as matrices (functions of h A). */
-    double coef_h;
-    double coef_lambda[MAX_STATES];
-    double coef_A[MAX_BLOCK][MAX_BLOCK];
-    double E[MAX_STATES], E2[MAX_STATES], p_half[MAX_STATES];
-    double f1[MAX_STATES], f2[MAX_STATES], f3[MAX_STATES];
-    double bE[MAX_BLOCK][MAX_BLOCK], bE2[MAX_BLOCK][MAX_BLOCK], bp_half[MAX_BLOCK][MAX_BLOCK];
-    double bf1[MAX_BLOCK][MAX_BLOCK], bf2[MAX_BLOCK][MAX_BLOCK], bf3[MAX_BLOCK][MAX_BLOCK];
+    /* optional: into how many equal parts a substep of length h starting from the current state
+     * must be split for accuracy (a stiffness of the explicit part that only some states have,
+     * such as smoothed Coulomb friction near zero velocity); rounded up to a power of two, at
+     * most MAX_PARTS. NULL: never split. */
+    int (*parts)(const struct Instance *inst, double h);
+    /* the coefficients for the last substep lengths: the substep is nearly always one of a few,
+     * so they are computed once per length, not every substep (the same values bit for bit) */
+    Coefficients coef[COEF_SLOTS];
+    size_t coef_next;           /* the slot a new length takes (round robin) */
 } OdeSystem;
 
 typedef enum { PHASE_INSTANTIATED, PHASE_INIT, PHASE_STEP, PHASE_TERMINATED, PHASE_ERROR } Phase;
