@@ -129,6 +129,25 @@ def test_substep_beyond_the_stated_stability_limit_is_rejected(drive_cylinder_fm
     assert np.all(np.isfinite(r["x"])) and abs(r["x"][-1] - 0.03) < 1e-4
 
 
+def test_stated_stability_limit_is_the_friction_slopes(drive_cylinder_fmu) -> None:
+    """The limit the model states is RK4's 2.5 / lambda for the friction's slope at rest
+    (the smoothstep's 35/32 / v_stiction times the seal's Coulomb force plus the screw's at the
+    motor's stall force), reflected through the screw: derived here from the parameters."""
+    p = {
+        name: drive_cylinder_fmu.spec.variable(name).start
+        for name in ("lead", "J", "F_coulomb", "efficiency", "Kt", "u_max", "R_motor")
+    }
+    v_stiction = 1e-4
+    r = p["lead"] / (2 * math.pi)
+    stall = p["Kt"] * p["u_max"] / (p["R_motor"] * r)
+    slope = 35 / 32 * (p["F_coulomb"] + (1 / p["efficiency"] - 1) * stall) / v_stiction
+    expected = 2.5 * p["J"] / (r * r * slope)
+    with pytest.raises(FmuError, match="beyond the stability limit") as info:
+        FmuSlave(drive_cylinder_fmu, "cyl", {"v_stiction": v_stiction})
+    stated = float(re.search(r"stability limit ([0-9.e+-]+) s", str(info.value)).group(1))
+    assert stated == pytest.approx(expected, rel=1e-5)
+
+
 def test_stated_stability_limit_holds_under_load(drive_cylinder_fmu) -> None:
     # just inside the stated limit (friction stiffened 5x) a loaded servo move stays finite and
     # agrees with an 8x finer reference (measured 1e-6 of the stroke's range, 2e-6 of the current's)
