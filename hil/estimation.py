@@ -138,6 +138,28 @@ def _log_of(run: Path) -> Path:
     raise HilError(f"{run}: no CAN log (can.log, can.blf, ...) in this folder")
 
 
+def marker_residuals(
+    cycles: list[Cycle], kappa: np.ndarray, config: ControllerConfig
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """What estimation.png marks: per cycle and segment whether a marker at either end of the
+    segment was missing from a picture, shape (cycles, N); and for every marker seen, the time of
+    its cycle [s] and its distance from where the estimate kappa (cycles, N) puts it [mm]."""
+    missing = np.zeros((len(cycles), config.segments), dtype=bool)
+    residual_t: list[float] = []
+    residual: list[float] = []
+    for c, (time_c, _, frames) in enumerate(cycles):
+        if not frames:
+            continue
+        predicted = kinematics.markers(kappa[c], config.lengths, config.base)
+        for frame in frames:
+            seen = frame.seen
+            missing[c] |= ~(seen[:-1] & seen[1:])
+            distance = np.linalg.norm(frame.points[seen] - predicted[seen], axis=1)
+            residual_t.extend([time_c] * len(distance))
+            residual.extend((1e3 * distance).tolist())
+    return missing, np.array(residual_t), np.array(residual)
+
+
 def _plot(
     run: Path,
     config: ControllerConfig,
@@ -155,19 +177,7 @@ def _plot(
     t = signals["time"]
     n = config.segments
     chosen = scores[config.estimator]
-    # per cycle: which segments' markers were missing, the raw inversion of each picture
-    missing = np.zeros((len(cycles), n), dtype=bool)
-    residual_t, residual = [], []
-    for c, (time_c, _, frames) in enumerate(cycles):
-        if not frames:
-            continue
-        predicted = kinematics.markers(chosen.kappa[c], config.lengths, config.base)
-        for frame in frames:
-            seen = frame.seen
-            missing[c] |= ~(seen[:-1] & seen[1:])
-            distance = np.linalg.norm(frame.points[seen] - predicted[seen], axis=1)
-            residual_t.extend([time_c] * len(distance))
-            residual.extend((1e3 * distance).tolist())
+    missing, residual_t, residual = marker_residuals(cycles, chosen.kappa, config)
     raw = scores["raw"].kappa
     fig, axes = plt.subplots(n + 1, 1, figsize=(9, 2.6 * (n + 1) + 0.6), sharex=True)
     for i in range(n):

@@ -11,8 +11,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from controllers import kinematics
+from controllers.estimation import MarkerFrame
 from hil.bus.loopback import LoopbackHub
-from hil.estimation import estimation_report, measured_cycles, score
+from hil.estimation import estimation_report, marker_residuals, measured_cycles, score
 from hil.replay import config_beside
 from hil.run import RunOptions, run_scenario
 from hil.scenario import DEFAULT_SCENARIO, load_scenario
@@ -211,3 +213,26 @@ def test_bad_camera_keys_fail_before_the_run(
         load_scenario(path)
     message = str(error.value)
     assert f": {key}: " in message and reason in message and "\n" not in message
+
+
+def test_estimation_plot_marks_missing_markers_and_measures_only_seen_ones(default_run) -> None:  # noqa: ANN001
+    # what estimation.png draws, on pictures made up around a known estimate: a seen marker's
+    # residual is its distance from where the estimate puts it; an unseen one has none and marks
+    # its segment as missing in that cycle; a cycle without pictures marks nothing
+    config = config_beside(default_run.out / "can.log")
+    assert config.segments == 1
+    kappa = np.array([[0.0], [5.0], [-3.0]])
+    placed = [kinematics.markers(k, config.lengths, config.base) for k in kappa]
+    off = placed[1].copy()
+    off[1] += [3e-3, 4e-3]  # the tip 5 mm from the estimate
+    hidden = placed[2].copy()
+    hidden[1] = np.nan
+    cycles = [
+        (0.0, {}, []),
+        (0.01, {}, [MarkerFrame(0.004, off)]),
+        (0.02, {}, [MarkerFrame(0.014, hidden)]),
+    ]
+    missing, t, residual = marker_residuals(cycles, kappa, config)
+    assert missing.tolist() == [[False], [False], [True]]
+    assert t.tolist() == [0.01, 0.01, 0.02]
+    assert residual == pytest.approx([0.0, 5.0, 0.0], abs=1e-9)
