@@ -91,6 +91,8 @@ class Plant:
         self.heartbeat_every = heartbeat_every
         self._progress: Callable[[int], None] | None = None
         self._heard: set[tuple[int, int]] = set()  # (CAN id, counter) received this period
+        # what stepping ahead (`_step_ahead`) raised, reported when that period's SYNC comes
+        self._ahead_error: FmuError | None = None
 
     def run(
         self, peer_alive: Callable[[], str | None], progress: Callable[[int], None] | None = None
@@ -136,7 +138,10 @@ class Plant:
                     first = time.perf_counter()
                     self.stats.startup_time = first - started
                     started = first
+                cycle = self.cycle
                 self._handle(message, progress)
+                if self.cycle != cycle:
+                    self._step_ahead()
         finally:
             self.stats.wall_time = time.perf_counter() - started
             self.signals.end_row()
@@ -269,10 +274,24 @@ class Plant:
         for message in messages:
             log(message, at, received=False)
 
+    def _step_ahead(self) -> None:
+        """Step the physics to the next SYNC while the controller computes (a separate process).
+        The period's commands act from that SYNC on, so nothing the controller sends can change
+        this period: the results are those of stepping when the SYNC comes, bit for bit. An FMU
+        failure is held until then, and raised where it would have been."""
+        if self.cycle < 0 or self.cycle >= self.scenario.cycles:
+            return
+        try:
+            self.master.advance_to((self.cycle + 1) * self.scenario.control_ticks)
+        except FmuError as exc:
+            self._ahead_error = exc
+
     def _on_sync(self, cycle: int) -> None:
         sync_tick = cycle * self.scenario.control_ticks
         master = self.master
         try:
+            if self._ahead_error is not None:
+                raise self._ahead_error
             master.advance_to(sync_tick)
         except FmuError as exc:
             raise FmuError(f"at t = {self.sim_time:.3f} s: {exc}") from exc

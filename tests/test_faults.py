@@ -535,6 +535,35 @@ def test_fmu_error_mid_run(tmp_path: Path, capsys) -> None:
     assert readable(out) > 0
 
 
+def test_fmu_error_mid_run_is_the_same_with_the_controller_as_a_process(
+    tmp_path: Path, capsys
+) -> None:
+    """With the controller in its own process the plant steps each period while the controller
+    computes (Plant._step_ahead); an FMU that fails there must fail the run where the in-process
+    run fails: the same error, the same recorded signals and CAN log, frame for frame (the
+    controller's commands of the last period included)."""
+    path = scenario_file(tmp_path, 2.0)
+    path.write_text(
+        path.read_text() + '\n[[connections]]\nfrom = "cylinder1.x"\nto = "segment1.x_piston"\n'
+        "gain = 5.0\noffset = -0.1\n"
+    )
+    results = {}
+    for mode in ("--inprocess", None):
+        out = tmp_path / (mode or "process").strip("-")
+        code, lines = run_cli(capsys, str(path), *([mode] if mode else []), "--out", str(out))
+        assert code == 1 and len(lines) == 1 and "fmi2DoStep" in lines[0], lines
+        recorded = (out / "signals.csv").read_bytes(), (out / "can.log").read_bytes()
+        results[mode] = (lines[0], *recorded)
+    (error_a, signals_a, log_a), (error_b, signals_b, log_b) = results.values()
+    assert error_a == error_b
+    assert signals_a == signals_b
+    assert log_a == log_b
+    # the log ends with the failing period's SYNC, after the commands the controller sent for it
+    last = log_a.decode().splitlines()[-3:]
+    assert " 201#" in last[0] and last[0].endswith(" R")
+    assert " 080#" in last[-1] and last[-1].endswith(" R")
+
+
 def test_realtime_run_late_on_a_loaded_machine_fails(tmp_path: Path, capsys, monkeypatch) -> None:
     """The real-time clock reads a machine so loaded that each cycle takes 3 periods."""
     now = [0.0]
