@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import re
+from collections.abc import Callable
 
 import numpy as np
 import pytest
@@ -169,6 +170,25 @@ def test_stated_stability_limit_holds_under_load(drive_cylinder_fmu) -> None:
         assert np.max(np.abs(near[name] - fine[name])) < 1e-5 * np.ptp(fine[name]), name
 
 
+def assert_agrees_with_finer_substeps(
+    fmu,  # noqa: ANN001 - the BuiltFmu fixture
+    duration: float,
+    inputs: Callable[[float], dict[str, float]],
+    finer: int,
+    tolerance: float,
+    parameters: dict[str, float] | None = None,
+) -> None:
+    """Position, speed and current with the default substep within `tolerance` of each signal's
+    range of the same run with `finer` times shorter substeps."""
+    outputs = ["x", "v", "i_motor"]
+    substep = fmu.spec.variable("substep").start / finer
+    coarse = simulate(fmu, duration, outputs, parameters, inputs)
+    fine = simulate(fmu, duration, outputs, {**(parameters or {}), "substep": substep}, inputs)
+    for name in outputs:
+        span = np.ptp(fine[name])
+        assert np.max(np.abs(coarse[name] - fine[name])) < tolerance * span, name
+
+
 def test_servo_move_converges_with_the_substep(drive_cylinder_fmu) -> None:
     # the default substep (set by the mechanics, the electrical pole exact, the friction's band
     # split finer) against a 4x finer reference over a servo move with chamber load and two
@@ -176,12 +196,7 @@ def test_servo_move_converges_with_the_substep(drive_cylinder_fmu) -> None:
     def move(t: float) -> dict[str, float]:
         return {"x_ref": 0.025 + 0.01 * math.sin(2 * math.pi * t), "p_a": 20e3, "p_b": -15e3}
 
-    outputs = ["x", "v", "i_motor"]
-    coarse = simulate(drive_cylinder_fmu, 1.0, outputs, None, move)
-    fine = simulate(drive_cylinder_fmu, 1.0, outputs, {"substep": 5e-4 / 4}, move)
-    for name in outputs:
-        span = np.ptp(fine[name])
-        assert np.max(np.abs(coarse[name] - fine[name])) < 1e-6 * span, name
+    assert_agrees_with_finer_substeps(drive_cylinder_fmu, 1.0, move, 4, 1e-6)
 
 
 def test_starts_from_rest_converge_with_the_substep(drive_cylinder_fmu) -> None:
@@ -198,30 +213,20 @@ def test_starts_from_rest_converge_with_the_substep(drive_cylinder_fmu) -> None:
         dp = 4e5 * (steps[k] - 0.025)  # the bent segment's pressure difference
         return {"x_ref": steps[k], "p_a": dp / 2, "p_b": -dp / 2}
 
-    outputs = ["x", "v", "i_motor"]
-    coarse = simulate(drive_cylinder_fmu, 1.6, outputs, None, hold)
-    fine = simulate(drive_cylinder_fmu, 1.6, outputs, {"substep": 5e-4 / 4}, hold)
-    for name in outputs:
-        span = np.ptp(fine[name])
-        assert np.max(np.abs(coarse[name] - fine[name])) < 1e-6 * span, name
+    assert_agrees_with_finer_substeps(drive_cylinder_fmu, 1.6, hold, 4, 1e-6)
 
 
 def test_linear_drive_is_integrated_exactly_whatever_the_substep(drive_cylinder_fmu) -> None:
     """Without Coulomb seal friction and with a lossless screw the drive is linear between servo
     samples (held voltage, constant chamber load): the solver's exact block leaves nothing to
     the explicit part, so the default substep agrees with a 16x finer one to rounding, not to
-    the method's order (the same move with friction differs by 1e-5 of the current's range)."""
+    the method's order (the same move with friction differs by 1.4e-7 of the current's range)."""
     linear = {"F_coulomb": 0.0, "efficiency": 1.0}
 
     def move(t: float) -> dict[str, float]:
         return {"x_ref": 0.025 + 0.01 * math.sin(2 * math.pi * t), "p_a": 20e3, "p_b": -15e3}
 
-    outputs = ["x", "v", "i_motor"]
-    coarse = simulate(drive_cylinder_fmu, 1.0, outputs, linear, move)
-    fine = simulate(drive_cylinder_fmu, 1.0, outputs, {**linear, "substep": 5e-4 / 16}, move)
-    for name in outputs:
-        span = np.ptp(fine[name])
-        assert np.max(np.abs(coarse[name] - fine[name])) < 1e-9 * span, name
+    assert_agrees_with_finer_substeps(drive_cylinder_fmu, 1.0, move, 16, 1e-9, linear)
 
 
 def test_substeps_of_changing_length_integrate_as_accurately_as_equal_ones(
