@@ -254,12 +254,14 @@ static int friction_parts(const Instance *inst, double h) {
     const double i_held = (s->u - V(inst, Ke) * s->y[W]) / V(inst, R_motor);
     const double a_held = fabs(r * (V(inst, Kt) * i_held + others) / V(inst, J));
     const double a = a_now > a_held ? a_now : a_held;
+    double parts;
     if (fabs(v) >= SIGN_ZONE * vs + a * h) return 1;
     /* held against an end stop the piston does not move: nothing to resolve */
     if ((s->y[X] <= 0.0 && s->y[W] <= 0.0) || (s->y[X] >= V(inst, stroke) && s->y[W] >= 0.0)) {
         return 1;
     }
-    return (int)ceil(h * (r * r * slope / V(inst, J) + a / vs) / FRICTION_STEP);
+    parts = h * (r * r * slope / V(inst, J) + a / vs) / FRICTION_STEP;
+    return parts < MAX_PARTS ? (int)ceil(parts) : MAX_PARTS; /* NaN too: no int overflow */
 }
 
 /* The linear electromechanics, integrated exactly by the solver: armature current, rotor speed
