@@ -29,7 +29,7 @@ typedef struct {
 #define MAX_BLOCK 4
 
 /* The exponential RK4's coefficients for one substep length h, the rates lambda and the block A
- * (Diagonal states keep scalars, the block keeps the same coefficients as matrices, functions of
+ * (diagonal states keep scalars, the block keeps the same coefficients as matrices, functions of
  * h A); h = 0 means none yet. */
 typedef struct {
     double h;
