@@ -12,9 +12,11 @@ far stay complete and `summary.json` says why.
 
 from __future__ import annotations
 
+import concurrent.futures
 import contextlib
 import json
 import math
+import multiprocessing
 import os
 import re
 import signal
@@ -22,7 +24,7 @@ import subprocess
 import sys
 import threading
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from contextlib import ExitStack
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
@@ -62,6 +64,10 @@ class RunOptions:
     mf4: bool | None = None  # overriding [recording] mf4
     overwrite: bool = False  # replace the files an earlier run wrote in `out` (never others)
     animate: str | None = None  # write the robot's animation in this format ("gif", "mp4")
+    # score the estimators (estimation.png, summary "estimation") in a child process while this
+    # one draws the plots: `hil run` does, on a machine with a core to spare (not in batches,
+    # whose trials already take the cores)
+    parallel_report: bool = False
 
 
 @dataclass(frozen=True)
@@ -196,35 +202,63 @@ def _run(
         "this thread" if direct else "thread" if options.inprocess else "process"
     )
     summary["parameters"] = {name: dict(values) for name, values in rig.parameters.items()}
-    if recording.can_log.endswith((".log", ".blf", ".asc", ".trc")) and getattr(
-        robot, "estimation_report", True
-    ):  # the curvature estimators' report: the planar arm's
-        from hil.estimation import estimation_report
+    with ExitStack() as post:
+        estimation = None
+        if recording.can_log.endswith((".log", ".blf", ".asc", ".trc")) and getattr(
+            robot, "estimation_report", True
+        ):  # the curvature estimators' report: the planar arm's
+            folder.claim("estimation.png")
+            summary["estimation"] = None  # its place in summary.json; filled below
+            estimation = post.enter_context(_estimation_report(out, options.parallel_report))
+        from hil.plots import plot_run
 
-        folder.claim("estimation.png")
-        try:
-            summary["estimation"] = estimation_report(out)
-        except HilError as exc:  # a log with intruders' frames: report it, keep the run
-            summary["estimation"] = {"error": str(exc)}
-            summary["warnings"].append(f"no estimation report: {exc}")
-    from hil.plots import plot_run
-
-    for spec in rig.plots:
-        folder.claim(f"{spec.name}.png")
-    recorded = read_signals(out / "signals.csv")
-    plot_run(recorded, rig.plots, out)
-    for name, draw in rig.figures:
-        draw(recorded, folder.claim(f"{name}.png"))
-    if options.animate is not None and rig.animation is not None:
-        name, animate = rig.animation
-        summary["animation"] = f"{name}.{options.animate}"
-        animate(recorded, folder.claim(summary["animation"]), options.animate)
+        for spec in rig.plots:
+            folder.claim(f"{spec.name}.png")
+        recorded = read_signals(out / "signals.csv")
+        plot_run(recorded, rig.plots, out)
+        for name, draw in rig.figures:
+            draw(recorded, folder.claim(f"{name}.png"))
+        if options.animate is not None and rig.animation is not None:
+            name, animate = rig.animation
+            summary["animation"] = f"{name}.{options.animate}"
+            animate(recorded, folder.claim(summary["animation"]), options.animate)
+        if estimation is not None:
+            scores, error = estimation()
+            summary["estimation"] = scores if error is None else {"error": error}
+            if error is not None:  # a log with intruders' frames: report it, keep the run
+                summary["warnings"].append(f"no estimation report: {error}")
     failure = realtime_failure(scenario, summary["controller"])
     if failure is not None:
         summary["warnings"].append(failure)
         raise HilError(failure)
     _write_summary(folder, summary)
     return RunResult(out, summary)
+
+
+def _score_estimators(out: Path) -> tuple[dict[str, Any] | None, str | None]:
+    """The estimation report of the run in `out`, or why there is none."""
+    from hil.estimation import estimation_report
+
+    try:
+        return estimation_report(out), None
+    except HilError as exc:
+        return None, str(exc)
+
+
+@contextlib.contextmanager
+def _estimation_report(
+    out: Path, parallel: bool
+) -> Iterator[Callable[[], tuple[dict[str, Any] | None, str | None]]]:
+    """`_score_estimators(out)`, started in a forked child process if `parallel` (and the
+    platform forks), else when asked for; yields the call that returns it."""
+    if parallel and "fork" in multiprocessing.get_all_start_methods():
+        with concurrent.futures.ProcessPoolExecutor(
+            1, mp_context=multiprocessing.get_context("fork")
+        ) as pool:
+            future = pool.submit(_score_estimators, out)
+            yield future.result
+        return
+    yield lambda: _score_estimators(out)
 
 
 RESULT_FILES = (

@@ -236,3 +236,36 @@ def test_estimation_plot_marks_missing_markers_and_measures_only_seen_ones(defau
     assert missing.tolist() == [[False], [False], [True]]
     assert t.tolist() == [0.01, 0.01, 0.02]
     assert residual == pytest.approx([0.0, 5.0, 0.0], abs=1e-9)
+
+
+def test_the_report_scored_in_a_child_process_is_the_same(tmp_path: Path) -> None:
+    # `hil run` scores the estimators in a forked child while it draws the plots: the same
+    # report and the same estimation.png as scored in turn (only the timings differ)
+    path = scenario(tmp_path, "short", ("duration = 10.0", "duration = 1.0"))
+    runs = {}
+    for parallel in (False, True):
+        options = RunOptions(
+            out=tmp_path / f"parallel-{parallel}", inprocess=True, progress=False,
+            parallel_report=parallel,
+        )  # fmt: skip
+        runs[parallel] = run_scenario(load_scenario(path), options)
+
+    def scores(result) -> dict:  # noqa: ANN001
+        report = result.summary["estimation"]
+        return {k: v if isinstance(v, str) else v | {"update_time": 0} for k, v in report.items()}
+
+    assert scores(runs[True]) == scores(runs[False])
+    assert set(scores(runs[True])) == {"chosen", "raw", "kf", "ukf"}
+    png = [(r.out / "estimation.png").read_bytes() for r in runs.values()]
+    assert png[0] == png[1]
+
+
+@pytest.mark.parametrize("parallel", [False, True])
+def test_a_run_without_a_readable_log_reports_why_in_either_way(
+    tmp_path: Path, parallel: bool
+) -> None:
+    from hil.run import _estimation_report
+
+    with _estimation_report(tmp_path, parallel) as estimation:
+        scores, error = estimation()
+    assert scores is None and error is not None and "no CAN log" in error

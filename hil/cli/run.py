@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import sys
 from pathlib import Path
 
@@ -107,6 +108,7 @@ def _run(args: argparse.Namespace) -> int:
             mf4=args.mf4,
             overwrite=args.overwrite,
             animate=args.animate,
+            parallel_report=(os.cpu_count() or 1) > 1,
         ),
     )
     s = result.summary
