@@ -250,8 +250,13 @@ def _estimation_report(
     out: Path, parallel: bool
 ) -> Iterator[Callable[[], tuple[dict[str, Any] | None, str | None]]]:
     """`_score_estimators(out)`, started in a forked child process if `parallel` (and the
-    platform forks), else when asked for; yields the call that returns it."""
-    if parallel and "fork" in multiprocessing.get_all_start_methods():
+    platform forks, and this process may have children: a daemon may not), else when asked
+    for; yields the call that returns it."""
+    if (
+        parallel
+        and "fork" in multiprocessing.get_all_start_methods()
+        and not multiprocessing.current_process().daemon
+    ):
         with concurrent.futures.ProcessPoolExecutor(
             1, mp_context=multiprocessing.get_context("fork")
         ) as pool:

@@ -269,3 +269,20 @@ def test_a_run_without_a_readable_log_reports_why_in_either_way(
     with _estimation_report(tmp_path, parallel) as estimation:
         scores, error = estimation()
     assert scores is None and error is not None and "no CAN log" in error
+
+
+def _report_in(folder: Path) -> tuple[object, object]:
+    from hil.run import _estimation_report
+
+    with _estimation_report(folder, True) as estimation:
+        return estimation()
+
+
+def test_a_daemon_process_scores_in_turn(tmp_path: Path) -> None:
+    # a daemonic process (a multiprocessing.Pool worker running `hil run`) may not start the
+    # child: it scores the estimators itself instead of failing
+    import multiprocessing
+
+    with multiprocessing.get_context("fork").Pool(1) as pool:
+        scores, error = pool.apply(_report_in, (tmp_path,))
+    assert scores is None and "no CAN log" in str(error)
