@@ -286,3 +286,24 @@ def test_a_daemon_process_scores_in_turn(tmp_path: Path) -> None:
     with multiprocessing.get_context("fork").Pool(1) as pool:
         scores, error = pool.apply(_report_in, (tmp_path,))
     assert scores is None and "no CAN log" in str(error)
+
+
+@pytest.mark.parametrize("parallel", [False, True])
+def test_a_failed_report_is_a_warning_and_the_run_stands(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, parallel: bool
+) -> None:
+    import hil.estimation
+    from hil.errors import HilError
+
+    def unreadable(out: Path, plot: bool = True) -> dict:
+        raise HilError(f"{out.name}/can.log: made unreadable")
+
+    monkeypatch.setattr(hil.estimation, "estimation_report", unreadable)
+    path = scenario(tmp_path, "short", ("duration = 10.0", "duration = 0.5"))
+    options = RunOptions(
+        out=tmp_path / "run", inprocess=True, progress=False, parallel_report=parallel
+    )
+    s = run_scenario(load_scenario(path), options).summary
+    assert s["status"] == "completed"
+    assert s["estimation"] == {"error": "run/can.log: made unreadable"}
+    assert "no estimation report: run/can.log: made unreadable" in s["warnings"]
