@@ -17,9 +17,9 @@
  * speed and the piston position), so the substep is set by what stays explicit: the smoothed
  * Coulomb friction (its stability limit in mechanical_stability_limit; with the electrical pole
  * alone exact, the explicit coupling limited the substep to 1.25e-4 s for the same accuracy as
- * 5e-4 s now). Energies are
- * integrated with the states: E_electric = dE_stored + E_resistive + E_friction + E_screw + W_gas
- * holds for Kt = Ke (SI motor constants). */
+ * 5e-4 s now); substeps that start in the friction's band are split (friction_parts). Energies
+ * are integrated with the states: E_electric = dE_stored + E_resistive + E_friction + E_screw +
+ * W_gas holds for Kt = Ke (SI motor constants). */
 #include <math.h>
 
 #include "glue.h"
@@ -92,17 +92,31 @@ static double stored_energy(const Instance *inst, const double y[]) {
     return 0.5 * V(inst, L_motor) * y[I] * y[I] + 0.5 * V(inst, J) * y[W] * y[W];
 }
 
+/* The piston at rotor speed w: its velocity v [m/s], the smoothed sign of v, and the forces
+ * against +x [N]: the chambers' pressure, the seal's friction, the load (the two together) and
+ * the screw's friction. */
+typedef struct {
+    double v, sgn, pressure, seal, load, screw;
+} PistonForces;
+
+static PistonForces piston_forces(const Instance *inst, double w) {
+    PistonForces f;
+    f.v = screw_ratio(inst) * w;
+    f.pressure = (V(inst, p_a) - V(inst, p_b)) * bore_area(inst);
+    f.sgn = velocity_sign(inst, f.v);
+    f.seal = seal_friction(inst, f.v, f.sgn);
+    f.load = f.pressure + f.seal;
+    f.screw = screw_friction(inst, f.load, f.sgn);
+    return f;
+}
+
 int model_derivatives(const Instance *inst, const double y[], double dy[]) {
     const State *s = (const State *)inst->state;
     const double r = screw_ratio(inst);
-    const double v = r * y[W];
-    const double pressure_force = (V(inst, p_a) - V(inst, p_b)) * bore_area(inst);
-    const double sgn = velocity_sign(inst, v);
-    const double seal = seal_friction(inst, v, sgn);
-    const double load = pressure_force + seal;
-    const double screw = screw_friction(inst, load, sgn);
+    const PistonForces f = piston_forces(inst, y[W]);
+    const double v = f.v, pressure_force = f.pressure, seal = f.seal, screw = f.screw;
     dy[I] = (s->u - V(inst, R_motor) * y[I] - V(inst, Ke) * y[W]) / V(inst, L_motor);
-    dy[W] = (V(inst, Kt) * y[I] - V(inst, b_motor) * y[W] - r * (load + screw)) / V(inst, J);
+    dy[W] = (V(inst, Kt) * y[I] - V(inst, b_motor) * y[W] - r * (f.load + screw)) / V(inst, J);
     dy[X] = v;
     /* hard end stops: at a stop the screw cannot accelerate further into it */
     if (y[X] <= 0.0 && y[W] <= 0.0) {
@@ -215,9 +229,10 @@ fmi2Status model_outputs(Instance *inst) {
  * (RK4's stability region contains the left half-disc of radius 2.5), with lambda the fastest
  * rate left in the explicit part: the linearised Coulomb seal and screw friction (slope
  * SIGN_SLOPE F / v_stiction at the largest load the motor can hold, its stall force
- * Kt u_max / (R r)), reflected through the screw. The electromechanics (current, back-EMF, viscous friction) are
- * the linear block, integrated exactly. The bound holds for a substep that is not split; inside
- * the friction's band friction_parts splits substeps far below it, so it is conservative. */
+ * Kt u_max / (R r)), reflected through the screw. The electromechanics (current, back-EMF,
+ * viscous friction) are the linear block, integrated exactly. The bound holds for a substep that
+ * is not split; inside the friction's band friction_parts splits substeps far below it, so it is
+ * conservative. */
 static double mechanical_stability_limit(const Instance *inst) {
     const double r = screw_ratio(inst);
     const double stall_force = V(inst, Kt) * V(inst, u_max) / (V(inst, R_motor) * r);
@@ -242,14 +257,11 @@ static double mechanical_stability_limit(const Instance *inst) {
 static int friction_parts(const Instance *inst, double h) {
     const State *s = (const State *)inst->state;
     const double r = screw_ratio(inst), vs = V(inst, v_stiction);
-    const double v = r * s->y[W];
-    const double sgn = velocity_sign(inst, v);
-    const double seal = seal_friction(inst, v, sgn);
-    const double load = (V(inst, p_a) - V(inst, p_b)) * bore_area(inst) + seal;
-    const double screw = screw_friction(inst, load, sgn);
+    const PistonForces f = piston_forces(inst, s->y[W]);
+    const double v = f.v;
     const double slope =
-        SIGN_SLOPE * (V(inst, F_coulomb) + screw_friction_coefficient(inst) * fabs(load)) / vs;
-    const double others = -V(inst, b_motor) * s->y[W] - r * (load + screw);
+        SIGN_SLOPE * (V(inst, F_coulomb) + screw_friction_coefficient(inst) * fabs(f.load)) / vs;
+    const double others = -V(inst, b_motor) * s->y[W] - r * (f.load + f.screw);
     const double a_now = fabs(r * (V(inst, Kt) * s->y[I] + others) / V(inst, J));
     const double i_held = (s->u - V(inst, Ke) * s->y[W]) / V(inst, R_motor);
     const double a_held = fabs(r * (V(inst, Kt) * i_held + others) / V(inst, J));

@@ -678,7 +678,8 @@ static int refined_substep(Instance *inst, double h) {
 }
 
 /* Advances the model by h: discrete updates at their times, equal substeps no longer than
- * max_substep between them. A substep that fails is reported as divergence, with the limit. */
+ * max_substep between them (each split further where the model asks, refined_substep). A
+ * substep that fails is reported as divergence, with the limit. */
 static fmi2Status solve_step(Instance *inst, double h) {
     const double eps = 1e-12 * (h > inst->ode.max_substep ? h : inst->ode.max_substep);
     double remaining = h, t = inst->time;
