@@ -23,7 +23,7 @@ import math
 import re
 import typing
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field, fields
+from dataclasses import MISSING, dataclass, field, fields
 from importlib.resources import files
 from pathlib import Path
 from typing import Any, ClassVar
@@ -92,9 +92,44 @@ def frame_type(kind: str, index: str | None = None) -> Callable[[type], type]:
             converters[f.name] = _to_bool if hint is bool else _to_int if hint is int else float
         _REGISTRY[kind] = FrameType(kind, cls, index, converters)
         cls.kind = kind  # type: ignore[attr-defined]
+        _fast_init(cls)
         return cls
 
     return register
+
+
+def _fast_init(cls: type) -> None:
+    """Give a frozen frame dataclass an `__init__` that fills the instance's dict in one call.
+
+    The one dataclasses generates for a frozen class sets each field through
+    `object.__setattr__`: 2.9 us for a DriveStatus against 1.1 us, and some fifty frames are
+    built a SYNC. Same signature, same instance (its fields in its dict), still frozen (the
+    class's `__setattr__` is untouched); only for classes whose fields are plain: no defaults,
+    no `__post_init__`, no slots."""
+    params = getattr(cls, "__dataclass_params__", None)
+    plain = all(
+        f.default is MISSING and f.default_factory is MISSING and f.init for f in fields(cls)
+    )
+    if (
+        params is None
+        or not params.frozen
+        or not plain
+        or hasattr(cls, "__post_init__")
+        or hasattr(cls, "__slots__")
+    ):
+        return
+    names = [f.name for f in fields(cls)]
+    arguments = ", ".join(names)
+    source = (
+        f"def __init__(self, {arguments}):\n"
+        f"    self.__dict__.update({', '.join(f'{n}={n}' for n in names)})\n"
+    )
+    space: dict[str, Any] = {}
+    exec(source, space)  # noqa: S102 - built from the dataclass's field names
+    init = space["__init__"]
+    init.__qualname__ = f"{cls.__qualname__}.__init__"
+    init.__doc__ = cls.__init__.__doc__  # type: ignore[misc]
+    cls.__init__ = init  # type: ignore[misc]
 
 
 @dataclass(frozen=True)
@@ -281,6 +316,17 @@ class _Codec:
                     math.inf if s.maximum is None else s.maximum,
                 )
             )
+        # the range cantools enforces (strict): the declared one widened by a millionth of the
+        # scale, and none for a value whose raw value the signal names (its choices)
+        self.limits = [
+            (
+                -math.inf if s.minimum is None else s.minimum - abs(s.conversion.scale) * 1e-6,
+                math.inf if s.maximum is None else s.maximum + abs(s.conversion.scale) * 1e-6,
+                frozenset(s.choices) if s.choices else None,
+                s.conversion.numeric_scaled_to_raw,
+            )
+            for s in message.signals
+        ]
         self.plan = _plan(message)
         self.encode: Callable[[Mapping[str, Any]], bytes] = self._compile_encode()
         self.decode: Callable[[Data], dict[str, Any]] = self._compile_decode()
@@ -320,41 +366,75 @@ class _Codec:
         )
 
     def _compile_encode(self, checked: bool = False) -> Callable[[Mapping[str, Any]], bytes]:
+        """The message's encoder: straight-line code over its signals. Unchecked, each value is
+        range-checked (`limits`) and packed in the DBC's order, as cantools does. `checked`
+        first makes `Protocol.encode`'s checks of every value (missing, bool, wrapping counter,
+        finite), then the range checks, as the uncompiled path does (its checks, then
+        cantools'); a float in range, the common value, passes both with one comparison."""
         space: dict[str, Any] = {"_error": self._range_error, "_round": round, "_divmod": divmod}
         space.update({"_missing": self._missing, "_not_finite": self._not_finite})
-        space["_INFINITE"] = (math.inf, -math.inf)
+        space.update({"_INFINITE": (math.inf, -math.inf), "_float": float, "_ABSENT": object()})
         lines = ["def encode(values):", "    bits = 0"]
-        for k, (name, start, mask, _, _, scale, offset, identity, lo, hi) in enumerate(
-            self.signals
-        ):
-            space.update({f"N{k}": name, f"LO{k}": lo, f"HI{k}": hi})
-            space.update({f"S{k}": scale, f"O{k}": offset})
-            if checked:  # Protocol.encode's checks, in its order
-                modulus = self.plan[k][1]
-                lines += [
-                    f"    if N{k} not in values:",
-                    f"        raise _missing(N{k})",
-                    f"    value = values[N{k}]",
-                    "    if isinstance(value, bool):",
-                    "        value = int(value)",
-                ]
-                if modulus is not None:
-                    lines += ["    elif isinstance(value, int):", f"        value %= {modulus}"]
-                lines += [
-                    "    elif value != value or value in _INFINITE:",
-                    f"        raise _not_finite(N{k}, value)",
-                ]
-            else:
-                lines.append(f"    value = values[N{k}]")
+        if checked:
+            lines.append("    outside = False")
+        outside = []  # per signal: the test that its value v is out of range, and the error
+        for k, (name, _, _, _, _, scale, offset, _, lo, hi) in enumerate(self.signals):
+            low, high, choices, to_raw = self.limits[k]
+            space.update({f"N{k}": name, f"MIN{k}": lo, f"MAX{k}": hi, f"LO{k}": low})
+            space.update({f"HI{k}": high, f"S{k}": scale, f"O{k}": offset})
+            test = f"not LO{k} <= {{v}} <= HI{k}"
+            if choices is not None:
+                space.update({f"CH{k}": choices, f"RAW{k}": to_raw})
+                test += f" and RAW{k}({{v}}) not in CH{k}"
+            outside.append((test, f"_error(N{k}, {{v}}, MIN{k}, MAX{k})"))
+            if not checked:
+                continue
+            modulus = self.plan[k][1]
             lines += [
-                f"    if not LO{k} <= value <= HI{k}:",
-                f"        raise _error(N{k}, value, LO{k}, HI{k})",
+                f"    v{k} = values.get(N{k}, _ABSENT)",
+                f"    if v{k} is _ABSENT:",
+                f"        raise _missing(N{k})",
+                f"    if type(v{k}) is _float:",
+                f"        if not LO{k} <= v{k} <= HI{k}:",
+                f"            if v{k} != v{k} or v{k} in _INFINITE:",
+                f"                raise _not_finite(N{k}, v{k})",
+                "            outside = True",
+                "    else:",
+                f"        if isinstance(v{k}, bool):",
+                f"            v{k} = int(v{k})",
             ]
-            if identity:
-                lines.append("    raw = _round(value)")
+            if modulus is not None:
+                lines += [f"        elif isinstance(v{k}, int):", f"            v{k} %= {modulus}"]
+            lines += [
+                f"        elif v{k} != v{k} or v{k} in _INFINITE:",
+                f"            raise _not_finite(N{k}, v{k})",
+                f"        if not LO{k} <= v{k} <= HI{k}:",
+                "            outside = True",
+            ]
+        if checked:
+            lines.append("    if outside:")
+            for k, (test, error) in enumerate(outside):
+                v = f"v{k}"
+                lines.append(f"        if {test.format(v=v)}:")
+                lines.append(f"            raise {error.format(v=v)}")
+        for k, (_, start, mask, _, _, _, offset, identity, _, _) in enumerate(self.signals):
+            if checked:
+                value = f"v{k}"
             else:
+                value = "value"
+                test, error = outside[k]
                 lines += [
-                    f"    shifted = value - O{k}",
+                    f"    value = values[N{k}]",
+                    f"    if {test.format(v=value)}:",
+                    f"        raise {error.format(v=value)}",
+                ]
+            if identity:
+                lines.append(f"    raw = _round({value})")
+            else:
+                # value - 0 is value exactly (-0.0 included), so a zero offset is not subtracted
+                zero = type(offset) is int and offset == 0
+                lines += [
+                    f"    shifted = {value}" + ("" if zero else f" - O{k}"),
                     f"    quotient, remainder = _divmod(shifted, S{k})",
                     f"    raw = _round(quotient if remainder == 0 else shifted / S{k})",
                 ]

@@ -7,6 +7,7 @@ interoperability test writes a candump `.log` line with python-can and decodes i
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import math
 from collections.abc import Callable
@@ -478,8 +479,11 @@ def test_compiled_codec_equals_cantools_byte_for_byte(protocol: Protocol) -> Non
                 v = float(rng.choice([lo, hi, rng.uniform(lo, hi)]))
                 if s.scale == 1 and s.offset == 0:
                     v = int(round(v))
-                if not s.choices and rng.random() < 0.1:
+                if rng.random() < 0.1:  # out of range (a named raw value passes, as in cantools)
                     v += (hi - lo) * 0.5 * float(rng.choice([-1.0, 1.0]))
+                elif rng.random() < 0.1:  # at the edge: cantools allows a millionth of the scale
+                    margin = abs(s.scale) * float(rng.choice([0.5e-6, 2e-6]))
+                    v = float(rng.choice([lo - margin, hi + margin]))
                 values[s.name] = v
             try:
                 expected: bytes | None = message.encode(values, strict=True)
@@ -495,6 +499,58 @@ def test_compiled_codec_equals_cantools_byte_for_byte(protocol: Protocol) -> Non
             want = message.decode(data, decode_choices=False)
             have = codec.decode(data)
             assert have == want and all(type(have[k]) is type(want[k]) for k in want)
+
+
+def test_checked_encoding_equals_the_uncompiled_path(protocol: Protocol) -> None:
+    """`Protocol.encode` through a message's compiled codec gives what its uncompiled path
+    (the checks in Python, then cantools) gives, bytes or error line, for every message and
+    for the values a frame can carry: floats in and out of range, NaN and infinities, ints,
+    bools, wrapping counters past their modulus, a missing signal."""
+    rng = np.random.default_rng(11)
+    specials = [math.nan, math.inf, -math.inf, True, False, -0.0, 256, 257, -1, 10**20]
+    compared = failures = 0
+    for message in protocol.database.messages:
+        entry = protocol._by_name[message.name]
+        assert entry.codec is not None, message.name
+        plain = dataclasses.replace(entry, codec=None)
+        for trial in range(80):
+            values: dict[str, object] = {}
+            for s in message.signals:
+                lo, hi = float(s.minimum), float(s.maximum)
+                pick = rng.random()
+                if pick < 0.5:
+                    v: object = float(rng.uniform(lo, hi))
+                elif pick < 0.65:
+                    v = float(rng.choice([lo, hi]))
+                elif pick < 0.7:
+                    v = float(rng.uniform(lo, hi) + (hi - lo) * rng.choice([-0.6, 0.6]))
+                elif pick < 0.75:  # at the edge of cantools' tolerance, inside or outside
+                    margin = abs(s.scale) * float(rng.choice([0.5e-6, 2e-6]))
+                    v = float(rng.choice([lo - margin, hi + margin]))
+                elif pick < 0.85:
+                    v = int(rng.integers(int(lo), int(hi) + 2))
+                else:
+                    v = specials[int(rng.integers(len(specials)))]
+                values[s.name] = v
+            if trial % 20 == 19:
+                del values[message.signals[int(rng.integers(len(message.signals)))].name]
+            outcomes = []
+            for e in (entry, plain):
+                protocol._by_name[message.name] = protocol._by_id[message.frame_id] = e
+                protocol._by_key[(e.kind, e.index)] = e
+                try:
+                    frame = GenericFrame(e.kind, e.index, values)
+                    outcomes.append(bytes(protocol.encode(frame).data))
+                except FrameError as exc:
+                    outcomes.append(str(exc))
+                finally:
+                    protocol._by_name[message.name] = protocol._by_id[message.frame_id] = entry
+                    protocol._by_key[(entry.kind, entry.index)] = entry
+            assert outcomes[0] == outcomes[1], (message.name, values)
+            compared += 1
+            failures += isinstance(outcomes[0], str)
+    # both outcomes were exercised: frames encoded and frames refused
+    assert 0.2 < failures / compared < 0.9, (failures, compared)
 
 
 # Golden bytes: one frame of every kind in the DBC, encoded by hand from the DBC's layout
