@@ -20,6 +20,8 @@ from synthetic_arm import BASE, SEGMENT, Run, T, camera_noise, simulate
 from controllers.estimation import DriveReading, MarkerFrame
 from controllers.estimators import (
     OfflineEstimates,
+    _inverse,
+    _robust_sqrt,
     make_estimator,
     run_offline,
     unmodelled_torque_std,
@@ -278,3 +280,23 @@ def test_a_late_frame_gives_the_estimate_of_a_frame_fused_on_time(name: str) -> 
             np.testing.assert_allclose(result.kappa_std, expected.kappa_std, rtol=1e-9)
             compared += 1
     assert between > 50 and compared > 100
+
+
+def test_inverse_and_square_root_are_numpys_bit_for_bit() -> None:
+    """The UKF's inverse and Cholesky factor call numpy's kernels without np.linalg's wrapping:
+    the same bits on covariances of the UKF's sizes, np.linalg.inv's error on a singular
+    matrix, and the eigen square root where Cholesky fails (an indefinite matrix)."""
+    rng = np.random.default_rng(5)
+    for n in (2, 4, 12, 24):
+        for _ in range(20):
+            A = rng.normal(size=(n, n)) * 10.0 ** rng.uniform(-6, 2)
+            S = A @ A.T + 1e-9 * np.eye(n)
+            assert np.array_equal(_inverse(S), np.linalg.inv(S))
+            assert np.array_equal(_inverse(A), np.linalg.inv(A))
+            assert np.array_equal(_robust_sqrt(S), np.linalg.cholesky(S).T)
+    with pytest.raises(np.linalg.LinAlgError):
+        _inverse(np.ones((3, 3)))
+    P = np.diag([1.0, 4.0, -1e-12])  # indefinite by rounding: the positive part's square root
+    U = _robust_sqrt(P)
+    assert np.allclose(U.T @ U, np.diag([1.0, 4.0, 0.0]))
+    assert np.isfinite(U).all()
