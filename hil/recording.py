@@ -179,23 +179,28 @@ class CanLogger:
         # message per frame; its channel rule: a bare number n is "can<n>"
         self._candump_channel = f"can{channel}" if channel.isdigit() else channel
         self._first_stamp: float | None = None
-        self._idents: dict[tuple[int, bool], str] = {}  # the id as written, by (id, extended)
+        self._idents: dict[tuple[int, bool], str] = {}  # "ID#" as written, by (id, extended)
+        self._stamp = math.nan  # the last stamp written, and its "(seconds) channel " text
+        self._stamp_text = ""
 
     def _candump_line(self, message: can.Message, stamp: float, received: bool) -> str:
         """The line CanutilsLogWriter writes for a classic data frame stamped `stamp` [s]: as it
-        does, a stamp before the log's first is written as the first."""
+        does, a stamp before the log's first is written as the first. The frames of a SYNC
+        share a stamp, so its text is formatted once (a zero stamp always: -0.0 prints apart)."""
         if self._first_stamp is None:
             self._first_stamp = stamp or 0.0
         elif stamp < self._first_stamp:
             stamp = self._first_stamp
+        if stamp != self._stamp or stamp == 0.0:
+            self._stamp = stamp
+            self._stamp_text = f"({stamp:f}) {self._candump_channel} "
         ident = self._idents.get((message.arbitration_id, message.is_extended_id))
         if ident is None:
             can_id = message.arbitration_id
-            ident = f"{can_id:08X}" if message.is_extended_id else f"{can_id:03X}"
+            ident = f"{can_id:08X}#" if message.is_extended_id else f"{can_id:03X}#"
             self._idents[(can_id, message.is_extended_id)] = ident
         return (
-            f"({stamp:f}) {self._candump_channel} {ident}#{bytes(message.data).hex().upper()}"
-            f"{' R' if received else ' T'}\n"
+            f"{self._stamp_text}{ident}{message.data.hex().upper()}{' R' if received else ' T'}\n"
         )
 
     def log(self, message: can.Message, time: float, received: bool) -> None:

@@ -16,6 +16,8 @@ def test_candump_lines_are_python_cans_byte_for_byte(tmp_path: Path) -> None:
     start = 1433116800.0
     times = [0.0, *sorted(rng.uniform(0.0, 30.0) for _ in range(200))]
     times[50] = -0.25  # before the first stamp: the writer writes the first stamp instead
+    times[100:100] = [times[99]] * 5  # frames sharing a stamp, as a SYNC's do
+    times[151:151] = [-0.25] * 3
     logger = CanLogger(tmp_path / "ours.log", start=start)
     reference = tmp_path / "reference.log"
     with reference.open("w") as file:
@@ -49,3 +51,31 @@ def test_a_numeric_channel_is_written_as_python_can_writes_it(tmp_path: Path) ->
     logger.log(can.Message(arbitration_id=0x80, is_extended_id=False, data=b"\x07"), 0.5, True)
     logger.close()
     assert (tmp_path / "x.log").read_text() == "(0.500000) can1 080#07 R\n"
+
+
+def test_frames_sharing_a_stamp_and_signed_zeros(tmp_path: Path) -> None:
+    """A SYNC's frames share a stamp (formatted once); a stamp of -0.0 is written as such."""
+    lines = []
+    for start, times in ((0.0, [0.0, -0.0, -0.0, 0.0, 0.5, 0.5]), (-0.0, [-0.0, 0.0, 0.0])):
+        logger = CanLogger(tmp_path / "x.log", start=start)
+        for t in times:
+            message = can.Message(arbitration_id=0x80, is_extended_id=False, data=b"\x07")
+            logger.log(message, t, False)
+        logger.close()
+        lines.append((tmp_path / "x.log").read_text())
+        reference = tmp_path / "reference.log"
+        with reference.open("w") as file:
+            writer = can.CanutilsLogWriter(file)
+            for t in times:
+                writer.on_message_received(
+                    can.Message(
+                        timestamp=start + t,
+                        arbitration_id=0x80,
+                        is_extended_id=False,
+                        data=b"\x07",
+                        is_rx=False,
+                        channel="can0",
+                    )
+                )
+        assert lines[-1] == reference.read_text()
+    assert lines[0].splitlines()[:2] == ["(0.000000) can0 080#07 T"] * 2
