@@ -31,6 +31,7 @@ import dataclasses
 import math
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from filterpy.kalman import KalmanFilter, MerweScaledSigmaPoints
@@ -162,9 +163,12 @@ class _Node:
     """A point of the filter's history: the estimate at `time` and the input held from it."""
 
     time: float
-    x: np.ndarray
+    x: np.ndarray  # _PENDING: not yet predicted (`_LatencyFilter._settle`)
     P: np.ndarray
     u: np.ndarray
+
+
+_PENDING = np.empty(0)
 
 
 class _LatencyFilter:
@@ -236,10 +240,11 @@ class _LatencyFilter:
         self._u = _pressure_inputs(drives, self._u, self.bends)
         if not self._nodes:
             x, P = self._initial()
+            self._nodes.append(_Node(t, x, P, self._u))
         else:
-            last = self._nodes[-1]
-            x, P = self._predict(last.x, last.P, last.u, t - last.time)
-        self._nodes.append(_Node(t, x, P, self._u))
+            # predicted when first needed (`_settle`): a picture exposed before t, the usual
+            # case with latency, predicts it again from the corrected history anyway
+            self._nodes.append(_Node(t, _PENDING, _PENDING, self._u))
         gated = measured = 0
         for frame in frames:
             exposure = min(frame.exposure_time, t) if self.latency_compensation else t
@@ -249,7 +254,7 @@ class _LatencyFilter:
         self._nodes = [n for n in self._nodes[:-1] if n.time >= t - self.horizon] + [
             self._nodes[-1]
         ]
-        last = self._nodes[-1]
+        last = self._settle(len(self._nodes) - 1)
         theta, omega, variance = self._read(last.x, last.P)
         return Estimate(
             theta / self.lengths,
@@ -258,6 +263,16 @@ class _LatencyFilter:
             gated,
             measured,
         )
+
+    def _settle(self, j: int) -> _Node:
+        """History node j, its prediction from node j - 1 made if it is still pending."""
+        node = self._nodes[j]
+        if node.x is _PENDING:
+            previous = self._nodes[j - 1]
+            node.x, node.P = self._predict(
+                previous.x, previous.P, previous.u, node.time - previous.time
+            )
+        return node
 
     def _fuse(self, exposure: float, points: np.ndarray) -> tuple[int, int]:
         """Fuse one picture at `exposure` and carry the history to the present."""
@@ -268,7 +283,7 @@ class _LatencyFilter:
         if j < 0:
             self.stale += 1
             return 0, 0
-        node = self._nodes[j]
+        node = self._settle(j)
         x, P = self._predict(node.x, node.P, node.u, exposure - node.time)
         x, P, gated, measured = self._correct(x, P, points)
         if exposure - node.time <= tolerance:
@@ -529,13 +544,14 @@ class ArmUnscentedEstimator(_LatencyFilter):
         return x[:n], x[n:], np.diag(P)[:n]
 
 
+_INV: Any = None
+_CHOLESKY: Any = None
 try:  # the kernels behind np.linalg.inv and np.linalg.cholesky: the same LAPACK calls
     from numpy.linalg import _umath_linalg
 
-    _INV = _umath_linalg.inv
-    _CHOLESKY = _umath_linalg.cholesky_lo
+    _INV, _CHOLESKY = _umath_linalg.inv, _umath_linalg.cholesky_lo
 except (ImportError, AttributeError):  # a numpy that moved them: the public functions
-    _INV = _CHOLESKY = None
+    pass
 
 
 def _inverse(S: np.ndarray) -> np.ndarray:
