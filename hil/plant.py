@@ -4,8 +4,8 @@ On SYNC(c) the plant
   1. advances the physics to t_c = c T with the commands that were active,
   2. lets every device node act from its inputs at t_c: latch the commands received since the
      previous SYNC (they act from this SYNC on), guard its own safety, and return its frames,
-  3. records the signals of t_c, then sends every node's frames in phase order (emergencies,
-     heartbeats, measurements such as camera frames, then status), nodes in rig order.
+  3. sends every node's frames in phase order (emergencies, heartbeats, measurements such as
+     camera frames, then status), nodes in rig order, then records the signals of t_c.
 The plant knows no robot: the rig (FMUs, device nodes, connections, recorded signals) comes from
 the robot kind. Everything it sends or receives is logged with simulation time; signals are
 recorded at every SYNC. Nothing here depends on wall-clock time except the wait for a silent peer.
@@ -300,10 +300,16 @@ class Plant:
         for node in self.nodes:
             outgoing += node.act(sync, master.inputs_of(node.name))
             master.publish(node.name)
-        values = master.values
-        self.signals.begin_row(self.sim_time, {column: values[s] for column, s in self.sources})
         outgoing.sort(key=lambda phase_frame: phase_frame[0])  # stable: rig order within a phase
-        self._send([frame for _, frame in outgoing])
+        try:
+            self._send([frame for _, frame in outgoing])
+        finally:
+            # the row of this SYNC (writing the last one) once its frames are out, so the
+            # controller is not kept waiting for the CSV; the values are the SYNC's still (the
+            # master steps on after this); a failed send still records the row
+            values = master.values
+            row = {column: values[s] for column, s in self.sources}
+            self.signals.begin_row(self.sim_time, row)
         self._count()
         self.can_log.flush()
         if self.scenario.controller.policy == "strict":
