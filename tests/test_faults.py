@@ -584,3 +584,34 @@ def test_realtime_run_late_on_a_loaded_machine_fails(tmp_path: Path, capsys, mon
     s = summary(out)
     assert s["status"] == "failed" and "SYNCs were more than one control period" in s["error"]
     assert s["controller"]["overruns"] > 0
+
+
+def test_a_failed_send_keeps_the_syncs_row_and_frames(
+    tmp_path: Path, capsys, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The bus fails as the plant sends SYNC 7's frames: the run fails with one line naming the
+    frames, and what was recorded stays, SYNC 7's signal row and its SYNC frame included."""
+    import hil.plant
+
+    sends = [0]
+    real_send_all = hil.plant.send_all
+
+    def failing(bus: can.BusABC, messages: list[can.Message]) -> None:
+        sends[0] += 1
+        if sends[0] == 8:  # SYNC 0..6 answered, SYNC 7's frames fail
+            raise can.CanOperationError("the transceiver is gone")
+        real_send_all(bus, messages)
+
+    monkeypatch.setattr(hil.plant, "send_all", failing)
+    out = tmp_path / "run"
+    code, lines = run_cli(
+        capsys, str(scenario_file(tmp_path, 1.0)), "--inprocess", "--out", str(out)
+    )
+    assert code == 1 and len(lines) == 1 and "sending 0x" in lines[0], lines
+    assert "the transceiver is gone" in lines[0]
+    with (out / "signals.csv").open() as file:
+        times = [float(row["time"]) for row in csv.DictReader(file)]
+    assert times == [round(0.01 * c, 9) for c in range(8)]
+    log = (out / "can.log").read_text().splitlines()
+    assert " 080#07 R" in log[-1]  # SYNC 7 received, none of its answers sent
+    readable(out)
