@@ -39,6 +39,7 @@ from controllers.protocol import (
     Protocol,
     Sync,
     TaskState,
+    _Codec,
     bus_load,
     frame_bits,
     frame_key,
@@ -499,6 +500,37 @@ def test_compiled_codec_equals_cantools_byte_for_byte(protocol: Protocol) -> Non
             want = message.decode(data, decode_choices=False)
             have = codec.decode(data)
             assert have == want and all(type(have[k]) is type(want[k]) for k in want)
+
+
+OFFSET_DBC = """VERSION ""
+NS_ :
+BS_:
+BU_: Rig
+BO_ 256 Offsets: 8 Rig
+ SG_ temperature : 0|16@1- (0.01,-40) [-100|250] "degC" Rig
+ SG_ level : 16|12@1+ (0.5,10.5) [10.5|2000] "mm" Rig
+ SG_ trim : 28|8@1- (1,-3) [-100|100] "" Rig
+ SG_ gain : 36|20@1+ (0.001,0) [0|1000] "" Rig
+"""
+
+
+def test_compiled_codec_handles_offsets_as_cantools_does() -> None:
+    """Our DBC's signals all have offset 0; a user's DBC may not: integer and fractional
+    offsets, signed and unsigned, encode and decode as cantools does."""
+    database = cantools.database.load_string(OFFSET_DBC, strict=True)
+    message = database.get_message_by_name("Offsets")
+    codec = _Codec(message)
+    rng = np.random.default_rng(13)
+    for _ in range(400):
+        values = {
+            s.name: float(rng.uniform(s.minimum, s.maximum))
+            if rng.random() < 0.8
+            else float(rng.choice([s.minimum, s.maximum]))
+            for s in message.signals
+        }
+        assert codec.encode(values) == message.encode(values, strict=True), values
+        data = bytes(rng.integers(0, 256, message.length).tolist())
+        assert codec.decode(data) == message.decode(data, decode_choices=False)
 
 
 def test_checked_encoding_equals_the_uncompiled_path(protocol: Protocol) -> None:
