@@ -56,7 +56,7 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -105,16 +105,26 @@ class _Segment(ctypes.Structure):
     ]
 
 
-def pure_loop_library() -> ctypes.CDLL:
-    flags = (*CFLAGS, "-ffp-contract=off")
-    digest = hashlib.sha256(" ".join((compiler(), *flags)).encode() + PURE_LOOP.read_bytes())
-    target = cache_root() / "bench" / f"pure_loop-{digest.hexdigest()[:16]}.so"
+def shared_library(stem: str, source: str, flags: Sequence[str]) -> ctypes.CDLL:
+    """The C `source` built into a shared library with the package's compiler and `flags`, once
+    per compiler, flags and source (cached as `bench/<stem>-<digest>.so` in the cache)."""
+    digest = hashlib.sha256(" ".join((compiler(), *flags)).encode() + source.encode())
+    target = cache_root() / "bench" / f"{stem}-{digest.hexdigest()[:16]}.so"
     if not target.is_file():
         target.parent.mkdir(parents=True, exist_ok=True)
+        code = target.with_suffix(f".{os.getpid()}.c")
         work = target.with_suffix(f".{os.getpid()}.tmp")
-        subprocess.run([compiler(), *flags, str(PURE_LOOP), "-o", str(work)], check=True)
+        code.write_text(source)
+        try:
+            subprocess.run([compiler(), *flags, str(code), "-o", str(work)], check=True)
+        finally:
+            code.unlink()
         os.replace(work, target)
-    library = ctypes.CDLL(str(target))
+    return ctypes.CDLL(str(target))
+
+
+def pure_loop_library() -> ctypes.CDLL:
+    library = shared_library("pure_loop", PURE_LOOP.read_text(), (*CFLAGS, "-ffp-contract=off"))
     library.pure_loop.restype = ctypes.c_int
     library.pure_loop.argtypes = [
         ctypes.POINTER(_Segment),

@@ -20,8 +20,6 @@ Run from the checkout: PYTHONPATH=. python bench/instructions.py [--segments 6] 
 from __future__ import annotations
 
 import argparse
-import ctypes
-import hashlib
 import json
 import os
 import re
@@ -48,33 +46,17 @@ def instructions_per_sync(valgrind_stderr: str, syncs: int) -> float:
     return int(found[-1]) / syncs
 
 
-def _toggle_library() -> ctypes.CDLL:
-    from hil.fmu.build import cache_root, compiler
-
-    flags = ("-O2", "-fPIC", "-shared")
-    digest = hashlib.sha256(" ".join((compiler(), *flags)).encode() + TOGGLE_C.encode())
-    target = cache_root() / "bench" / f"callgrind_toggle-{digest.hexdigest()[:16]}.so"
-    if not target.is_file():
-        target.parent.mkdir(parents=True, exist_ok=True)
-        source = target.with_suffix(f".{os.getpid()}.c")
-        source.write_text(TOGGLE_C)
-        work = target.with_suffix(f".{os.getpid()}.tmp")
-        subprocess.run([compiler(), *flags, str(source), "-o", str(work)], check=True)
-        source.unlink()
-        os.replace(work, target)
-    return ctypes.CDLL(str(target))
-
-
 def _inner(segments: int, seconds: float) -> int:
     """Under callgrind: run the scenario with collection on for the loop only; its SYNCs."""
     sys.path.insert(0, str(Path(__file__).parent))
-    from bench_run import ROOT, budget_scenario
+    from bench_run import ROOT, budget_scenario, shared_library
 
     from hil.plant import Plant
     from hil.run import RunOptions, run_scenario
     from hil.scenario import load_scenario
 
-    toggle = _toggle_library().softhil_toggle_collect
+    library = shared_library("callgrind_toggle", TOGGLE_C, ("-O2", "-fPIC", "-shared"))
+    toggle = library.softhil_toggle_collect
     run_driven = Plant.run_driven
 
     def counted(plant: Plant, *args: Any, **kwargs: Any) -> Any:
@@ -84,7 +66,7 @@ def _inner(segments: int, seconds: float) -> int:
         finally:
             toggle()
 
-    Plant.run_driven = counted  # type: ignore[method-assign]
+    Plant.run_driven = counted  # type: ignore[method-assign,assignment]
     scenario = budget_scenario(
         load_scenario(ROOT / "hil" / "scenarios" / "default.toml"), seconds, segments
     )

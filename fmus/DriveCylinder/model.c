@@ -114,10 +114,9 @@ int model_derivatives(const Instance *inst, const double y[], double dy[]) {
     const State *s = (const State *)inst->state;
     const double r = screw_ratio(inst);
     const PistonForces f = piston_forces(inst, y[W]);
-    const double v = f.v, pressure_force = f.pressure, seal = f.seal, screw = f.screw;
     dy[I] = (s->u - V(inst, R_motor) * y[I] - V(inst, Ke) * y[W]) / V(inst, L_motor);
-    dy[W] = (V(inst, Kt) * y[I] - V(inst, b_motor) * y[W] - r * (f.load + screw)) / V(inst, J);
-    dy[X] = v;
+    dy[W] = (V(inst, Kt) * y[I] - V(inst, b_motor) * y[W] - r * (f.load + f.screw)) / V(inst, J);
+    dy[X] = f.v;
     /* hard end stops: at a stop the screw cannot accelerate further into it */
     if (y[X] <= 0.0 && y[W] <= 0.0) {
         if (dy[W] < 0.0) dy[W] = 0.0;
@@ -129,9 +128,9 @@ int model_derivatives(const Instance *inst, const double y[], double dy[]) {
     }
     dy[E_ELECTRIC] = s->u * y[I];
     dy[E_RESISTIVE] = V(inst, R_motor) * y[I] * y[I];
-    dy[E_FRICTION] = seal * v + V(inst, b_motor) * y[W] * y[W];
-    dy[E_SCREW] = screw * v;
-    dy[W_GAS] = pressure_force * v;
+    dy[E_FRICTION] = f.seal * f.v + V(inst, b_motor) * y[W] * y[W];
+    dy[E_SCREW] = f.screw * f.v;
+    dy[W_GAS] = f.pressure * f.v;
     return isfinite(dy[I]) && isfinite(dy[W]);
 }
 
