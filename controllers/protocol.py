@@ -32,6 +32,8 @@ import can
 import cantools
 from cantools.database.can import Database, Message
 
+from controllers import ccodec
+
 DBC_PATH = Path(str(files("controllers") / "softhil.dbc"))
 Data = bytes | bytearray  # a frame's payload: python-can gives either
 
@@ -130,6 +132,12 @@ def _fast_init(cls: type) -> None:
     init.__qualname__ = f"{cls.__qualname__}.__init__"
     init.__doc__ = cls.__init__.__doc__  # type: ignore[misc]
     cls.__init__ = init  # type: ignore[misc]
+    _PLAIN.add(cls)
+
+
+# the frame classes `_fast_init` handled: an instance is its fields in its dict, nothing more,
+# so the C decoder may build one as cls.__new__(cls) and a dict (`_Codec.unpacker`)
+_PLAIN: set[type] = set()
 
 
 @dataclass(frozen=True)
@@ -332,20 +340,111 @@ class _Codec:
         self.decode: Callable[[Data], dict[str, Any]] = self._compile_decode()
         self._pack: Callable[[Mapping[str, Any]], bytes] | None = None
         self._unpackers: dict[tuple[type, int | None], Callable[[Data], Any]] = {}
+        # the C codec's compiled plans (`controllers.ccodec`), once made: for the tests
+        self.c_encoder: Any = None
+        self.c_decoders: dict[tuple[type, int | None], Any] = {}
 
     @property
     def pack(self) -> Callable[[Mapping[str, Any]], bytes]:
-        """`encode` with `Protocol.encode`'s checks of a frame's values first."""
+        """`encode` with `Protocol.encode`'s checks of a frame's values first: the plain case
+        in C where it is available (`controllers.ccodec`), everything else in Python."""
         if self._pack is None:
-            self._pack = self._compile_encode(checked=True)
+            self._pack = self._with_c_encoder(lambda: self._compile_encode(checked=True))
         return self._pack
 
     def unpacker(self, ftype: FrameType, index: int | None) -> Callable[[Data], Any]:
-        """`decode` into the frame type `ftype` of index `index`, as `Protocol.decode` builds it."""
+        """`decode` into the frame type `ftype` of index `index`, as `Protocol.decode` builds it
+        (the plain case in C where it is available)."""
         key = (ftype.cls, index)
         unpack = self._unpackers.get(key)
         if unpack is None:
-            unpack = self._unpackers[key] = self._compile_unpack(ftype, index)
+            python = functools.partial(self._compile_unpack, ftype, index)
+            unpack = self._unpackers[key] = self._with_c_decoder(python, ftype, index)
+        return unpack
+
+    def _c_layout(self) -> bool:
+        """Whether the C codec handles this layout: up to 8 bytes, signals within 64 bits, a
+        non-zero scale."""
+        return self.length <= 8 and all(
+            start + length <= 64 and scale != 0
+            for _, start, _, length, _, scale, *_ in self.signals
+        )
+
+    def _with_c_encoder(
+        self, make: Callable[[], Callable[[Mapping[str, Any]], bytes]]
+    ) -> Callable[[Mapping[str, Any]], bytes]:
+        """The checked encoder `make` compiles, behind the C encoder's plain case if there is
+        one; then compiled when first needed (most frames never need it)."""
+        module = ccodec.load()
+        if module is None or not self._c_layout():
+            return make()
+        plan = tuple(
+            (name, start, mask, identity, scale, type(offset) is int and offset == 0, offset)
+            + (low, high, modulus or 0)
+            for (name, start, mask, _, _, scale, offset, identity, _, _), (low, high, _, _), (
+                _,
+                modulus,
+            ) in zip(self.signals, self.limits, self.plan, strict=True)
+        )
+        try:
+            capsule = self.c_encoder = module.compile_encoder(self.length, plan)
+        except (ValueError, TypeError, OverflowError):
+            return make()
+        c_pack = module.pack
+        python: Callable[[Mapping[str, Any]], bytes] | None = None
+
+        def pack(values: Mapping[str, Any]) -> bytes:
+            nonlocal python
+            data: bytes | None = c_pack(capsule, values)
+            if data is None:
+                if python is None:
+                    python = make()
+                return python(values)
+            return data
+
+        return pack
+
+    def _with_c_decoder(
+        self, make: Callable[[], Callable[[Data], Any]], ftype: FrameType, index: int | None
+    ) -> Callable[[Data], Any]:
+        """The unpacker `make` compiles, behind the C decoder's plain case if there is one (a
+        frame class `_fast_init` handled, converters float, int and bool, every signal a
+        field); then compiled when first needed."""
+        module = ccodec.load()
+        names = [f.name for f in fields(ftype.cls)]
+        kinds = {float: 0, _to_int: 1, _to_bool: 2}
+        if (
+            module is None
+            or not self._c_layout()
+            or ftype.cls not in _PLAIN
+            or any(s[0] not in names or ftype.converters[s[0]] not in kinds for s in self.signals)
+        ):
+            return make()
+        position = -1 if ftype.index_field is None else names.index(ftype.index_field)
+        plan = tuple(
+            (start, mask, length, signed, identity, scale, offset)
+            + (kinds[ftype.converters[name]], names.index(name))
+            for name, start, mask, length, signed, scale, offset, identity, _, _ in self.signals
+        )
+        try:
+            capsule = module.compile_decoder(
+                self.length, ftype.cls, tuple(names), index, position, plan
+            )
+        except (ValueError, TypeError, OverflowError):
+            return make()
+        self.c_decoders[(ftype.cls, index)] = capsule
+        c_unpack = module.unpack
+        python: Callable[[Data], Any] | None = None
+
+        def unpack(data: Data) -> Any:
+            nonlocal python
+            frame = c_unpack(capsule, data)
+            if frame is None:
+                if python is None:
+                    python = make()
+                return python(data)
+            return frame
+
         return unpack
 
     def _missing(self, name: str) -> FrameError:

@@ -1,0 +1,520 @@
+/* softhil's DBC codec in C: the common case of `controllers.protocol._Codec`, one call a frame.
+
+   A plan (built in Python from the DBC, `controllers.ccodec`) is compiled once per message into
+   a capsule; `pack(capsule, values)` and `unpack(capsule, data)` then encode a frame's values
+   and decode a payload into its typed frame with the same arithmetic as the generated Python
+   codec, in the same order, so the bytes and the values are the same bit for bit.
+
+   Invariant: either function returns None for anything but the plain case (a missing value, a
+   value that is not a float, int or bool, a value out of range or not finite, an index that does
+   not match), and the caller then takes the Python path, which encodes it or raises the error it
+   always raised. So this file never decides what is an error, only how fast the plain case is.
+
+   Exactness, against the Python codec (checked value by value in tests/test_ccodec.py):
+   - cantools' `numeric_scaled_to_raw` rounds `quotient` if `divmod(shifted, scale)` leaves no
+     remainder, else `shifted / scale`. A zero remainder means shifted is an exact multiple of
+     the scale, so the correctly rounded division gives the same double as the quotient (and
+     CPython's float divmod computes its quotient as that same division): one division here.
+   - Python's round(float) is round-half-even, written out as CPython writes it.
+   - Decoding follows Python's types: an int scale and offset keep the product an exact integer;
+     a float scale makes it a double, to which the offset is added as a double. */
+
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+#include <math.h>
+#include <stdint.h>
+#include <string.h>
+
+#define ENCODER_NAME "softhil.codec.encoder"
+#define DECODER_NAME "softhil.codec.decoder"
+#define LIMIT 4503599627370496.0 /* 2^52: every integer below it is exact in a double */
+
+enum { KIND_FLOAT = 0, KIND_INT = 1, KIND_BOOL = 2 };
+
+typedef struct {
+    PyObject *name;  /* the signal's name (a str, owned) */
+    int start;
+    uint64_t mask;
+    int identity;    /* scale 1 (an int) and offset 0: the raw value is the value */
+    double scale;
+    int skip_offset; /* an int offset of 0 is not subtracted (value - 0 keeps -0.0) */
+    double offset;
+    double lo, hi;   /* the tolerant range cantools enforces */
+    long long modulus; /* of a wrapping counter, or 0 */
+} EncodeSignal;
+
+typedef struct {
+    Py_ssize_t length;
+    Py_ssize_t count;
+    EncodeSignal signals[];
+} Encoder;
+
+typedef struct {
+    int start;
+    uint64_t mask;
+    int length;
+    int is_signed;
+    int identity;
+    int int_scale;     /* scale and offset both ints: the value stays an exact integer */
+    long long scale_i, offset_i;
+    int float_scale;   /* scale a float (else an int) */
+    double scale, offset;
+    int kind;          /* the field's converter: float, int or bool(int(v)) */
+    Py_ssize_t field;  /* position of the field in the dataclass's order */
+} DecodeSignal;
+
+typedef struct {
+    Py_ssize_t length;
+    PyObject *cls;        /* the frame dataclass (owned) */
+    PyObject *fields;     /* tuple of field names in dataclass order (owned) */
+    PyObject *index;      /* the message's index (an int) or None (owned) */
+    Py_ssize_t index_field;  /* field position of the index, or -1 */
+    Py_ssize_t index_signal; /* signal position of the index field, or -1 */
+    Py_ssize_t count;
+    DecodeSignal signals[];
+} Decoder;
+
+static double round_half_even(double x) {
+    /* CPython's float.__round__ without ndigits */
+    double rounded = round(x);
+    if (fabs(x - rounded) == 0.5) {
+        rounded = 2.0 * round(x / 2.0);
+    }
+    return rounded;
+}
+
+/* ------------------------------------------------------------------------------ encoder */
+
+static void encoder_free(PyObject *capsule) {
+    Encoder *e = PyCapsule_GetPointer(capsule, ENCODER_NAME);
+    if (e == NULL) {
+        return;
+    }
+    for (Py_ssize_t k = 0; k < e->count; k++) {
+        Py_XDECREF(e->signals[k].name);
+    }
+    PyMem_Free(e);
+}
+
+static int as_double(PyObject *o, double *out) {
+    *out = PyFloat_AsDouble(o);
+    return !(*out == -1.0 && PyErr_Occurred());
+}
+
+/* compile_encoder(length, ((name, start, mask, identity, scale, skip_offset, offset, lo, hi,
+   modulus), ...)) -> capsule */
+static PyObject *compile_encoder(PyObject *self, PyObject *args) {
+    Py_ssize_t length;
+    PyObject *signals;
+    (void)self;
+    if (!PyArg_ParseTuple(args, "nO!", &length, &PyTuple_Type, &signals)) {
+        return NULL;
+    }
+    if (length < 0 || length > 8) {
+        PyErr_SetString(PyExc_ValueError, "the C codec handles 0..8 data bytes");
+        return NULL;
+    }
+    Py_ssize_t count = PyTuple_GET_SIZE(signals);
+    Encoder *e = PyMem_Calloc(1, sizeof(Encoder) + (size_t)count * sizeof(EncodeSignal));
+    if (e == NULL) {
+        return PyErr_NoMemory();
+    }
+    e->length = length;
+    PyObject *capsule = PyCapsule_New(e, ENCODER_NAME, encoder_free);
+    if (capsule == NULL) {
+        PyMem_Free(e);
+        return NULL;
+    }
+    for (Py_ssize_t k = 0; k < count; k++) {
+        EncodeSignal *s = &e->signals[k];
+        PyObject *name, *scale, *offset, *lo, *hi;
+        unsigned long long mask;
+        int identity, skip;
+        if (!PyArg_ParseTuple(PyTuple_GET_ITEM(signals, k), "UiKpOpOOOL", &name, &s->start,
+                              &mask, &identity, &scale, &skip, &offset, &lo, &hi,
+                              &s->modulus)) {
+            Py_DECREF(capsule);
+            return NULL;
+        }
+        if (s->start < 0 || s->start > 63 || s->modulus < 0) {
+            PyErr_SetString(PyExc_ValueError, "the C codec handles signals in 64 bits");
+            Py_DECREF(capsule);
+            return NULL;
+        }
+        s->mask = mask;
+        s->identity = identity;
+        s->skip_offset = skip;
+        if (!as_double(scale, &s->scale) || !as_double(offset, &s->offset) ||
+            !as_double(lo, &s->lo) || !as_double(hi, &s->hi)) {
+            Py_DECREF(capsule);
+            return NULL;
+        }
+        Py_INCREF(name);
+        s->name = name;
+        e->count = k + 1;
+    }
+    return capsule;
+}
+
+/* pack(encoder, values: dict) -> bytes, or None: not the plain case (the Python path decides) */
+static PyObject *pack(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
+    (void)self;
+    if (nargs != 2) {
+        PyErr_SetString(PyExc_TypeError, "pack(encoder, values)");
+        return NULL;
+    }
+    Encoder *e = PyCapsule_GetPointer(args[0], ENCODER_NAME);
+    if (e == NULL) {
+        return NULL;
+    }
+    PyObject *values = args[1];
+    if (!PyDict_CheckExact(values)) {
+        Py_RETURN_NONE;
+    }
+    uint64_t bits = 0;
+    for (Py_ssize_t k = 0; k < e->count; k++) {
+        const EncodeSignal *s = &e->signals[k];
+        PyObject *v = PyDict_GetItemWithError(values, s->name);
+        if (v == NULL) {
+            if (PyErr_Occurred()) {
+                return NULL;
+            }
+            Py_RETURN_NONE; /* missing */
+        }
+        double raw;
+        if (PyFloat_Check(v)) {
+            /* a float (or a subclass such as numpy.float64): in range and finite, or None */
+            double x = PyFloat_AS_DOUBLE(v);
+            if (!(s->lo <= x && x <= s->hi)) {
+                Py_RETURN_NONE;
+            }
+            if (s->identity) {
+                raw = round_half_even(x);
+            } else {
+                double shifted = s->skip_offset ? x : x - s->offset;
+                raw = round_half_even(shifted / s->scale);
+            }
+        } else if (PyLong_Check(v)) {
+            /* bool -> int; an int counter wraps at its modulus; only identity signals */
+            if (!s->identity) {
+                Py_RETURN_NONE;
+            }
+            int overflow = 0;
+            long long i = PyLong_AsLongLongAndOverflow(v, &overflow);
+            if (overflow || (i == -1 && PyErr_Occurred())) {
+                PyErr_Clear();
+                Py_RETURN_NONE;
+            }
+            if (!PyBool_Check(v) && s->modulus > 0) {
+                i %= s->modulus;
+                if (i < 0) {
+                    i += s->modulus; /* Python's modulus takes the divisor's sign */
+                }
+            }
+            if (i >= LIMIT || i <= -LIMIT) {
+                Py_RETURN_NONE;
+            }
+            raw = (double)i;
+            if (!(s->lo <= raw && raw <= s->hi)) {
+                Py_RETURN_NONE;
+            }
+        } else {
+            Py_RETURN_NONE;
+        }
+        if (!(raw < LIMIT && raw > -LIMIT)) {
+            Py_RETURN_NONE;
+        }
+        bits |= ((uint64_t)(int64_t)raw & s->mask) << s->start;
+    }
+    unsigned char data[8];
+    for (Py_ssize_t b = 0; b < e->length; b++) {
+        data[b] = (unsigned char)(bits >> (8 * b));
+    }
+    return PyBytes_FromStringAndSize((const char *)data, e->length);
+}
+
+/* ------------------------------------------------------------------------------ decoder */
+
+static void decoder_free(PyObject *capsule) {
+    Decoder *d = PyCapsule_GetPointer(capsule, DECODER_NAME);
+    if (d == NULL) {
+        return;
+    }
+    Py_XDECREF(d->cls);
+    Py_XDECREF(d->fields);
+    Py_XDECREF(d->index);
+    PyMem_Free(d);
+}
+
+/* compile_decoder(length, cls, fields, index, index_field, ((start, mask, length, signed,
+   identity, scale, offset, kind, field), ...)) -> capsule; scale and offset as Python gives
+   them (int or float) */
+static PyObject *compile_decoder(PyObject *self, PyObject *args) {
+    Py_ssize_t length, index_field;
+    PyObject *cls, *fields, *index, *signals;
+    (void)self;
+    if (!PyArg_ParseTuple(args, "nO!O!OnO!", &length, &PyType_Type, &cls, &PyTuple_Type,
+                          &fields, &index, &index_field, &PyTuple_Type, &signals)) {
+        return NULL;
+    }
+    if (length < 0 || length > 8) {
+        PyErr_SetString(PyExc_ValueError, "the C codec handles 0..8 data bytes");
+        return NULL;
+    }
+    Py_ssize_t count = PyTuple_GET_SIZE(signals);
+    Decoder *d = PyMem_Calloc(1, sizeof(Decoder) + (size_t)count * sizeof(DecodeSignal));
+    if (d == NULL) {
+        return PyErr_NoMemory();
+    }
+    d->length = length;
+    Py_INCREF(cls);
+    d->cls = cls;
+    Py_INCREF(fields);
+    d->fields = fields;
+    Py_INCREF(index);
+    d->index = index;
+    d->index_field = index_field;
+    d->index_signal = -1;
+    PyObject *capsule = PyCapsule_New(d, DECODER_NAME, decoder_free);
+    if (capsule == NULL) {
+        Py_DECREF(cls);
+        Py_DECREF(fields);
+        Py_DECREF(index);
+        PyMem_Free(d);
+        return NULL;
+    }
+    Py_ssize_t n_fields = PyTuple_GET_SIZE(fields);
+    if (index_field >= n_fields || (index_field >= 0 && index == Py_None)) {
+        PyErr_SetString(PyExc_ValueError, "index field out of the fields");
+        Py_DECREF(capsule);
+        return NULL;
+    }
+    for (Py_ssize_t k = 0; k < count; k++) {
+        DecodeSignal *s = &d->signals[k];
+        PyObject *scale, *offset;
+        unsigned long long mask;
+        if (!PyArg_ParseTuple(PyTuple_GET_ITEM(signals, k), "iKippOOin", &s->start, &mask,
+                              &s->length, &s->is_signed, &s->identity, &scale, &offset,
+                              &s->kind, &s->field)) {
+            Py_DECREF(capsule);
+            return NULL;
+        }
+        if (s->start < 0 || s->length < 1 || s->start + s->length > 64 || s->field < 0 ||
+            s->field >= n_fields || s->kind < KIND_FLOAT || s->kind > KIND_BOOL) {
+            PyErr_SetString(PyExc_ValueError, "a signal the C codec does not handle");
+            Py_DECREF(capsule);
+            return NULL;
+        }
+        s->mask = mask;
+        s->int_scale = PyLong_CheckExact(scale) && PyLong_CheckExact(offset);
+        s->float_scale = PyFloat_CheckExact(scale);
+        if (!s->float_scale && !PyLong_CheckExact(scale)) {
+            PyErr_SetString(PyExc_ValueError, "scale must be an int or a float");
+            Py_DECREF(capsule);
+            return NULL;
+        }
+        if (!PyFloat_CheckExact(offset) && !PyLong_CheckExact(offset)) {
+            PyErr_SetString(PyExc_ValueError, "offset must be an int or a float");
+            Py_DECREF(capsule);
+            return NULL;
+        }
+        if (!s->float_scale) {
+            s->scale_i = PyLong_AsLongLong(scale);
+            if (s->scale_i == -1 && PyErr_Occurred()) {
+                Py_DECREF(capsule);
+                return NULL;
+            }
+        }
+        if (s->int_scale) {
+            s->offset_i = PyLong_AsLongLong(offset);
+            if (s->offset_i == -1 && PyErr_Occurred()) {
+                Py_DECREF(capsule);
+                return NULL;
+            }
+        }
+        if (!as_double(scale, &s->scale) || !as_double(offset, &s->offset)) {
+            Py_DECREF(capsule);
+            return NULL;
+        }
+        if (s->field == index_field) {
+            d->index_signal = k;
+        }
+        d->count = k + 1;
+    }
+    return capsule;
+}
+
+/* the field's value of raw value `raw` (a new reference), or NULL with *plain = 0: not plain */
+static PyObject *field_value(const DecodeSignal *s, int64_t raw, int *plain) {
+    double value;
+    if (s->identity) {
+        if (s->kind == KIND_BOOL) {
+            return PyBool_FromLong(raw != 0);
+        }
+        if (s->kind == KIND_INT) {
+            return PyLong_FromLongLong(raw);
+        }
+        return PyFloat_FromDouble((double)raw); /* |raw| < 2^64, exact below 2^53 as Python */
+    }
+    if (s->int_scale) {
+        /* raw * S + O in Python's ints: exact; beyond 2^52 the Python path does it */
+        double product = (double)raw * (double)s->scale_i;
+        if (!(fabs(product) < LIMIT) || !(fabs((double)s->offset_i) < LIMIT)) {
+            *plain = 0;
+            return NULL;
+        }
+        int64_t exact = raw * s->scale_i + s->offset_i;
+        if (s->kind == KIND_BOOL) {
+            return PyBool_FromLong(exact != 0);
+        }
+        if (s->kind == KIND_INT) {
+            return PyLong_FromLongLong(exact);
+        }
+        return PyFloat_FromDouble((double)exact);
+    }
+    if (s->float_scale) {
+        value = (double)raw * s->scale + s->offset;
+    } else {
+        /* an int scale with a float offset: the product is an exact int, then a double */
+        double product = (double)raw * (double)s->scale_i;
+        if (!(fabs(product) < LIMIT)) {
+            *plain = 0;
+            return NULL;
+        }
+        value = product + s->offset;
+    }
+    if (s->kind == KIND_FLOAT) {
+        return PyFloat_FromDouble(value);
+    }
+    if (!(fabs(value) < LIMIT)) {
+        *plain = 0;
+        return NULL;
+    }
+    int64_t truncated = (int64_t)value; /* int(float) truncates towards zero, as C does */
+    if (s->kind == KIND_BOOL) {
+        return PyBool_FromLong(truncated != 0);
+    }
+    return PyLong_FromLongLong(truncated);
+}
+
+/* unpack(decoder, data) -> the typed frame, or None: not the plain case */
+static PyObject *unpack(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
+    (void)self;
+    if (nargs != 2) {
+        PyErr_SetString(PyExc_TypeError, "unpack(decoder, data)");
+        return NULL;
+    }
+    Decoder *d = PyCapsule_GetPointer(args[0], DECODER_NAME);
+    if (d == NULL) {
+        return NULL;
+    }
+    Py_buffer view;
+    if (PyObject_GetBuffer(args[1], &view, PyBUF_SIMPLE) < 0) {
+        return NULL;
+    }
+    if (view.len != d->length) {
+        PyBuffer_Release(&view);
+        Py_RETURN_NONE;
+    }
+    uint64_t bits = 0;
+    const unsigned char *bytes = view.buf;
+    for (Py_ssize_t b = 0; b < view.len; b++) {
+        bits |= (uint64_t)bytes[b] << (8 * b);
+    }
+    PyBuffer_Release(&view);
+
+    Py_ssize_t n_fields = PyTuple_GET_SIZE(d->fields);
+    PyObject *values[64];
+    if (n_fields > 64) {
+        Py_RETURN_NONE;
+    }
+    memset(values, 0, sizeof(values));
+    PyObject *result = NULL;
+    int plain = 1;
+    for (Py_ssize_t k = 0; k < d->count; k++) {
+        const DecodeSignal *s = &d->signals[k];
+        uint64_t u = (bits >> s->start) & s->mask;
+        int64_t raw = (int64_t)u;
+        if (s->is_signed && s->length < 64 && (u >> (s->length - 1))) {
+            raw = (int64_t)(u - ((uint64_t)1 << s->length));
+        }
+        if (!s->is_signed && s->length == 64 && (u >> 63)) {
+            plain = 0; /* above int64: the Python path */
+            goto done;
+        }
+        PyObject *value = field_value(s, raw, &plain);
+        if (value == NULL) {
+            goto done;
+        }
+        Py_XSETREF(values[s->field], value);
+    }
+    if (d->index_field >= 0) {
+        if (d->index_signal >= 0) {
+            int equal = PyObject_RichCompareBool(values[d->index_field], d->index, Py_EQ);
+            if (equal < 0) {
+                goto done;
+            }
+            if (!equal) {
+                plain = 0; /* the Python path raises the mismatch */
+                goto done;
+            }
+        }
+        Py_INCREF(d->index);
+        Py_XSETREF(values[d->index_field], d->index);
+    }
+    for (Py_ssize_t f = 0; f < n_fields; f++) {
+        if (values[f] == NULL) {
+            plain = 0; /* a field no signal fills */
+            goto done;
+        }
+    }
+    PyTypeObject *type = (PyTypeObject *)d->cls;
+    PyObject *empty = PyTuple_New(0);
+    if (empty == NULL) {
+        goto done;
+    }
+    PyObject *frame = type->tp_new(type, empty, NULL); /* cls.__new__(cls), as __init__ gets */
+    Py_DECREF(empty);
+    if (frame == NULL) {
+        goto done;
+    }
+    PyObject *dict = PyObject_GenericGetDict(frame, NULL);
+    if (dict == NULL) {
+        Py_DECREF(frame);
+        goto done;
+    }
+    for (Py_ssize_t f = 0; f < n_fields; f++) {
+        if (PyDict_SetItem(dict, PyTuple_GET_ITEM(d->fields, f), values[f]) < 0) {
+            Py_DECREF(dict);
+            Py_DECREF(frame);
+            goto done;
+        }
+    }
+    Py_DECREF(dict);
+    result = frame;
+done:
+    for (Py_ssize_t f = 0; f < n_fields; f++) {
+        Py_XDECREF(values[f]);
+    }
+    if (result == NULL && !plain && !PyErr_Occurred()) {
+        Py_RETURN_NONE;
+    }
+    return result;
+}
+
+static PyMethodDef methods[] = {
+    {"compile_encoder", compile_encoder, METH_VARARGS, "An encoder capsule from its plan."},
+    {"compile_decoder", compile_decoder, METH_VARARGS, "A decoder capsule from its plan."},
+    {"pack", (PyCFunction)(void (*)(void))pack, METH_FASTCALL,
+     "pack(encoder, values) -> bytes, or None if not the plain case."},
+    {"unpack", (PyCFunction)(void (*)(void))unpack, METH_FASTCALL,
+     "unpack(decoder, data) -> frame, or None if not the plain case."},
+    {NULL, NULL, 0, NULL},
+};
+
+static struct PyModuleDef module = {
+    PyModuleDef_HEAD_INIT, "_softhil_ccodec", "softhil's DBC codec in C.", -1, methods,
+    NULL, NULL, NULL, NULL,
+};
+
+PyMODINIT_FUNC PyInit__softhil_ccodec(void) { return PyModule_Create(&module); }

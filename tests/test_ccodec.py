@@ -1,0 +1,291 @@
+"""The DBC codec's C path (`controllers.ccodec`) against the generated Python codec it speeds up:
+the same bytes, the same frames (values, types, field order) and the same errors, value by value,
+for every message of our DBC and for a DBC with offsets; the plain case taken in C, everything
+else handed to Python."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import shutil
+from pathlib import Path
+from typing import Any
+
+import cantools
+import numpy as np
+import pytest
+
+from controllers import ccodec
+from controllers.protocol import (
+    _PLAIN,
+    _REGISTRY,
+    DriveStatus,
+    FrameError,
+    FrameType,
+    Protocol,
+    _Codec,
+    _fast_init,
+    _to_bool,
+    _to_int,
+)
+
+OFFSET_DBC = """VERSION ""
+NS_ :
+BS_:
+BU_: Rig
+BO_ 256 Offsets: 8 Rig
+ SG_ temperature : 0|16@1- (0.01,-40) [-100|250] "degC" Rig
+ SG_ level : 16|12@1+ (0.5,10.5) [10.5|2000] "mm" Rig
+ SG_ trim : 28|8@1- (1,-3) [-100|100] "" Rig
+ SG_ gain : 36|20@1+ (0.001,0) [0|1000] "" Rig
+ SG_ steps : 56|8@1+ (4,2) [2|1000] "" Rig
+"""
+
+module = ccodec.load()
+needs_c = pytest.mark.skipif(module is None, reason=f"no C codec here: {ccodec.failure()}")
+
+
+def test_the_c_codec_builds_where_a_compiler_and_headers_are() -> None:
+    """With gcc and Python.h (as on every machine the README sets up) the fast path is in use:
+    losing it would only show as a slower loop."""
+    if shutil.which("gcc") is None or ccodec.failure() == f"{ccodec.ENV}=python":
+        pytest.skip("no gcc, or the C codec switched off")
+    assert module is not None, ccodec.failure()
+    protocol = Protocol()
+    codec = protocol._by_name["DriveStatus1"].codec
+    assert codec is not None
+    codec.pack  # noqa: B018 - made on first use
+    assert codec.c_encoder is not None
+
+
+def _values(rng: np.random.Generator, signals: list[Any], specials: list[Any]) -> dict[str, Any]:
+    """One frame's values: floats in range, at the range's ends and at cantools' tolerance,
+    halfway between two raw values (round half to even) and an ulp either side, out of range,
+    ints, numpy scalars and the specials."""
+    values: dict[str, Any] = {}
+    for s in signals:
+        lo, hi, scale, offset = float(s.minimum), float(s.maximum), s.scale, s.offset
+        pick = rng.random()
+        if pick < 0.3:
+            v: Any = float(rng.uniform(lo, hi))
+        elif pick < 0.45:  # a raw value and a half: rounds to even, as Python's round
+            raw = math.floor((float(rng.uniform(lo, hi)) - offset) / scale)
+            v = (raw + 0.5) * scale + offset
+            v = float(rng.choice([v, math.nextafter(v, math.inf), math.nextafter(v, -math.inf)]))
+        elif pick < 0.55:
+            v = float(rng.choice([lo, hi]))
+        elif pick < 0.6:  # cantools' tolerance at the ends, inside or outside
+            margin = abs(scale) * float(rng.choice([0.5e-6, 2e-6]))
+            v = float(rng.choice([lo - margin, hi + margin]))
+        elif pick < 0.65:
+            v = float(rng.uniform(lo, hi) + (hi - lo) * rng.choice([-0.6, 0.6]))
+        elif pick < 0.78:
+            v = int(rng.integers(int(lo) - 2, int(hi) + 3))
+        elif pick < 0.83:
+            v = np.float64(rng.uniform(lo, hi))
+        elif pick < 0.86:
+            v = np.int64(rng.integers(int(lo), int(hi) + 1))
+        else:
+            v = specials[int(rng.integers(len(specials)))]
+        values[s.name] = v
+    return values
+
+
+SPECIALS = [math.nan, math.inf, -math.inf, True, False, -0.0, 0.0, 256, 257, -1, -257]
+SPECIALS += [10**20, -(10**20), 2**63, "7", None, 1.5]
+
+
+def _outcome(pack: Any, values: dict[str, Any]) -> Any:
+    try:
+        return bytes(pack(values))
+    except (FrameError, TypeError, ValueError, OverflowError) as exc:
+        return f"{type(exc).__name__}: {exc}"
+
+
+def _codecs() -> list[tuple[str, _Codec]]:
+    codecs = []
+    for message in Protocol().database.messages:
+        codec = _Codec(message)
+        codecs.append((message.name, codec))
+    database = cantools.database.load_string(OFFSET_DBC, strict=True)
+    codecs.append(("Offsets", _Codec(database.get_message_by_name("Offsets"))))
+    return codecs
+
+
+@needs_c
+def test_c_encoding_equals_the_python_codec_value_by_value() -> None:
+    """`pack` through C gives the Python checked encoder's bytes or its error, for values of
+    every kind; most plain frames are encoded in C (not all handed back to Python)."""
+    assert module is not None
+    rng = np.random.default_rng(21)
+    compared = in_c = refused = 0
+    for name, codec in _codecs():
+        python = codec._compile_encode(checked=True)
+        fast = codec.pack
+        assert codec.c_encoder is not None, name
+        signals = codec.message.signals
+        for trial in range(400):
+            values = _values(rng, signals, SPECIALS)
+            if trial % 40 == 39:
+                del values[signals[int(rng.integers(len(signals)))].name]
+            expected = _outcome(python, values)
+            assert _outcome(fast, values) == expected, (name, values)
+            direct = module.pack(codec.c_encoder, values)
+            if direct is not None:
+                assert direct == expected, (name, values)
+                in_c += 1
+            compared += 1
+            refused += isinstance(expected, str)
+    assert in_c > 0.3 * compared and 0.1 * compared < refused < 0.9 * compared, (
+        in_c,
+        refused,
+        compared,
+    )
+
+
+@needs_c
+def test_plain_floats_and_counters_are_encoded_in_c() -> None:
+    """The loop's common frame, floats in range and a counter past its modulus, takes the C path
+    (so the speed-up is real) and gives the Python bytes."""
+    assert module is not None
+    codec = Protocol()._by_name["DriveStatus2"].codec
+    assert codec is not None
+    values = {"piston_position": 0.0311, "p_a": 2345.6, "p_b": -0.0, "fault": 3, "counter": 300}
+    codec.pack  # noqa: B018
+    data = module.pack(codec.c_encoder, values)
+    assert data is not None
+    assert data == codec._compile_encode(checked=True)(values)
+    assert data[7] == 300 % 256
+
+
+def _payloads(rng: np.random.Generator, length: int) -> list[bytes]:
+    edges = [bytes(length), bytes([0xFF] * length), bytes([0x80] * length), bytes([0x7F] * length)]
+    return edges + [bytes(rng.integers(0, 256, length).tolist()) for _ in range(150)]
+
+
+@needs_c
+def test_c_decoding_builds_the_frames_the_python_codec_builds() -> None:
+    """Every typed message: the same frame, field types and field order as the generated
+    unpacker, still frozen; a payload whose index field disagrees with the CAN id is refused
+    with the Python path's error."""
+    protocol = Protocol()
+    rng = np.random.default_rng(5)
+    decoded = 0
+    for entry in protocol._by_name.values():
+        if entry.type is None or entry.codec is None:
+            continue
+        codec = entry.codec
+        python = codec._compile_unpack(entry.type, entry.index)
+        fast = codec.unpacker(entry.type, entry.index)
+        assert (entry.type.cls, entry.index) in codec.c_decoders, entry.message.name
+        for data in _payloads(rng, codec.length):
+            try:
+                want: Any = python(data)
+            except FrameError as exc:
+                want = str(exc)
+            try:
+                have: Any = fast(bytearray(data))
+            except FrameError as exc:
+                have = str(exc)
+            assert have == want, (entry.message.name, data.hex())
+            if isinstance(want, str):
+                continue
+            decoded += 1
+            assert list(vars(have)) == list(vars(want))
+            assert [type(v) for v in vars(have).values()] == [type(v) for v in vars(want).values()]
+            with pytest.raises(dataclasses.FrozenInstanceError):
+                have.counter = 1
+    assert decoded > 1000
+
+
+@needs_c
+def test_c_decoding_follows_python_types_through_scales_and_offsets() -> None:
+    """Int scale and offset (exact ints), float scale with an int offset, int scale with a
+    float offset: floats, ints and bools from one payload as the generated unpacker makes them."""
+
+    @dataclasses.dataclass(frozen=True)
+    class Offsets:
+        temperature: float
+        level: float
+        trim: int
+        gain: bool
+        steps: float
+
+    _fast_init(Offsets)
+    assert Offsets in _PLAIN
+    database = cantools.database.load_string(OFFSET_DBC, strict=True)
+    codec = _Codec(database.get_message_by_name("Offsets"))
+    converters = {"temperature": float, "level": float, "trim": _to_int, "gain": _to_bool}
+    ftype = FrameType("Offsets", Offsets, None, {**converters, "steps": float})
+    fast = codec.unpacker(ftype, None)
+    python = codec._compile_unpack(ftype, None)
+    assert (Offsets, None) in codec.c_decoders
+    rng = np.random.default_rng(9)
+    for data in _payloads(rng, 8):
+        have, want = fast(data), python(data)
+        assert have == want
+        assert [type(v) for v in vars(have).values()] == [type(v) for v in vars(want).values()]
+
+
+def test_classes_with_more_than_fields_keep_the_python_decoder() -> None:
+    """A frame class whose __init__ does more than fill its fields (here a __post_init__) is
+    built by calling it, never by the C decoder."""
+
+    @dataclasses.dataclass(frozen=True)
+    class Checked:
+        temperature: float
+        level: float
+        trim: int
+        gain: float
+        steps: float
+
+        def __post_init__(self) -> None:
+            if self.level < 0:
+                raise ValueError("negative level")
+
+    _fast_init(Checked)
+    assert Checked not in _PLAIN
+    database = cantools.database.load_string(OFFSET_DBC, strict=True)
+    codec = _Codec(database.get_message_by_name("Offsets"))
+    converters = {n: float for n in ("temperature", "level", "gain", "steps")}
+    ftype = FrameType("Offsets", Checked, None, {**converters, "trim": _to_int})
+    codec.unpacker(ftype, None)
+    assert codec.c_decoders == {}
+
+
+def test_the_python_codec_alone_gives_the_same_frames(monkeypatch: pytest.MonkeyPatch) -> None:
+    """SOFTHIL_CODEC=python: no C module is built or loaded, and the frames are the same."""
+    monkeypatch.setattr(ccodec, "_module", None)
+    monkeypatch.setattr(ccodec, "_failure", None)
+    monkeypatch.setenv(ccodec.ENV, "python")
+    assert ccodec.load() is None and ccodec.failure() == "SOFTHIL_CODEC=python"
+    message = Protocol().database.get_message_by_name("DriveStatus4")
+    codec = _Codec(message)
+    frame = DriveStatus(4, 0.0123, 1230.0, -4560.0, 0x12, 0xC7)
+    data = codec.pack(vars(frame))
+    assert codec.c_encoder is None
+    assert data == message.encode({k: v for k, v in vars(frame).items() if k != "node"})
+    assert codec.unpacker(_REGISTRY["DriveStatus"], 4)(data) == DriveStatus(
+        4, 6150 * 2e-06, 1230.0, -4560.0, 0x12, 0xC7
+    )
+    assert codec.c_decoders == {}
+
+
+def test_a_damaged_cache_entry_is_built_again(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A cached module that does not load (cut short, overwritten) is compiled again, not
+    silently replaced by the slow path."""
+    if shutil.which("gcc") is None:
+        pytest.skip("no gcc")
+    monkeypatch.setenv("SOFTHIL_CACHE_DIR", str(tmp_path))
+    monkeypatch.delenv(ccodec.ENV, raising=False)
+    monkeypatch.setattr(ccodec, "_module", None)
+    monkeypatch.setattr(ccodec, "_failure", None)
+    target = ccodec._target()
+    target.parent.mkdir(parents=True)
+    target.write_bytes(b"not a shared library")
+    rebuilt = ccodec.load()
+    assert rebuilt is not None, ccodec.failure()
+    assert target.read_bytes()[:4] == b"\x7fELF"
+    assert rebuilt.pack is not None
