@@ -16,8 +16,9 @@ of the pure-C loop. Then the closed loop on the default task for 1, 2, 4 and 6 s
   hil run (separate process)      controller as a separate process over the loopback hub
 with the kernel (and, for 1 segment, with SOFTHIL_KERNEL=0), as real-time factors and ratios
 to the pure-C loop of the same segments. The separate process speaks softhil's binary records
-to a hub in a child process (the default); a row "hub thread" runs the hub as a thread of the
-plant instead (SOFTHIL_HUB=thread), the alternative it was chosen over.
+to the hub the plant hosts in its own thread (the default); rows "hub process" and "hub thread"
+run the hub as a child process (SOFTHIL_HUB=process) or a thread of the plant
+(SOFTHIL_HUB=thread) instead, the alternatives it was chosen over.
 Before all that, the transport alone: the round trip of one frame from this process through the
 hub (a child process) to an echoing peer process and back, for socketcand's ASCII and for the
 binary records, in microseconds (median of --repeat batches). For 6 segments in-process the
@@ -216,7 +217,7 @@ def fmpy_alone(segments: int, ticks: int, h: float) -> float:
         return time.perf_counter() - start
 
 
-def full_run(scenario: Scenario, inprocess: bool, kernel: bool, hub: str = "process") -> float:
+def full_run(scenario: Scenario, inprocess: bool, kernel: bool, hub: str = "plant") -> float:
     previous = os.environ.get("SOFTHIL_KERNEL")
     os.environ["SOFTHIL_KERNEL"] = "1" if kernel else "0"
     os.environ["SOFTHIL_HUB"] = hub
@@ -629,15 +630,15 @@ def main() -> int:
         for n in SEGMENTS:
             arm = budget_scenario(scenario, args.seconds, n)
             base = rows[str(n)]["pure C"]["wall_time"] / ticks  # per macro step, n segments
-            variants = [(True, "process", True, None), (False, "process", True, None)]
-            variants += [(False, "process", False, None)] if n == 1 else []
-            variants += [(False, "thread", True, None)]
+            variants = [(True, "plant", True, None), (False, "plant", True, None)]
+            variants += [(False, "plant", False, None)] if n == 1 else []
+            variants += [(False, "process", True, None), (False, "thread", True, None)]
             # the estimator's share: the same loop with the cheaper estimators
-            variants += [(True, "process", True, e) for e in ("raw", "kf")] if n == 6 else []
+            variants += [(True, "plant", True, e) for e in ("raw", "kf")] if n == 6 else []
             for inprocess, hub, kernel, estimator in variants:
                 name = "hil run --inprocess" if inprocess else "hil run (separate process)"
                 name += "" if kernel else " SOFTHIL_KERNEL=0"
-                name += ", hub thread" if hub == "thread" else ""
+                name += "" if hub == "plant" or inprocess else f", hub {hub}"
                 name += f", estimator {estimator}" if estimator else ""
                 run = arm
                 if estimator:

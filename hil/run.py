@@ -41,6 +41,7 @@ from controllers.node import (
 from controllers.protocol import Protocol
 from hil.animation import check_format
 from hil.bus.direct import direct_pair
+from hil.bus.hosted import HostedBus
 from hil.bus.loopback import HubProcess, LoopbackHub
 from hil.devices import HEARTBEAT_PERIOD
 from hil.errors import BusError, HilError, Terminated
@@ -165,8 +166,8 @@ def _run(
             stack.callback(controller_bus.shutdown)
             plant_spec = controller_spec = BusSpec("direct", "in-process")
         else:
-            plant_spec, controller_spec = _bus_specs(scenario, options, stack)
-            plant_bus = _open(plant_spec)
+            plant_spec, controller_spec, hosted = _bus_specs(scenario, options, stack)
+            plant_bus = hosted if hosted is not None else _open(plant_spec)
         stack.callback(plant_bus.shutdown)
         folder.claim("signals.units.csv")
         signals = SignalRecorder(folder.claim("signals.csv"), rig.signals)
@@ -329,8 +330,9 @@ def _open(spec: BusSpec):  # noqa: ANN202 - can.BusABC
 
 def _bus_specs(
     scenario: Scenario, options: RunOptions, stack: ExitStack
-) -> tuple[BusSpec, BusSpec]:
-    """(plant's spec, controller's spec). A loopback bus without a port gets its own hub."""
+) -> tuple[BusSpec, BusSpec, HostedBus | None]:
+    """(plant's spec, controller's spec, the plant's bus if the plant hosts the hub). A
+    loopback bus without a port gets its own hub."""
     if options.inprocess:
         if options.bus and not options.bus.startswith("virtual"):
             raise HilError(f"--inprocess runs on the virtual bus, not {options.bus}")
@@ -338,7 +340,7 @@ def _bus_specs(
         if options.bus and options.bus.startswith("virtual:"):
             channel = options.bus.partition(":")[2]  # a channel named by the user
         spec = BusSpec("virtual", channel)
-        return spec, spec
+        return spec, spec, None
     if options.bus:
         try:
             spec = BusSpec.parse(options.bus)
@@ -352,26 +354,35 @@ def _bus_specs(
     if spec.kind in HUB_KINDS and (options.bus is None and scenario.bus.port == 0):
         # our own hub: plant and controller speak its binary records (the ASCII socketcand
         # protocol stays open on the same port for tools); the hub runs where SOFTHIL_HUB says
-        port = _serve_hub(spec.host, os.environ.get("SOFTHIL_HUB", "process"), stack)
+        mode = os.environ.get("SOFTHIL_HUB", "plant")
+        port, hosted = _serve_hub(spec.host, spec.channel, mode, stack)
         spec = replace(spec, kind="softhil", port=port)
-    return spec, spec
+        return spec, spec, hosted
+    return spec, spec, None
 
 
-HUB_MODES = ("process", "thread")
+HUB_MODES = ("plant", "process", "thread")
 
 
-def _serve_hub(host: str, mode: str, stack: ExitStack) -> int:
-    """Start a hub for this run and return its port. ``process`` (the default): a child
-    process, which never waits for the plant's GIL (measured in bench/bench_run.py);
-    ``thread``: a thread of this process, the reference."""
+def _serve_hub(
+    host: str, channel: str, mode: str, stack: ExitStack
+) -> tuple[int, HostedBus | None]:
+    """Start a hub for this run: its port, and the plant's bus if the plant hosts it.
+    ``plant`` (the default): the plant's own bus is the hub (`hil.bus.hosted`), one hop and
+    one process fewer each way; ``process``: a child process; ``thread``: a thread of this
+    process (both measured against it in bench/bench_run.py)."""
+    if mode == "plant":
+        bus = HostedBus(channel, host)
+        stack.callback(bus.shutdown)
+        return bus.port, bus
     if mode == "process":
         child = HubProcess(host)
         stack.callback(child.stop)
-        return child.port
+        return child.port, None
     if mode == "thread":
         hub = LoopbackHub(host).start()
         stack.callback(hub.stop)
-        return hub.port
+        return hub.port, None
     raise HilError(f"SOFTHIL_HUB={mode!r}: must be one of {', '.join(HUB_MODES)}")
 
 

@@ -143,10 +143,15 @@ def test_latency_compensation_measurably_helps(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize(
     ("estimator", "transport"),
-    # each estimator's separate-process run takes another transport (no extra runs): the
-    # binary records on hil run's own hub (a child process), the binary records on a hub
-    # thread of the plant, socketcand's ASCII on an external hub
-    [("raw", "socketcand"), ("kf", "binary-thread-hub"), ("ukf", "binary")],
+    # each estimator's separate-process run takes another transport: the binary records on
+    # hil run's own hub (hosted by the plant: the default; or a child process), the binary
+    # records on a hub thread of the plant, socketcand's ASCII on an external hub
+    [
+        ("raw", "socketcand"),
+        ("kf", "binary-thread-hub"),
+        ("ukf", "binary"),
+        ("ukf", "binary-hub-process"),
+    ],
 )
 def test_every_estimator_is_deterministic_in_process_and_across_processes(
     tmp_path: Path, estimator: str, transport: str, monkeypatch: pytest.MonkeyPatch
@@ -166,6 +171,10 @@ def test_every_estimator_is_deterministic_in_process_and_across_processes(
             bus = f"loopback:127.0.0.1:{hub.port}"
         elif transport == "binary-thread-hub":
             monkeypatch.setenv("SOFTHIL_HUB", "thread")
+        elif transport == "binary-hub-process":
+            monkeypatch.setenv("SOFTHIL_HUB", "process")
+        else:
+            monkeypatch.delenv("SOFTHIL_HUB", raising=False)  # the default: the plant hosts it
         other = run(path, tmp_path / "c", process=True, bus=bus)
     assert other.summary["bus"].startswith("loopback:" if bus else "softhil:")
     for name in ("can.log", "signals.csv"):

@@ -54,9 +54,26 @@ from hil.bus.wire import (
     hello,
 )
 
-__all__ = ["SofthilBus", "parse_channel"]
+__all__ = ["SofthilBus", "classic_data", "parse_channel"]
 
 _RECV_SIZE = 256 * 1024
+
+
+def classic_data(msg: can.Message) -> bytes:
+    """The data of a classic CAN data frame, the only frames softhil's transport carries;
+    CanOperationError for a remote, error or FD frame, more than 8 bytes or an id out of range."""
+    if msg.is_remote_frame or msg.is_error_frame or msg.is_fd:
+        raise can.CanOperationError(
+            f"softhil bus: only classic data frames are carried, not 0x{msg.arbitration_id:X}"
+            f" ({'remote' if msg.is_remote_frame else 'error' if msg.is_error_frame else 'FD'})"
+        )
+    data = bytes(msg.data)
+    can_id = msg.arbitration_id
+    if len(data) > MAX_DLC or can_id > (MAX_EXT_ID if msg.is_extended_id else MAX_STD_ID):
+        raise can.CanOperationError(
+            f"softhil bus: frame 0x{can_id:X} has {len(data)} bytes or an id out of range"
+        )
+    return data
 
 
 def parse_channel(channel: object) -> tuple[str, int]:
@@ -214,18 +231,9 @@ class SofthilBus(can.BusABC):
 
     @staticmethod
     def _record(msg: can.Message) -> bytes:
-        if msg.is_remote_frame or msg.is_error_frame or msg.is_fd:
-            raise can.CanOperationError(
-                f"softhil bus: only classic data frames are carried, not 0x{msg.arbitration_id:X}"
-                f" ({'remote' if msg.is_remote_frame else 'error' if msg.is_error_frame else 'FD'})"
-            )
-        data = bytes(msg.data)
-        can_id = msg.arbitration_id
-        if len(data) > MAX_DLC or can_id > (MAX_EXT_ID if msg.is_extended_id else MAX_STD_ID):
-            raise can.CanOperationError(
-                f"softhil bus: frame 0x{can_id:X} has {len(data)} bytes or an id out of range"
-            )
-        return encode_record(can_id, msg.is_extended_id, data, msg.timestamp)
+        return encode_record(
+            msg.arbitration_id, msg.is_extended_id, classic_data(msg), msg.timestamp
+        )
 
     def _write(self, records: bytes) -> None:
         try:

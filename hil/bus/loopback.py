@@ -58,6 +58,7 @@ Run standalone with ``python -m hil.bus.loopback [--host H] [--port P] [--max-cl
 from __future__ import annotations
 
 import argparse
+import collections
 import contextlib
 import errno
 import ipaddress
@@ -69,7 +70,7 @@ import socket
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from types import FrameType, TracebackType
 from typing import Self
 
@@ -274,6 +275,7 @@ class _Client:
         "held",
         "hold_until",
         "inbuf",
+        "local",
         "outbuf",
         "rawmode",
         "sock",
@@ -293,10 +295,26 @@ class _Client:
         self.binary = False  # speaks softhil's binary records (hil.bus.binary)
         self.want_write = False
         self.closed = False
+        self.local = False
 
     def pending(self) -> int:
         """Return the number of outgoing bytes buffered for this client."""
         return len(self.outbuf) + (len(self.held) if self.held is not None else 0)
+
+
+class _Local:
+    """The hub's own member of a channel, for a hub hosted in its owner's thread
+    (`LoopbackHub.host`): frames forwarded to it wait in `inbox` as (id, extended, data,
+    hub time [s]) until the owner takes them; nothing is written to a socket."""
+
+    __slots__ = ("addr", "binary", "channel", "closed", "inbox", "local", "rawmode")
+
+    def __init__(self, channel: bytes) -> None:
+        self.addr = "host"
+        self.channel: bytes | None = channel
+        self.inbox: collections.deque[tuple[int, bool, bytes, float]] = collections.deque()
+        self.binary = self.rawmode = self.local = True
+        self.closed = False
 
 
 class LoopbackHub:
@@ -370,6 +388,8 @@ class LoopbackHub:
         self._stop_requested = False
         self._started = False
         self._done = threading.Event()
+        self._hosted = False  # served by `poll` from its owner's thread (`host`)
+        self._turning = False
         self._clients: dict[int, _Client] = {}  # keyed by socket fd
         self._channels: dict[bytes, list[_Client]] = {}  # rawmode clients per channel
         self._dirty: dict[int, _Client] = {}  # clients with output to flush (insertion order)
@@ -485,6 +505,10 @@ class LoopbackHub:
             self._stop_requested = True
             started = self._started
             wake = self._wake_w
+        if self._hosted:  # closed now, or by `poll` once the turn it is in ends
+            if not self._turning and self._selector is not None:
+                self._teardown()
+            return
         if wake is not None:
             # OSError: already closed, or wake pipe full and so the loop is waking anyway.
             with contextlib.suppress(OSError):
@@ -582,45 +606,113 @@ class LoopbackHub:
             sel.register(listener, selectors.EVENT_READ, None)
             sel.register(wake_r, selectors.EVENT_READ, None)
             while not self._stop_requested:
-                deadlines = [c.hold_until for c in self._holding.values()]
-                summary_due = self._warn.next_deadline()
-                if summary_due is not None:
-                    deadlines.append(summary_due)
-                timeout = max(0.0, min(deadlines) - time.monotonic()) if deadlines else None
-                for key, events in sel.select(timeout):
-                    sock = key.fileobj
-                    if sock is listener:
-                        self._accept()
-                    elif sock is wake_r:
-                        self._drain_wake()
-                    else:
-                        client = key.data
-                        if client.closed:
-                            continue
-                        if events & selectors.EVENT_READ:
-                            self._on_readable(client)
-                        if events & selectors.EVENT_WRITE and not client.closed:
-                            self._dirty[id(client)] = client
-                if self._holding:
-                    self._release_held()
-                self._flush_dirty()
-                for client in self._doomed:
-                    self._disconnect(client)
-                self._doomed.clear()
-                if summary_due is not None:
-                    self._warn.flush()
+                self._turn(self._deadline())
         except Exception:
             log.exception("loopback CAN hub event loop crashed")
             raise
         finally:
-            for client in list(self._clients.values()):
-                self._disconnect(client, quiet=True)
-            self._warn.flush(everything=True)
-            sel.close()
-            self._selector = None
-            self._close_listener()
-            self._done.set()
-            log.info("loopback CAN hub stopped")
+            self._teardown()
+
+    def _deadline(self) -> float | None:
+        """Seconds until the loop must turn without input: a held client's grace period
+        ending or a warning summary due (None: no such deadline)."""
+        deadlines = [c.hold_until for c in self._holding.values()]
+        summary_due = self._warn.next_deadline()
+        if summary_due is not None:
+            deadlines.append(summary_due)
+        return max(0.0, min(deadlines) - time.monotonic()) if deadlines else None
+
+    def _turn(self, timeout: float | None) -> None:
+        """One turn of the event loop: wait at most `timeout` [s] for sockets to be ready,
+        serve them, release held clients, write what is queued, drop the doomed."""
+        sel, listener, wake_r = self._selector, self._listener, self._wake_r
+        assert sel is not None
+        summary_due = self._warn.next_deadline()
+        for key, events in sel.select(timeout):
+            sock = key.fileobj
+            if sock is listener:
+                self._accept()
+            elif sock is wake_r:
+                self._drain_wake()
+            else:
+                client = key.data
+                if client.closed:
+                    continue
+                if events & selectors.EVENT_READ:
+                    self._on_readable(client)
+                if events & selectors.EVENT_WRITE and not client.closed:
+                    self._dirty[id(client)] = client
+        if self._holding:
+            self._release_held()
+        self._flush_dirty()
+        for client in self._doomed:
+            self._disconnect(client)
+        self._doomed.clear()
+        if summary_due is not None:
+            self._warn.flush()
+
+    def _teardown(self) -> None:
+        for client in list(self._clients.values()):
+            self._disconnect(client, quiet=True)
+        self._warn.flush(everything=True)
+        if self._selector is not None:
+            self._selector.close()
+        self._selector = None
+        self._close_listener()
+        self._done.set()
+        log.info("loopback CAN hub stopped")
+
+    # ------------------------------------------------------------------ hosted in a thread
+
+    def host(self, channel: str) -> _Local:
+        """Serve from the calling thread, turned by `poll` (no thread of its own), with the
+        caller as a member of `channel`: what other members send it waits in the returned
+        member's `inbox`, what it sends goes out through `send_from`. Close with `stop`."""
+        name = channel.encode()
+        if not _CHANNEL_NAME.fullmatch(name):
+            raise HubSettingError(f"invalid channel name {channel!r}")
+        self.bind()
+        with self._lock:
+            self._claim_start()
+            self._loop_ident = threading.get_ident()
+            self._hosted = True
+        sel = selectors.DefaultSelector()
+        assert self._listener is not None and self._wake_r is not None
+        sel.register(self._listener, selectors.EVENT_READ, None)
+        sel.register(self._wake_r, selectors.EVENT_READ, None)
+        self._selector = sel
+        member = _Local(name)
+        self._channels.setdefault(name, []).append(member)  # type: ignore[arg-type]
+        return member
+
+    def poll(self, timeout: float | None) -> None:
+        """One turn of a hosted hub's loop, waiting at most `timeout` [s] (None: until a
+        socket is ready or a deadline of the hub's own comes)."""
+        if self._selector is None:
+            raise BusError("the hosted hub is closed")
+        deadline = self._deadline()
+        if deadline is not None:
+            timeout = deadline if timeout is None else min(timeout, deadline)
+        self._turning = True
+        try:
+            self._turn(timeout)
+        finally:
+            self._turning = False
+            if self._stop_requested:
+                self._teardown()
+
+    def send_from(self, member: _Local, frames: Iterable[tuple[int, bool, bytes]]) -> None:
+        """Forward frames (id, extended, data) from a hosted member to the rest of its
+        channel, in order, and write them out now (what a socket does not take yet stays
+        queued for the next turns)."""
+        if self._selector is None:
+            raise BusError("the hosted hub is closed")
+        for can_id, extended, data in frames:
+            self._forward(member, can_id, extended, data)  # type: ignore[arg-type]
+        self._flush_dirty()
+        for client in self._doomed:
+            self._disconnect(client)
+        self._doomed.clear()
 
     def _drain_wake(self) -> None:
         assert self._wake_r is not None
@@ -824,6 +916,9 @@ class LoopbackHub:
         self._frames_forwarded += 1
         for other in self._channels.get(client.channel, ()):  # type: ignore[arg-type]
             if other is client:
+                continue
+            if other.local:
+                other.inbox.append((can_id, extended, data, now / 1e9))  # type: ignore[attr-defined]
                 continue
             if other.binary:
                 if record is None:

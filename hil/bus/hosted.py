@@ -1,0 +1,91 @@
+"""The plant's end of a run's bus when the plant hosts the loopback hub itself.
+
+`hil run` across processes used to start the hub as a third process: every SYNC's frames then
+crossed two sockets each way (plant -> hub -> controller -> hub -> plant) and woke three
+processes sharing the machine's cores. A `HostedBus` is a `LoopbackHub` served from the plant's
+own thread, with the plant as a member of the run's channel: the controller (python-can's
+``softhil`` interface) and any tool (socketcand or binary, on the same port) connect to it as
+to any hub, while the plant's frames go straight from its `send` to the other members' sockets
+and theirs arrive in its `recv`, one hop and one wake-up each way.
+
+The hub is served whenever the plant receives or sends (`LoopbackHub.poll`): while the plant
+steps its physics, frames from the controller and tools wait in the sockets' buffers, in order.
+Everything the hub guarantees holds: one order of frames for every member, no loss for a
+connected client, the same limits. The hub stamps the frames it forwards with its receive time,
+as before; the plant logs simulation time.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+
+import can
+
+from hil.bus.binary import classic_data
+from hil.bus.loopback import DEFAULT_HANDSHAKE_GRACE, LoopbackHub
+
+
+class HostedBus(can.BusABC):
+    """A python-can bus that is a loopback hub's own member of `channel` (see the module
+    docstring); `port` is where the other members connect."""
+
+    def __init__(
+        self,
+        channel: str,
+        host: str = "127.0.0.1",
+        *,
+        handshake_grace: float = DEFAULT_HANDSHAKE_GRACE,
+        **kwargs: object,
+    ) -> None:
+        self.hub = LoopbackHub(host, handshake_grace=handshake_grace)
+        self._member = self.hub.host(channel)
+        self.channel_info = f"softhil hub hosted on {host}:{self.hub.port}, channel {channel}"
+        self.closed = False
+        super().__init__(channel=channel, **kwargs)  # type: ignore[arg-type]
+
+    @property
+    def port(self) -> int:
+        return self.hub.port
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        self.send_batch([msg])
+
+    def send_batch(self, messages: Sequence[can.Message]) -> None:
+        """Send frames in order, forwarded to the other members at once; nothing is sent if
+        any frame is invalid (only classic data frames are carried)."""
+        if self.closed:
+            raise can.CanOperationError("softhil bus: the hosted hub is shut down")
+        frames = [(m.arbitration_id, m.is_extended_id, classic_data(m)) for m in messages]
+        self.hub.send_from(self._member, frames)
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        inbox = self._member.inbox
+        if not inbox:
+            if self.closed:
+                raise can.CanOperationError("softhil bus: the hosted hub is shut down")
+            deadline = None if timeout is None else time.monotonic() + timeout
+            remaining = timeout
+            while True:
+                self.hub.poll(remaining)
+                if inbox:
+                    break
+                if deadline is not None:
+                    remaining = deadline - time.monotonic()
+                    if remaining <= 0.0:
+                        return None, False
+        can_id, extended, data, stamp = inbox.popleft()
+        message = can.Message(
+            timestamp=stamp,
+            arbitration_id=can_id,
+            is_extended_id=extended,
+            data=data,
+            channel=self.channel_info,
+        )
+        return message, False
+
+    def shutdown(self) -> None:
+        if not self.closed:
+            self.closed = True
+            self.hub.stop()
+        super().shutdown()
