@@ -161,12 +161,13 @@ def _run(
         if options.animate is not None and rig.animation is None:  # before the run, not after
             raise HilError(f"--animate: robot kind {scenario.robot.kind!r} has no animation")
         direct = options.inprocess and not options.bus
+        hub: str | None = None  # where hil run's own hub runs, if it serves one
         if direct:  # plant and controller in this thread, frames handed over synchronously
             plant_bus, controller_bus = direct_pair(f"softhil-{scenario.name}")
             stack.callback(controller_bus.shutdown)
             plant_spec = controller_spec = BusSpec("direct", "in-process")
         else:
-            plant_spec, controller_spec, hosted = _bus_specs(scenario, options, stack)
+            plant_spec, controller_spec, hosted, hub = _bus_specs(scenario, options, stack)
             plant_bus = hosted if hosted is not None else _open(plant_spec)
         stack.callback(plant_bus.shutdown)
         folder.claim("signals.units.csv")
@@ -199,6 +200,7 @@ def _run(
             signals.write_mf4(folder.claim("signals.mf4"))
     summary.update(summarise(scenario, out / "signals.csv", stats, can_log, report, protocol))
     summary["bus"] = str(plant_spec)
+    summary["hub"] = hub
     summary["controller_process"] = (
         "this thread" if direct else "thread" if options.inprocess else "process"
     )
@@ -330,9 +332,9 @@ def _open(spec: BusSpec):  # noqa: ANN202 - can.BusABC
 
 def _bus_specs(
     scenario: Scenario, options: RunOptions, stack: ExitStack
-) -> tuple[BusSpec, BusSpec, HostedBus | None]:
-    """(plant's spec, controller's spec, the plant's bus if the plant hosts the hub). A
-    loopback bus without a port gets its own hub."""
+) -> tuple[BusSpec, BusSpec, HostedBus | None, str | None]:
+    """(plant's spec, controller's spec, the plant's bus if the plant hosts the hub, where
+    the run's own hub runs if it has one). A loopback bus without a port gets its own hub."""
     if options.inprocess:
         if options.bus and not options.bus.startswith("virtual"):
             raise HilError(f"--inprocess runs on the virtual bus, not {options.bus}")
@@ -340,7 +342,7 @@ def _bus_specs(
         if options.bus and options.bus.startswith("virtual:"):
             channel = options.bus.partition(":")[2]  # a channel named by the user
         spec = BusSpec("virtual", channel)
-        return spec, spec, None
+        return spec, spec, None, None
     if options.bus:
         try:
             spec = BusSpec.parse(options.bus)
@@ -357,8 +359,8 @@ def _bus_specs(
         mode = os.environ.get("SOFTHIL_HUB", "plant")
         port, hosted = _serve_hub(spec.host, spec.channel, mode, stack)
         spec = replace(spec, kind="softhil", port=port)
-        return spec, spec, hosted
-    return spec, spec, None
+        return spec, spec, hosted, mode
+    return spec, spec, None, None
 
 
 HUB_MODES = ("plant", "process", "thread")

@@ -177,6 +177,9 @@ def test_every_estimator_is_deterministic_in_process_and_across_processes(
             monkeypatch.delenv("SOFTHIL_HUB", raising=False)  # the default: the plant hosts it
         other = run(path, tmp_path / "c", process=True, bus=bus)
     assert other.summary["bus"].startswith("loopback:" if bus else "softhil:")
+    hubs = {"socketcand": None, "binary-thread-hub": "thread", "binary-hub-process": "process"}
+    assert other.summary["hub"] == hubs.get(transport, "plant")  # the plant hosts it by default
+    assert first.summary["hub"] is None  # in-process: no hub at all
     for name in ("can.log", "signals.csv"):
         data = (first.out / name).read_bytes()
         assert (again.out / name).read_bytes() == data
