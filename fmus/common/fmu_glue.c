@@ -493,11 +493,18 @@ static int nonlinear_part(const Instance *inst, const double y[], double out[]) 
 /* C = A B for m x m matrices (m <= MAX_AUGMENTED); C may not alias A or B. */
 static void matrix_product(size_t m, double A[][MAX_AUGMENTED], double B[][MAX_AUGMENTED],
                            double C[][MAX_AUGMENTED]) {
-    size_t i, j, k;
+    /* The terms of a zero A[i][k] are left out: with B finite each is +-0, and a sum that
+     * starts at +0.0 is never -0.0, so adding +-0 leaves it unchanged. The other terms are
+     * added in the same order as the full product's, so C is the same bit for bit; the
+     * augmented matrices are mostly zeros (W: one block and shifted identities). */
+    size_t i, j, t, n, nonzero[MAX_AUGMENTED];
     for (i = 0; i < m; i++) {
+        n = 0;
+        for (t = 0; t < m; t++)
+            if (A[i][t] != 0.0) nonzero[n++] = t;
         for (j = 0; j < m; j++) {
             double sum = 0.0;
-            for (k = 0; k < m; k++) sum += A[i][k] * B[k][j];
+            for (t = 0; t < n; t++) sum += A[i][nonzero[t]] * B[nonzero[t]][j];
             C[i][j] = sum;
         }
     }
