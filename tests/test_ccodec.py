@@ -39,6 +39,9 @@ BO_ 256 Offsets: 8 Rig
  SG_ trim : 28|8@1- (1,-3) [-100|100] "" Rig
  SG_ gain : 36|20@1+ (0.001,0) [0|1000] "" Rig
  SG_ steps : 56|8@1+ (4,2) [2|1000] "" Rig
+BO_ 257 Wrapping: 2 Rig
+ SG_ counter : 0|8@1- (1,0) [-128|127] "" Rig
+ SG_ frame_index : 8|8@1+ (1,0) [0|255] "" Rig
 """
 
 module = ccodec.load()
@@ -108,7 +111,8 @@ def _codecs() -> list[tuple[str, _Codec]]:
         codec = _Codec(message)
         codecs.append((message.name, codec))
     database = cantools.database.load_string(OFFSET_DBC, strict=True)
-    codecs.append(("Offsets", _Codec(database.get_message_by_name("Offsets"))))
+    for name in ("Offsets", "Wrapping"):  # offsets; a signed counter wrapping at 128
+        codecs.append((name, _Codec(database.get_message_by_name(name))))
     return codecs
 
 
@@ -201,21 +205,22 @@ def test_c_decoding_builds_the_frames_the_python_codec_builds() -> None:
 @needs_c
 def test_c_decoding_follows_python_types_through_scales_and_offsets() -> None:
     """Int scale and offset (exact ints), float scale with an int offset, int scale with a
-    float offset: floats, ints and bools from one payload as the generated unpacker makes them."""
+    float offset, into float, int and bool fields (int(v) truncates a float towards zero):
+    the frames the generated unpacker makes."""
 
     @dataclasses.dataclass(frozen=True)
     class Offsets:
         temperature: float
-        level: float
-        trim: int
-        gain: bool
+        level: int
+        trim: bool
+        gain: int
         steps: float
 
     _fast_init(Offsets)
     assert Offsets in _PLAIN
     database = cantools.database.load_string(OFFSET_DBC, strict=True)
     codec = _Codec(database.get_message_by_name("Offsets"))
-    converters = {"temperature": float, "level": float, "trim": _to_int, "gain": _to_bool}
+    converters = {"temperature": float, "level": _to_int, "trim": _to_bool, "gain": _to_int}
     ftype = FrameType("Offsets", Offsets, None, {**converters, "steps": float})
     fast = codec.unpacker(ftype, None)
     python = codec._compile_unpack(ftype, None)
