@@ -390,19 +390,7 @@ class _Codec:
             capsule = self.c_encoder = module.compile_encoder(self.length, plan)
         except (ValueError, TypeError, OverflowError):
             return make()
-        c_pack = module.pack
-        python: Callable[[Mapping[str, Any]], bytes] | None = None
-
-        def pack(values: Mapping[str, Any]) -> bytes:
-            nonlocal python
-            data: bytes | None = c_pack(capsule, values)
-            if data is None:
-                if python is None:
-                    python = make()
-                return python(values)
-            return data
-
-        return pack
+        return _c_first(module.pack, capsule, make)
 
     def _with_c_decoder(
         self, make: Callable[[], Callable[[Data], Any]], ftype: FrameType, index: int | None
@@ -433,19 +421,7 @@ class _Codec:
         except (ValueError, TypeError, OverflowError):
             return make()
         self.c_decoders[(ftype.cls, index)] = capsule
-        c_unpack = module.unpack
-        python: Callable[[Data], Any] | None = None
-
-        def unpack(data: Data) -> Any:
-            nonlocal python
-            frame = c_unpack(capsule, data)
-            if frame is None:
-                if python is None:
-                    python = make()
-                return python(data)
-            return frame
-
-        return unpack
+        return _c_first(module.unpack, capsule, make)
 
     def _missing(self, name: str) -> FrameError:
         return _frame_error(self.message, f"no value for signal {name}")
@@ -594,6 +570,25 @@ class _Codec:
         lines.append(f"    return _cls({', '.join(arguments)})")
         exec("\n".join(lines), space)  # noqa: S102 - code built above from the DBC's integers
         return space["unpack"]  # type: ignore[no-any-return]
+
+
+def _c_first(
+    c_call: Callable[[Any, Any], Any], capsule: Any, make: Callable[[], Callable[[Any], Any]]
+) -> Callable[[Any], Any]:
+    """`c_call(capsule, x)` (C codec's pack or unpack), or where it returns None (not the plain
+    case) the Python codec's function that `make` compiles on that first need."""
+    python: Callable[[Any], Any] | None = None
+
+    def call(x: Any) -> Any:
+        nonlocal python
+        out = c_call(capsule, x)
+        if out is None:
+            if python is None:
+                python = make()
+            return python(x)
+        return out
+
+    return call
 
 
 @dataclass(frozen=True)

@@ -28,21 +28,17 @@ from controllers.protocol import (
     _to_bool,
     _to_int,
 )
+from tests import test_protocol
 
-OFFSET_DBC = """VERSION ""
-NS_ :
-BS_:
-BU_: Rig
-BO_ 256 Offsets: 8 Rig
- SG_ temperature : 0|16@1- (0.01,-40) [-100|250] "degC" Rig
- SG_ level : 16|12@1+ (0.5,10.5) [10.5|2000] "mm" Rig
- SG_ trim : 28|8@1- (1,-3) [-100|100] "" Rig
- SG_ gain : 36|20@1+ (0.001,0) [0|1000] "" Rig
- SG_ steps : 56|8@1+ (4,2) [2|1000] "" Rig
+# test_protocol's DBC with offsets, a signal with an int scale and offset added to its message
+OFFSET_DBC = (
+    test_protocol.OFFSET_DBC
+    + """ SG_ steps : 56|8@1+ (4,2) [2|1000] "" Rig
 BO_ 257 Wrapping: 2 Rig
  SG_ counter : 0|8@1- (1,0) [-128|127] "" Rig
  SG_ frame_index : 8|8@1+ (1,0) [0|255] "" Rig
 """
+)
 
 module = ccodec.load()
 needs_c = pytest.mark.skipif(module is None, reason=f"no C codec here: {ccodec.failure()}")

@@ -14,15 +14,11 @@ import pytest
 
 from hil.bus.binary import SofthilBus
 from hil.bus.hosted import HostedBus
-from tests.helpers import blocking_sockets_time_out
-
-TIMEOUT = 10.0  # upper bound of any single wait; never reached when things work
-
-
-@pytest.fixture(autouse=True)
-def _guard_blocking_sockets() -> Iterator[None]:
-    with blocking_sockets_time_out(TIMEOUT):
-        yield
+from tests.test_binary_bus import (  # noqa: F401 - the autouse guard applies here too
+    TIMEOUT,
+    _guard_blocking_sockets,
+    frames,
+)
 
 
 @pytest.fixture
@@ -61,16 +57,6 @@ def binary_client(port: int) -> can.BusABC:
 
 def ascii_client(port: int) -> can.BusABC:
     return can.Bus(interface="socketcand", channel="sim0", host="127.0.0.1", port=port)
-
-
-def frames(rng: random.Random, n: int) -> list[can.Message]:
-    out = []
-    for i in range(n):
-        extended = rng.random() < 0.5
-        can_id = rng.randrange(0x20000000 if extended else 0x800)
-        data = bytes(rng.randrange(256) for _ in range(i % 9))
-        out.append(can.Message(arbitration_id=can_id, is_extended_id=extended, data=data))
-    return out
 
 
 def key(message: can.Message | None) -> tuple[int, bool, bytes]:
