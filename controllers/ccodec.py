@@ -25,6 +25,7 @@ import subprocess
 import sys
 import sysconfig
 import tempfile
+import threading
 from pathlib import Path
 from types import ModuleType
 
@@ -46,6 +47,7 @@ ENV = "SOFTHIL_CODEC"  # "python": never use the C codec
 _log = logging.getLogger(__name__)
 _module: ModuleType | None = None
 _failure: str | None = None  # why the C codec is not available, once tried
+_lock = threading.Lock()  # one build and one load, whichever thread asks first
 
 
 def _include() -> str:
@@ -87,6 +89,13 @@ def _build(target: Path) -> None:
 
 def load() -> ModuleType | None:
     """The C codec module, built if needed; None if it cannot be (why: `failure()`)."""
+    if _module is not None or _failure is not None:
+        return _module
+    with _lock:
+        return _load()
+
+
+def _load() -> ModuleType | None:
     global _module, _failure  # noqa: PLW0603 - the loaded module is immutable code, loaded once
     if _module is not None or _failure is not None:
         return _module
@@ -105,7 +114,8 @@ def load() -> ModuleType | None:
             _module = _import(target)
     except (OSError, ImportError) as exc:
         _failure = str(exc)
-        _log.info("the DBC codec runs in Python: %s", exc)
+        # unexpected where the README's install holds (gcc and Python's headers): say so once
+        _log.warning("the DBC codec runs in Python only (slower, same frames): %s", exc)
     return _module
 
 
