@@ -138,6 +138,7 @@ def _fast_init(cls: type) -> None:
 # the frame classes `_fast_init` handled: an instance is its fields in its dict, nothing more,
 # so the C decoder may build one as cls.__new__(cls) and a dict (`_Codec.unpacker`)
 _PLAIN: set[type] = set()
+_UNSEEN: Any = object()  # a frame class `Protocol._entry_of` has not met yet
 
 
 @dataclass(frozen=True)
@@ -627,6 +628,10 @@ class Protocol:
         self._by_key: dict[tuple[str, int | None], _Entry] = {}
         # the typed frames' generated decoders by CAN id, filled as ids are first decoded
         self._unpackers: dict[int, Callable[[Data], Frame]] = {}
+        # `_entry_of`'s memory: the index field of each typed frame class met, and the entry
+        # of each (class, int index) met
+        self._index_fields: dict[type, str | None] = {}
+        self._typed: dict[tuple[type, Any], _Entry] = {}
         for message in database.messages:
             match = _NAME.match(message.name)
             assert match is not None  # the pattern matches every string
@@ -692,18 +697,33 @@ class Protocol:
         return self._entry_of(frame).message.name
 
     def _entry_of(self, frame: Frame) -> _Entry:
+        # a typed frame met before, by its class and its index as given (an int index: a value
+        # equal to it, such as 3.0 or True, is the index int() makes of it, the same entry)
+        cls = type(frame)
+        field = self._index_fields.get(cls, _UNSEEN)
+        if field is not _UNSEEN:
+            try:
+                entry = self._typed.get((cls, None if field is None else getattr(frame, field)))
+            except TypeError:  # an unhashable index: the checks below say what is wrong
+                entry = None
+            if entry is not None:
+                return entry
         if isinstance(frame, GenericFrame):
             kind, index = frame.kind, frame.index
         else:
-            ftype = _REGISTRY.get(getattr(type(frame), "kind", ""))
+            ftype = _REGISTRY.get(getattr(cls, "kind", ""))
             if ftype is None or not isinstance(frame, ftype.cls):
-                raise FrameError(f"{type(frame).__name__} is not a registered frame type")
+                raise FrameError(f"{cls.__name__} is not a registered frame type")
             kind = ftype.kind
-            index = None if ftype.index_field is None else int(getattr(frame, ftype.index_field))
+            given = None if ftype.index_field is None else getattr(frame, ftype.index_field)
+            index = None if ftype.index_field is None else int(given)
         entry = self._by_key.get((kind, index))
         if entry is None:
             name = kind if index is None else f"{kind}{index}"
             raise FrameError(f"{name}: no such frame in the DBC (index out of range)")
+        if not isinstance(frame, GenericFrame) and (index is None or type(given) is int):
+            self._index_fields[cls] = ftype.index_field
+            self._typed[(cls, given)] = entry
         return entry
 
     # ------------------------------------------------------------------ encode / decode

@@ -694,3 +694,24 @@ def test_exact_multiples_of_a_scale_encode_to_their_integer(protocol: Protocol) 
         assert data == message.encode(
             {"piston_setpoint": value, "enable": 1, "counter": 0}, strict=True
         )
+
+
+def test_a_frame_finds_its_message_the_same_way_the_second_time() -> None:
+    """`Protocol.encode` remembers the message of a typed frame class and int index; a frame
+    met later with an index equal to it, or one int() turns into it, or a bad one, gets what a
+    fresh protocol gives it: the same bytes, or the same error."""
+    values = dict(piston_position=0.0123, p_a=1230.0, p_b=-4560.0, fault=0x12, counter=0xC7)
+    indices: list[object] = [3, 3, 3.0, True, np.int64(4), 4.5, "5", 9, 0, -1, None, [3], 2**70]
+    warm = Protocol()
+    for index in indices:
+        outcomes = []
+        for protocol in (warm, Protocol()):
+            try:
+                message = protocol.encode(DriveStatus(index, **values))  # type: ignore[arg-type]
+                outcomes.append((message.arbitration_id, bytes(message.data)))
+            except (FrameError, TypeError, ValueError, OverflowError) as exc:
+                outcomes.append((type(exc).__name__, str(exc)))
+        assert outcomes[0] == outcomes[1], index
+    assert warm.encode(DriveStatus(3.0, **values)).arbitration_id == 0x183  # type: ignore[arg-type]
+    with pytest.raises(FrameError, match=r"DriveStatus9: no such frame"):
+        warm.encode(DriveStatus(9, **values))
