@@ -27,6 +27,7 @@ Invariant: an estimate depends only on the sequence of `update` calls (bit-ident
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 from collections.abc import Iterable, Mapping, Sequence
@@ -344,8 +345,8 @@ class SegmentKalmanEstimator(_LatencyFilter):
     ) -> tuple[np.ndarray, np.ndarray]:
         # the filters' prediction x = F x + G u, P = F P F' + Q, batched over the segments
         F, G, Q = (np.stack(m) for m in zip(*(d(dt) for d in self.discretisers), strict=True))
-        x = np.einsum("nij,nj->ni", F, x) + G * u[:, np.newaxis]
-        P = np.einsum("nij,njk,nlk->nil", F, P, F) + Q
+        x = _einsum("nij,nj->ni", F, x) + G * u[:, np.newaxis]
+        P = _einsum("nij,njk,nlk->nil", F, P, F) + Q
         return x, P
 
     def _correct(
@@ -468,15 +469,15 @@ class ArmUnscentedEstimator(_LatencyFilter):
         The PCC chain of `controllers.kinematics.forward` in its chord form (chord L sinc(theta/2)
         along the start heading plus theta/2), vectorised over the sigma points."""
         theta = states[:, : self.segments]
-        start = self.base[2] + np.cumsum(theta, axis=1) - theta
+        start = self.base[2] + theta.cumsum(axis=1) - theta
         half = 0.5 * theta
         direction = start + half
         straight = half == 0.0
         safe = np.where(straight, 1.0, half)
         chord = self.lengths * np.where(straight, 1.0, np.sin(safe) / safe)
         ends = np.empty((*theta.shape, 2))
-        ends[..., 0] = self.base[0] + np.cumsum(chord * np.cos(direction), axis=1)
-        ends[..., 1] = self.base[1] + np.cumsum(chord * np.sin(direction), axis=1)
+        ends[..., 0] = self.base[0] + (chord * np.cos(direction)).cumsum(axis=1)
+        ends[..., 1] = self.base[1] + (chord * np.sin(direction)).cumsum(axis=1)
         return ends
 
     def _markers(self, state: np.ndarray, which: np.ndarray) -> np.ndarray:
@@ -498,7 +499,7 @@ class ArmUnscentedEstimator(_LatencyFilter):
         self, x: np.ndarray, P: np.ndarray, points: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray, int, int]:
         seen = ~np.isnan(points).any(axis=1)
-        visible = np.flatnonzero(seen[1:]) + 1
+        visible = seen[1:].nonzero()[0] + 1
         if visible.size == 0:
             return x, P, 0, 0
         Wm, Wc = self.points_fn.Wm, self.points_fn.Wc
@@ -509,9 +510,9 @@ class ArmUnscentedEstimator(_LatencyFilter):
         # once: the blocks' entries and the Mahalanobis distance in closed form
         d = (predicted - zp).reshape(len(sigmas), visible.size, 2)
         weighted = d * Wc[:, np.newaxis, np.newaxis]
-        s00 = np.einsum("sk,sk->k", weighted[..., 0], d[..., 0]) + self.sigma**2
-        s01 = np.einsum("sk,sk->k", weighted[..., 0], d[..., 1])
-        s11 = np.einsum("sk,sk->k", weighted[..., 1], d[..., 1]) + self.sigma**2
+        s00 = _einsum("sk,sk->k", weighted[..., 0], d[..., 0]) + self.sigma**2
+        s01 = _einsum("sk,sk->k", weighted[..., 0], d[..., 1])
+        s11 = _einsum("sk,sk->k", weighted[..., 1], d[..., 1]) + self.sigma**2
         r = points[visible] - zp.reshape(visible.size, 2)
         distance = (s11 * r[:, 0] ** 2 - 2.0 * s01 * r[:, 0] * r[:, 1] + s00 * r[:, 1] ** 2) / (
             s00 * s11 - s01 * s01
@@ -524,7 +525,7 @@ class ArmUnscentedEstimator(_LatencyFilter):
         # filterpy's UnscentedKalmanFilter.update, inlined on the sigma points already carried
         # through the kinematics for the gate: the unscented transform as filterpy computes it,
         # its cross variance as one product instead of a sum of outer products
-        sigmas_h = predicted[:, np.repeat(keep, 2)]
+        sigmas_h = predicted[:, keep.repeat(2)]
         zp = np.dot(Wm, sigmas_h)
         dz = sigmas_h - zp[np.newaxis, :]
         noise = self._noise.get(which.size)
@@ -546,6 +547,9 @@ class ArmUnscentedEstimator(_LatencyFilter):
 
 _INV: Any = None
 _CHOLESKY: Any = None
+_einsum: Any = np.einsum  # a numpy that keeps c_einsum elsewhere: the public function
+with contextlib.suppress(ImportError):  # what np.einsum calls when not asked to optimise
+    from numpy._core.multiarray import c_einsum as _einsum
 try:  # the kernels behind np.linalg.inv and np.linalg.cholesky: the same LAPACK calls
     from numpy.linalg import _umath_linalg
 

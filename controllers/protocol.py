@@ -708,22 +708,27 @@ class Protocol:
                 entry = None
             if entry is not None:
                 return entry
+        remember: tuple[str | None, Any] | None = None  # (index field, index as given)
         if isinstance(frame, GenericFrame):
             kind, index = frame.kind, frame.index
         else:
             ftype = _REGISTRY.get(getattr(cls, "kind", ""))
             if ftype is None or not isinstance(frame, ftype.cls):
                 raise FrameError(f"{cls.__name__} is not a registered frame type")
-            kind = ftype.kind
-            given = None if ftype.index_field is None else getattr(frame, ftype.index_field)
-            index = None if ftype.index_field is None else int(given)
+            kind, field = ftype.kind, ftype.index_field
+            if field is None:
+                index, remember = None, (None, None)
+            else:
+                given = getattr(frame, field)
+                index = int(given)
+                remember = (field, given) if type(given) is int else None
         entry = self._by_key.get((kind, index))
         if entry is None:
             name = kind if index is None else f"{kind}{index}"
             raise FrameError(f"{name}: no such frame in the DBC (index out of range)")
-        if not isinstance(frame, GenericFrame) and (index is None or type(given) is int):
-            self._index_fields[cls] = ftype.index_field
-            self._typed[(cls, given)] = entry
+        if remember is not None:
+            self._index_fields[cls] = remember[0]
+            self._typed[(cls, remember[1])] = entry
         return entry
 
     # ------------------------------------------------------------------ encode / decode
