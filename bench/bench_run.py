@@ -49,7 +49,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import ctypes
-import hashlib
 import json
 import os
 import statistics
@@ -66,7 +65,7 @@ import numpy as np
 
 from controllers.canbus import BusSpec, open_bus
 from hil.bus.loopback import HubProcess
-from hil.fmu.build import CFLAGS, cache_root, compiler
+from hil.fmu.build import CFLAGS, compile_library
 from hil.fmu.slave import FmuSlave
 from hil.master import Connection, FmuParticipant, Master
 from hil.run import RunOptions, run_scenario
@@ -109,19 +108,7 @@ class _Segment(ctypes.Structure):
 def shared_library(stem: str, source: str, flags: Sequence[str]) -> ctypes.CDLL:
     """The C `source` built into a shared library with the package's compiler and `flags`, once
     per compiler, flags and source (cached as `bench/<stem>-<digest>.so` in the cache)."""
-    digest = hashlib.sha256(" ".join((compiler(), *flags)).encode() + source.encode())
-    target = cache_root() / "bench" / f"{stem}-{digest.hexdigest()[:16]}.so"
-    if not target.is_file():
-        target.parent.mkdir(parents=True, exist_ok=True)
-        code = target.with_suffix(f".{os.getpid()}.c")
-        work = target.with_suffix(f".{os.getpid()}.tmp")
-        code.write_text(source)
-        try:
-            subprocess.run([compiler(), *flags, str(code), "-o", str(work)], check=True)
-        finally:
-            code.unlink()
-        os.replace(work, target)
-    return ctypes.CDLL(str(target))
+    return ctypes.CDLL(str(compile_library("bench", stem, source, flags)))
 
 
 def pure_loop_library() -> ctypes.CDLL:

@@ -15,16 +15,12 @@ Python ABI, and loaded from there. Without a compiler or the headers, or with
 
 from __future__ import annotations
 
-import hashlib
 import importlib.machinery
 import importlib.util
 import logging
 import os
-import shutil
-import subprocess
 import sys
 import sysconfig
-import tempfile
 import threading
 from pathlib import Path
 from types import ModuleType
@@ -54,37 +50,18 @@ def _include() -> str:
     return sysconfig.get_paths()["include"]
 
 
-def _target() -> Path:
-    from hil.fmu.build import cache_root, compiler
+def _build() -> Path:
+    """The module in the softhil cache, compiled if it is not there (BuildError if it cannot
+    be: no compiler, no Python.h, a compiler error)."""
+    from hil.errors import BuildError
+    from hil.fmu.build import compile_library
 
-    h = hashlib.sha256()
-    h.update(" ".join((compiler(), *FLAGS, _include(), sys.version, sys.platform)).encode())
-    h.update(SOURCE.read_bytes())
-    suffix = (importlib.machinery.EXTENSION_SUFFIXES or [".so"])[0]
-    return cache_root() / "codec" / f"ccodec-{h.hexdigest()[:16]}{suffix}"
-
-
-def _build(target: Path) -> None:
-    from hil.fmu.build import compiler
-
-    cc = compiler()
-    if shutil.which(cc) is None:
-        raise OSError(f"C compiler {cc!r} not found")
     if not (Path(_include()) / "Python.h").is_file():
-        raise OSError(f"no Python.h in {_include()} (install the Python headers)")
-    target.parent.mkdir(parents=True, exist_ok=True)
-    fd, work = tempfile.mkstemp(prefix=".ccodec-", suffix=".so", dir=target.parent)
-    os.close(fd)
-    try:
-        command = [cc, *FLAGS, f"-I{_include()}", str(SOURCE), "-o", work]
-        result = subprocess.run(command, capture_output=True, text=True)
-        if result.returncode != 0:
-            first = (result.stderr.strip().splitlines() or ["(no output)"])[0]
-            raise OSError(f"compiling {SOURCE.name} failed: {first}")
-        os.replace(work, target)  # atomic: a concurrent build of the same digest is identical
-    finally:
-        if os.path.exists(work):
-            os.unlink(work)
+        raise BuildError(f"no Python.h in {_include()} (install the Python headers)")
+    suffix = (importlib.machinery.EXTENSION_SUFFIXES or [".so"])[0]
+    flags = (*FLAGS, f"-I{_include()}")
+    salt = f"{sys.version} {sys.platform}"  # the ABI it is built for
+    return compile_library("codec", "ccodec", SOURCE, flags, salt=salt, suffix=suffix)
 
 
 def load() -> ModuleType | None:
@@ -102,17 +79,16 @@ def _load() -> ModuleType | None:
     if os.environ.get(ENV, "").strip().lower() == "python":
         _failure = f"{ENV}=python"
         return None
+    from hil.errors import BuildError
+
     try:
-        target = _target()
-        if target.is_file():
-            try:
-                _module = _import(target)
-            except ImportError:  # a damaged cache entry: built again below
-                target.unlink()
-        if _module is None:
-            _build(target)
+        target = _build()
+        try:
             _module = _import(target)
-    except (OSError, ImportError) as exc:
+        except ImportError:  # a damaged cache entry: built again
+            target.unlink()
+            _module = _import(_build())
+    except (BuildError, OSError, ImportError) as exc:
         _failure = str(exc)
         # unexpected where the README's install holds (gcc and Python's headers): say so once
         _log.warning("the DBC codec runs in Python only (slower, same frames): %s", exc)

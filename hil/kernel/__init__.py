@@ -14,17 +14,12 @@ the same arguments, so every value is bit-identical (tests/test_kernel.py checks
 from __future__ import annotations
 
 import ctypes
-import hashlib
-import os
-import shutil
-import subprocess
-import tempfile
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from hil.errors import BuildError, FmuError
-from hil.fmu.build import CFLAGS, cache_root, compiler
+from hil.errors import FmuError
+from hil.fmu.build import CFLAGS, compile_library
 from hil.fmu.slave import FmuSlave
 
 SOURCE = Path(__file__).with_name("kernel.c")
@@ -91,36 +86,12 @@ class _Failure(ctypes.Structure):
     ]
 
 
-def kernel_digest() -> str:
-    h = hashlib.sha256()
-    h.update(" ".join((compiler(), *KERNEL_CFLAGS)).encode())
-    h.update(Path(__file__).read_bytes())
-    h.update(SOURCE.read_bytes())
-    return h.hexdigest()
-
-
 def build_kernel() -> Path:
-    """The kernel's shared library, built once per source digest into the user cache."""
-    target = cache_root() / "kernel" / f"kernel-{kernel_digest()[:16]}.so"
-    if target.is_file():
-        return target
-    cc = compiler()
-    if shutil.which(cc) is None:
-        raise BuildError(f"C compiler {cc!r} not found: install gcc or set CC")
-    target.parent.mkdir(parents=True, exist_ok=True)
-    fd, work = tempfile.mkstemp(prefix=".kernel-", suffix=".so", dir=target.parent)
-    os.close(fd)
-    try:
-        command = [cc, *KERNEL_CFLAGS, str(SOURCE), "-o", work]
-        result = subprocess.run(command, capture_output=True, text=True)
-        if result.returncode != 0:
-            tail = result.stderr.strip().splitlines()[:1] or ["(no output)"]
-            raise BuildError(f"compiling {SOURCE} failed: {tail[0]}")
-        os.replace(work, target)  # atomic: a concurrent build of the same digest is identical
-    finally:
-        if os.path.exists(work):
-            os.unlink(work)
-    return target
+    """The kernel's shared library, built once per source (and this file, which lays out its
+    plan) into the user cache."""
+    return compile_library(
+        "kernel", "kernel", SOURCE, KERNEL_CFLAGS, salt=Path(__file__).read_text()
+    )
 
 
 _library: ctypes.CDLL | None = None
