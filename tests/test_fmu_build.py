@@ -24,7 +24,7 @@ from fmpy.validation import validate_fmu
 import fmus
 from hil.errors import BuildError, FmuError
 from hil.fmu import build as build_module
-from hil.fmu.build import build_fmu
+from hil.fmu.build import build_fmu, compile_library
 from hil.fmu.slave import FmuSlave
 from hil.fmu.spec import load_spec
 
@@ -240,3 +240,25 @@ def test_do_step_error_names_both_communication_points() -> None:
         slave.do_step(0.0, 1e-3)
         with pytest.raises(FmuError, match="communication point 0.5 but the FMU is at 0.001"):
             slave.do_step(0.5, 1e-3)
+
+
+def test_compiled_libraries_are_cached_by_compiler_flags_salt_and_source(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """`compile_library` (the kernel, the C codec, the benchmarks): built once per compiler,
+    flags, salt and source; a compiler error is one BuildError line and leaves nothing behind."""
+    monkeypatch.setenv("SOFTHIL_CACHE_DIR", str(tmp_path))
+    code = "int answer(void) { return 42; }\n"
+    flags = ("-O2", "-fPIC", "-shared")
+    built = compile_library("t", "lib", code, flags)
+    assert compile_library("t", "lib", code, flags) == built  # reused
+    others = {
+        compile_library("t", "lib", code, flags, salt="abi"),
+        compile_library("t", "lib", code + "\n", flags),
+        compile_library("t", "lib", code, (*flags, "-O1")),
+    }
+    assert built not in others and len(others) == 3
+    assert ctypes.CDLL(str(built)).answer() == 42
+    with pytest.raises(BuildError, match=r"compiling lib\.c failed: .*error"):
+        compile_library("t", "lib", "int broken(", flags)
+    assert not list((tmp_path / "t").glob(".lib-*"))  # no private build left over
