@@ -18,7 +18,8 @@ with the kernel (and, for 1 segment, with SOFTHIL_KERNEL=0), as real-time factor
 to the pure-C loop of the same segments. The separate process speaks softhil's binary records
 to the hub the plant hosts in its own thread (the default); rows "hub process" and "hub thread"
 run the hub as a child process (SOFTHIL_HUB=process) or a thread of the plant
-(SOFTHIL_HUB=thread) instead, the alternatives it was chosen over.
+(SOFTHIL_HUB=thread) instead, the alternatives it was chosen over; row "no busy poll" runs the
+default with SOFTHIL_BUSY_POLL=0 (both processes sleep in select at once when they wait).
 Before all that, the transport alone: the round trip of one frame from this process through the
 hub (a child process) to an echoing peer process and back, for socketcand's ASCII and for the
 binary records, in microseconds (median of --repeat batches). For 6 segments in-process the
@@ -204,10 +205,18 @@ def fmpy_alone(segments: int, ticks: int, h: float) -> float:
         return time.perf_counter() - start
 
 
-def full_run(scenario: Scenario, inprocess: bool, kernel: bool, hub: str = "plant") -> float:
+def full_run(
+    scenario: Scenario,
+    inprocess: bool,
+    kernel: bool,
+    hub: str = "plant",
+    busy_poll: str | None = None,
+) -> float:
     previous = os.environ.get("SOFTHIL_KERNEL")
     os.environ["SOFTHIL_KERNEL"] = "1" if kernel else "0"
     os.environ["SOFTHIL_HUB"] = hub
+    if busy_poll is not None:
+        os.environ["SOFTHIL_BUSY_POLL"] = busy_poll
     try:
         with tempfile.TemporaryDirectory() as out:
             result = run_scenario(
@@ -220,6 +229,7 @@ def full_run(scenario: Scenario, inprocess: bool, kernel: bool, hub: str = "plan
         else:
             os.environ["SOFTHIL_KERNEL"] = previous
         del os.environ["SOFTHIL_HUB"]
+        os.environ.pop("SOFTHIL_BUSY_POLL", None)
 
 
 def round_trip(kind: str, frames: int, repeat: int) -> float:
@@ -617,22 +627,23 @@ def main() -> int:
         for n in SEGMENTS:
             arm = budget_scenario(scenario, args.seconds, n)
             base = rows[str(n)]["pure C"]["wall_time"] / ticks  # per macro step, n segments
-            variants = [(True, "plant", True, None), (False, "plant", True, None)]
-            variants += [(False, "plant", False, None)] if n == 1 else []
-            variants += [(False, "process", True, None), (False, "thread", True, None)]
+            variants = [(True, "plant", True, None, None), (False, "plant", True, None, None)]
+            variants += [(False, "plant", False, None, None)] if n == 1 else []
+            variants += [(False, "plant", True, None, "0")]
+            variants += [(False, "process", True, None, None), (False, "thread", True, None, None)]
             # the estimator's share: the same loop with the cheaper estimators
-            variants += [(True, "plant", True, e) for e in ("raw", "kf")] if n == 6 else []
-            for inprocess, hub, kernel, estimator in variants:
+            variants += [(True, "plant", True, e, None) for e in ("raw", "kf")] if n == 6 else []
+            for inprocess, hub, kernel, estimator, busy_poll in variants:
                 name = "hil run --inprocess" if inprocess else "hil run (separate process)"
                 name += "" if kernel else " SOFTHIL_KERNEL=0"
                 name += "" if hub == "plant" or inprocess else f", hub {hub}"
                 name += f", estimator {estimator}" if estimator else ""
+                name += ", no busy poll" if busy_poll == "0" else ""
                 run = arm
                 if estimator:
                     run = replace(arm, controller=replace(arm.controller, estimator=estimator))
-                wall = median(
-                    args.repeat, lambda i=inprocess, k=kernel, a=run, b=hub: full_run(a, i, k, b)
-                )
+                case = (run, inprocess, kernel, hub, busy_poll)
+                wall = median(args.repeat, lambda c=case: full_run(*c))
                 ratio = wall / (base * round(duration / h))
                 closed[f"{name} / {n}"] = {
                     "segments": n,

@@ -1,9 +1,10 @@
 """Opening a CAN bus through python-can from a short spec string, the same way on both sides.
 
 Specs:
-- `softhil[:[HOST:]PORT]`: the inter-process hub that `hil` serves on 127.0.0.1, reached with
-  softhil's binary records (`hil.bus.binary`, python-can interface `softhil`); what `hil run`
-  gives its plant and controller.
+- `softhil[:[HOST:]PORT][,busy_poll=SECONDS]`: the inter-process hub that `hil` serves on
+  127.0.0.1, reached with softhil's binary records (`hil.bus.binary`, python-can interface
+  `softhil`); what `hil run` gives its plant and controller. `busy_poll`: how long a receive
+  polls before it sleeps (`SofthilBus`).
 - `loopback[:[HOST:]PORT]`: the same hub, reached with python-can's `socketcand` client (ASCII;
   what tools that know only socketcand use). No kernel CAN support needed for either.
 - `virtual[:CHANNEL]`: python-can's in-process bus (one process only).
@@ -27,6 +28,7 @@ import can
 DEFAULT_CHANNEL = "softhil"
 DEFAULT_LOOPBACK_PORT = 29536
 HUB_KINDS = ("softhil", "loopback")  # the hub's two protocols: binary records, socketcand
+HUB_OPTIONS = {"softhil": ("busy_poll",), "loopback": ()}  # what each hub client takes
 OUR_KINDS = ("loopback", "virtual", "config", "softhil")
 KINDS = (*OUR_KINDS, *sorted(can.interfaces.VALID_INTERFACES - set(OUR_KINDS)))
 
@@ -52,6 +54,16 @@ class BusSpec:
         if kind == "virtual":
             return cls("virtual", rest or DEFAULT_CHANNEL)
         if kind in HUB_KINDS:
+            rest, *pairs = rest.split(",")
+            options = _options(text, pairs)
+            allowed = HUB_OPTIONS[kind]
+            for key, _ in options:
+                if key not in allowed:
+                    raise ValueError(
+                        f"bus spec {text!r}: {kind} takes "
+                        + (f"only {', '.join(allowed)}" if allowed else "no options")
+                        + f", not {key!r}"
+                    )
             host, _, port_text = rest.rpartition(":")
             if not port_text:
                 port = DEFAULT_LOOPBACK_PORT
@@ -62,7 +74,7 @@ class BusSpec:
                     raise ValueError(f"bus spec {text!r}: port must be an integer") from None
             if not 1 <= port <= 65535:
                 raise ValueError(f"bus spec {text!r}: port must be 1..65535, got {port}")
-            return cls(kind, DEFAULT_CHANNEL, host or "127.0.0.1", port)
+            return cls(kind, DEFAULT_CHANNEL, host or "127.0.0.1", port, options)
         if kind == "config":
             return cls("config", None)
         if kind not in can.interfaces.VALID_INTERFACES:
@@ -71,21 +83,26 @@ class BusSpec:
                 f"python-can interface ({', '.join(KINDS[3:])})"
             )
         channel, *pairs = rest.split(",") if rest else [""]
-        options = []
-        for pair in pairs:
-            key, sep, value = pair.partition("=")
-            if not sep or not key:
-                raise ValueError(f"bus spec {text!r}: options are key=value, got {pair!r}")
-            options.append((key, value))
-        return cls(kind, channel or None, options=tuple(options))
+        return cls(kind, channel or None, options=_options(text, pairs))
 
     def __str__(self) -> str:
+        extra = "".join(f",{k}={v}" for k, v in self.options)
         if self.kind in HUB_KINDS:
-            return f"{self.kind}:{self.host}:{self.port}"
+            return f"{self.kind}:{self.host}:{self.port}{extra}"
         if self.kind == "config":
             return "config"
-        extra = "".join(f",{k}={v}" for k, v in self.options)
         return f"{self.kind}:{self.channel or ''}{extra}"
+
+
+def _options(text: str, pairs: Sequence[str]) -> tuple[tuple[str, str], ...]:
+    """The ``key=value`` options of spec `text`; ValueError naming it otherwise."""
+    options = []
+    for pair in pairs:
+        key, sep, value = pair.partition("=")
+        if not sep or not key:
+            raise ValueError(f"bus spec {text!r}: options are key=value, got {pair!r}")
+        options.append((key, value))
+    return tuple(options)
 
 
 def _option(value: str) -> object:
@@ -110,7 +127,10 @@ def open_bus(spec: BusSpec, timeout: float = 2.0) -> can.BusABC:
             from hil.bus.binary import SofthilBus
 
             return SofthilBus(
-                f"{spec.host}:{spec.port}", bus_name=spec.channel, connect_timeout=timeout
+                f"{spec.host}:{spec.port}",
+                bus_name=spec.channel,
+                connect_timeout=timeout,
+                **dict(spec.options),
             )
         if spec.kind == "loopback":
             # the client logs a warning each time a TCP read ends inside a frame (not news), and

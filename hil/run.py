@@ -40,6 +40,7 @@ from controllers.node import (
 )
 from controllers.protocol import Protocol
 from hil.animation import check_format
+from hil.bus.binary import busy_poll_seconds
 from hil.bus.direct import direct_pair
 from hil.bus.hosted import HostedBus
 from hil.bus.loopback import HubProcess, LoopbackHub
@@ -357,24 +358,48 @@ def _bus_specs(
         # our own hub: plant and controller speak its binary records (the ASCII socketcand
         # protocol stays open on the same port for tools); the hub runs where SOFTHIL_HUB says
         mode = os.environ.get("SOFTHIL_HUB", "plant")
-        port, hosted = _serve_hub(spec.host, spec.channel, mode, stack)
-        spec = replace(spec, kind="softhil", port=port)
+        busy_poll = _busy_poll(mode, options)
+        port, hosted = _serve_hub(spec.host, spec.channel, mode, busy_poll, stack)
+        extra = (("busy_poll", f"{busy_poll:g}"),) if busy_poll else ()
+        spec = replace(spec, kind="softhil", port=port, options=extra)
         return spec, spec, hosted, mode
     return spec, spec, None, None
 
 
 HUB_MODES = ("plant", "process", "thread")
+# [s] how long the plant and the controller poll the run's own hub before they sleep, when the
+# plant hosts it: each waits for the other once a SYNC, mostly for less than this, and waking
+# a sleeping process costs hundreds of microseconds on a virtual machine (6 segments across
+# processes, 2 cores: 3.8-5.0x real time -> 6.1-9.3x; 0.3 ms helped one run in three)
+BUSY_POLL = 0.002
+
+
+def _busy_poll(mode: str, options: RunOptions) -> float:
+    """The busy-poll budget [s] of the run's own hub clients: SOFTHIL_BUSY_POLL if set, else
+    BUSY_POLL when the plant hosts the hub, the run is not paced by the wall clock, and this
+    process may use two cores or more (the two processes then poll on cores of their own);
+    else 0 (a thread or child-process hub shares the cores with both)."""
+    text = os.environ.get("SOFTHIL_BUSY_POLL")
+    if text is not None:
+        try:
+            return busy_poll_seconds(text)
+        except ValueError as exc:
+            raise HilError(f"SOFTHIL_BUSY_POLL: {exc}") from None
+    if mode != "plant" or options.realtime:
+        return 0.0
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    return BUSY_POLL if (cores or 1) >= 2 else 0.0
 
 
 def _serve_hub(
-    host: str, channel: str, mode: str, stack: ExitStack
+    host: str, channel: str, mode: str, busy_poll: float, stack: ExitStack
 ) -> tuple[int, HostedBus | None]:
     """Start a hub for this run: its port, and the plant's bus if the plant hosts it.
     ``plant`` (the default): the plant's own bus is the hub (`hil.bus.hosted`), one hop and
     one process fewer each way; ``process``: a child process; ``thread``: a thread of this
     process (both measured against it in bench/bench_run.py)."""
     if mode == "plant":
-        bus = HostedBus(channel, host)
+        bus = HostedBus(channel, host, busy_poll=busy_poll)
         stack.callback(bus.shutdown)
         return bus.port, bus
     if mode == "process":

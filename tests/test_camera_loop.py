@@ -175,8 +175,11 @@ def test_every_estimator_is_deterministic_in_process_and_across_processes(
             monkeypatch.setenv("SOFTHIL_HUB", "process")
         else:
             monkeypatch.delenv("SOFTHIL_HUB", raising=False)  # the default: the plant hosts it
+            # and both processes busy-poll (on by default with two cores or more)
+            monkeypatch.setenv("SOFTHIL_BUSY_POLL", "0.001")
         other = run(path, tmp_path / "c", process=True, bus=bus)
     assert other.summary["bus"].startswith("loopback:" if bus else "softhil:")
+    assert other.summary["bus"].endswith(",busy_poll=0.001") == (transport == "binary")
     hubs = {"socketcand": None, "binary-thread-hub": "thread", "binary-hub-process": "process"}
     assert other.summary["hub"] == hubs.get(transport, "plant")  # the plant hosts it by default
     assert first.summary["hub"] is None  # in-process: no hub at all

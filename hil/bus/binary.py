@@ -32,6 +32,7 @@ length-prefixed stream cannot be resynchronised.
 from __future__ import annotations
 
 import contextlib
+import math
 import select
 import socket
 import time
@@ -54,7 +55,7 @@ from hil.bus.wire import (
     hello,
 )
 
-__all__ = ["SofthilBus", "classic_data", "parse_channel"]
+__all__ = ["SofthilBus", "busy_poll_seconds", "classic_data", "parse_channel"]
 
 _RECV_SIZE = 256 * 1024
 
@@ -74,6 +75,23 @@ def classic_data(msg: can.Message) -> bytes:
             f"softhil bus: frame 0x{can_id:X} has {len(data)} bytes or an id out of range"
         )
     return data
+
+
+MAX_BUSY_POLL = 1.0  # [s] a budget beyond a second is a mistake (it would be one core lost)
+
+
+def busy_poll_seconds(value: object) -> float:
+    """A receive's busy-poll budget [s] (see `SofthilBus`): a number, or text such as
+    ``"0.002"``, in 0..MAX_BUSY_POLL; ValueError naming it otherwise."""
+    try:
+        seconds = float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        seconds = math.nan
+    if not 0.0 <= seconds <= MAX_BUSY_POLL:  # also NaN
+        raise ValueError(
+            f"softhil busy_poll {value!r}: expected seconds in 0..{MAX_BUSY_POLL:g} (e.g. 0.002)"
+        )
+    return seconds
 
 
 def parse_channel(channel: object) -> tuple[str, int]:
@@ -132,6 +150,13 @@ class SofthilBus(can.BusABC):
         Seconds to connect and complete the handshake before `can.CanInitializationError`.
     can_filters
         python-can's filters, applied in software.
+    busy_poll
+        Seconds a receive polls the socket without sleeping before it waits in ``select``
+        (0, the default: it sleeps at once). Waking a sleeping process costs from tens to
+        hundreds of microseconds, more on a virtual machine; a peer that answers within the
+        budget is read as soon as its frames land. Worth it only with a core to spare: it
+        burns its own core for up to that long per receive (`hil run` sets it for its
+        controller when the plant hosts the hub on a machine with two cores or more).
     **kwargs
         Passed to `can.BusABC`.
 
@@ -139,7 +164,8 @@ class SofthilBus(can.BusABC):
     ------
     can.CanInitializationError
         Nothing listens, the listener is not a softhil hub, or the hub refused the client
-        (its reason, e.g. ``too many clients``, is in the message).
+        (its reason, e.g. ``too many clients``, is in the message); a `busy_poll` that is not
+        a number of seconds in 0..1.
     """
 
     def __init__(
@@ -148,10 +174,12 @@ class SofthilBus(can.BusABC):
         bus_name: str = "softhil",
         connect_timeout: float = 2.0,
         can_filters: can.typechecking.CanFilters | None = None,
+        busy_poll: float = 0.0,
         **kwargs: Any,
     ) -> None:
         try:
             host, port = parse_channel(channel)
+            self._busy_poll = busy_poll_seconds(busy_poll)
         except ValueError as exc:
             raise can.CanInitializationError(str(exc)) from None
         where = f"{host}:{port}"
@@ -209,6 +237,11 @@ class SofthilBus(can.BusABC):
         super().__init__(channel=where, can_filters=can_filters, **kwargs)
 
     @property
+    def busy_poll(self) -> float:
+        """Seconds a receive polls before it sleeps (0: at once)."""
+        return self._busy_poll
+
+    @property
     def closed(self) -> bool:
         """Whether the hub closed the connection (or the bus was shut down)."""
         return self._closed
@@ -246,14 +279,19 @@ class SofthilBus(can.BusABC):
         message = self._next()
         if message is not None:
             return message, False
-        deadline = None if timeout is None else time.monotonic() + timeout
+        now = time.monotonic()
+        deadline = None if timeout is None else now + timeout
+        busy_until = now + self._busy_poll  # see busy_poll: no select before then
         while True:
             try:
                 data = self._sock.recv(_RECV_SIZE, socket.MSG_DONTWAIT)
             except BlockingIOError:
-                remaining = None if deadline is None else deadline - time.monotonic()
+                now = time.monotonic()
+                remaining = None if deadline is None else deadline - now
                 if remaining is not None and remaining <= 0:
                     return None, False
+                if now < busy_until:
+                    continue
                 ready, _, _ = select.select([self._sock], [], [], remaining)
                 if not ready:
                     return None, False

@@ -13,6 +13,11 @@ steps its physics, frames from the controller and tools wait in the sockets' buf
 Everything the hub guarantees holds: one order of frames for every member, no loss for a
 connected client, the same limits. The hub stamps the frames it forwards with its receive time,
 as before; the plant logs simulation time.
+
+With `busy_poll` a receive turns the hub without sleeping for up to that long before it waits
+in ``select`` (see `hil.bus.binary.SofthilBus`): across processes the plant and the controller
+each wait for the other once a SYNC, and on a virtual machine a sleeping process takes hundreds
+of microseconds to wake.
 """
 
 from __future__ import annotations
@@ -22,13 +27,14 @@ from collections.abc import Sequence
 
 import can
 
-from hil.bus.binary import classic_data
+from hil.bus.binary import busy_poll_seconds, classic_data
 from hil.bus.loopback import DEFAULT_HANDSHAKE_GRACE, LoopbackHub
 
 
 class HostedBus(can.BusABC):
     """A python-can bus that is a loopback hub's own member of `channel` (see the module
-    docstring); `port` is where the other members connect."""
+    docstring); `port` is where the other members connect. `busy_poll`: seconds a receive
+    turns the hub without sleeping (ValueError outside 0..1 s)."""
 
     def __init__(
         self,
@@ -36,13 +42,20 @@ class HostedBus(can.BusABC):
         host: str = "127.0.0.1",
         *,
         handshake_grace: float = DEFAULT_HANDSHAKE_GRACE,
+        busy_poll: float = 0.0,
         **kwargs: object,
     ) -> None:
+        self._busy_poll = busy_poll_seconds(busy_poll)
         self.hub = LoopbackHub(host, handshake_grace=handshake_grace)
         self._member = self.hub.host(channel)
         self.channel_info = f"softhil hub hosted on {host}:{self.hub.port}, channel {channel}"
         self.closed = False
         super().__init__(channel=channel, **kwargs)  # type: ignore[arg-type]
+
+    @property
+    def busy_poll(self) -> float:
+        """Seconds a receive polls before it sleeps (0: at once)."""
+        return self._busy_poll
 
     @property
     def port(self) -> int:
@@ -64,16 +77,19 @@ class HostedBus(can.BusABC):
         if not inbox:
             if self.closed:
                 raise can.CanOperationError("softhil bus: the hosted hub is shut down")
-            deadline = None if timeout is None else time.monotonic() + timeout
-            remaining = timeout
+            now = time.monotonic()
+            deadline = None if timeout is None else now + timeout
+            busy_until = now + self._busy_poll
             while True:
-                self.hub.poll(remaining)
+                if now < busy_until:
+                    self.hub.poll(0.0)  # busy_poll: turn the hub without sleeping
+                else:
+                    self.hub.poll(None if deadline is None else max(0.0, deadline - now))
                 if inbox:
                     break
-                if deadline is not None:
-                    remaining = deadline - time.monotonic()
-                    if remaining <= 0.0:
-                        return None, False
+                now = time.monotonic()
+                if deadline is not None and now >= deadline:
+                    return None, False
         can_id, extended, data, stamp = inbox.popleft()
         message = can.Message(
             timestamp=stamp,
