@@ -8,8 +8,9 @@ payload whose index matches) and returns None for anything else, which the Pytho
 encodes or rejects with the error it always gave: results and errors are the same bit for bit.
 
 The module is compiled with `$CC` (or gcc) against this Python's headers into the softhil cache
-(`hil.fmu.build.cache_root`), keyed by a digest of the source, the flags, the compiler and the
-Python ABI, and loaded from there. Without a compiler or the headers, or with
+(`controllers.cbuild`, shared with the plant's kernel: the controller never imports `hil`),
+keyed by a digest of the source, the flags, the compiler and the Python ABI, and loaded from
+there. Without a compiler or the headers, or with
 ``SOFTHIL_CODEC=python``, the Python codec does everything (`available()` says which).
 """
 
@@ -24,6 +25,8 @@ import sysconfig
 import threading
 from pathlib import Path
 from types import ModuleType
+
+from controllers.cbuild import CompileError, compile_library
 
 SOURCE = Path(__file__).with_name("_ccodec.c")
 MODULE = "_softhil_ccodec"
@@ -51,13 +54,10 @@ def _include() -> str:
 
 
 def _build() -> Path:
-    """The module in the softhil cache, compiled if it is not there (BuildError if it cannot
+    """The module in the softhil cache, compiled if it is not there (CompileError if it cannot
     be: no compiler, no Python.h, a compiler error)."""
-    from hil.errors import BuildError
-    from hil.fmu.build import compile_library
-
     if not (Path(_include()) / "Python.h").is_file():
-        raise BuildError(f"no Python.h in {_include()} (install the Python headers)")
+        raise CompileError(f"no Python.h in {_include()} (install the Python headers)")
     suffix = (importlib.machinery.EXTENSION_SUFFIXES or [".so"])[0]
     flags = (*FLAGS, f"-I{_include()}")
     salt = f"{sys.version} {sys.platform}"  # the ABI it is built for
@@ -79,8 +79,6 @@ def _load() -> ModuleType | None:
     if os.environ.get(ENV, "").strip().lower() == "python":
         _failure = f"{ENV}=python"
         return None
-    from hil.errors import BuildError
-
     try:
         target = _build()
         try:
@@ -88,7 +86,7 @@ def _load() -> ModuleType | None:
         except ImportError:  # a damaged cache entry: built again
             target.unlink()
             _module = _import(_build())
-    except (BuildError, OSError, ImportError) as exc:
+    except (CompileError, OSError, ImportError) as exc:
         _failure = str(exc)
         # unexpected where the README's install holds (gcc and Python's headers): say so once
         _log.warning("the DBC codec runs in Python only (slower, same frames): %s", exc)

@@ -34,6 +34,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import fmus
+from controllers import cbuild
+from controllers.cbuild import cache_root, compiler
 from hil.errors import BuildError
 from hil.fmu import spec as spec_module
 from hil.fmu.spec import ModelSpec, generate_header, generate_model_description, guid, load_spec
@@ -63,20 +65,6 @@ class BuiltFmu:
     guid: str
 
 
-def cache_root() -> Path:
-    """Per-user cache: $SOFTHIL_CACHE_DIR, else $XDG_CACHE_HOME/softhil, else ~/.cache/softhil."""
-    explicit = os.environ.get("SOFTHIL_CACHE_DIR")
-    if explicit:
-        return Path(explicit)
-    xdg = os.environ.get("XDG_CACHE_HOME")
-    return (Path(xdg) if xdg else Path.home() / ".cache") / "softhil"
-
-
-def compiler() -> str:
-    """The C compiler command: $CC or gcc."""
-    return os.environ.get("CC", "gcc")
-
-
 def compile_library(
     kind: str,
     stem: str,
@@ -86,35 +74,12 @@ def compile_library(
     salt: str = "",
     suffix: str = ".so",
 ) -> Path:
-    """A shared library compiled from one C `source` (a file, or the code itself) with
-    `compiler()` and `flags`, once per compiler, flags, source and `salt` (whatever else the
-    library depends on): `<cache>/<kind>/<stem>-<digest><suffix>`, built in a private file and
-    renamed into place, so concurrent builds of the same digest never see a half-written file.
-    BuildError, with the compiler's first line, if it cannot be built."""
-    code = source.read_text() if isinstance(source, Path) else source
-    cc = compiler()
-    h = hashlib.sha256(" ".join((cc, *flags)).encode())
-    h.update(salt.encode())
-    h.update(code.encode())
-    target = cache_root() / kind / f"{stem}-{h.hexdigest()[:16]}{suffix}"
-    if target.is_file():
-        return target
-    if shutil.which(cc) is None:
-        raise BuildError(f"C compiler {cc!r} not found: install gcc or set CC")
-    target.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryDirectory(prefix=f".{stem}-", dir=target.parent) as work:
-        c_file = source if isinstance(source, Path) else Path(work) / f"{stem}.c"
-        if not isinstance(source, Path):
-            c_file.write_text(code)
-        built = Path(work) / f"{stem}{suffix}"
-        result = subprocess.run(
-            [cc, *flags, str(c_file), "-o", str(built)], capture_output=True, text=True
-        )
-        if result.returncode != 0:
-            first = (result.stderr.strip().splitlines() or ["(no output)"])[0]
-            raise BuildError(f"compiling {c_file.name} failed: {first}")
-        os.replace(built, target)  # atomic: a concurrent build of the same digest is identical
-    return target
+    """`controllers.cbuild.compile_library` (a C file compiled into a cached shared library),
+    its failure raised as BuildError."""
+    try:
+        return cbuild.compile_library(kind, stem, source, flags, salt=salt, suffix=suffix)
+    except cbuild.CompileError as exc:
+        raise BuildError(str(exc)) from None
 
 
 def model_folder(name: str) -> Path:

@@ -1,0 +1,76 @@
+"""Compiling one C file into a shared library in softhil's per-user cache, the same way for the
+plant's stepping kernel (`hil.kernel`), the controller's DBC codec (`controllers.ccodec`) and the
+benchmarks. It lives here, not in `hil`, because the controller never imports `hil`; `hil` uses
+it through `hil.fmu.build`, which raises its own BuildError.
+
+Invariant: a library's file name carries a digest of everything it is built from (compiler,
+flags, salt, source), and it appears in the cache only whole (built privately, renamed in).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import shutil
+import subprocess
+import tempfile
+from collections.abc import Sequence
+from pathlib import Path
+
+
+class CompileError(RuntimeError):
+    """A C file could not be compiled; the message has the compiler's first line."""
+
+
+def cache_root() -> Path:
+    """Per-user cache: $SOFTHIL_CACHE_DIR, else $XDG_CACHE_HOME/softhil, else ~/.cache/softhil."""
+    explicit = os.environ.get("SOFTHIL_CACHE_DIR")
+    if explicit:
+        return Path(explicit)
+    xdg = os.environ.get("XDG_CACHE_HOME")
+    return (Path(xdg) if xdg else Path.home() / ".cache") / "softhil"
+
+
+def compiler() -> str:
+    """The C compiler command: $CC or gcc."""
+    return os.environ.get("CC", "gcc")
+
+
+def compile_library(
+    kind: str,
+    stem: str,
+    source: Path | str,
+    flags: Sequence[str],
+    *,
+    salt: str = "",
+    suffix: str = ".so",
+) -> Path:
+    """A shared library compiled from one C `source` (a file, or the code itself) with
+    `compiler()` and `flags`, once per compiler, flags, source and `salt` (whatever else the
+    library depends on): `<cache>/<kind>/<stem>-<digest><suffix>`, built in a private file and
+    renamed into place, so concurrent builds of the same digest never see a half-written file.
+    CompileError, with the compiler's first line, if it cannot be built."""
+    code = source.read_text() if isinstance(source, Path) else source
+    cc = compiler()
+    h = hashlib.sha256(" ".join((cc, *flags)).encode())
+    h.update(salt.encode())
+    h.update(code.encode())
+    target = cache_root() / kind / f"{stem}-{h.hexdigest()[:16]}{suffix}"
+    if target.is_file():
+        return target
+    if shutil.which(cc) is None:
+        raise CompileError(f"C compiler {cc!r} not found: install gcc or set CC")
+    target.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(prefix=f".{stem}-", dir=target.parent) as work:
+        c_file = source if isinstance(source, Path) else Path(work) / f"{stem}.c"
+        if not isinstance(source, Path):
+            c_file.write_text(code)
+        built = Path(work) / f"{stem}{suffix}"
+        result = subprocess.run(
+            [cc, *flags, str(c_file), "-o", str(built)], capture_output=True, text=True
+        )
+        if result.returncode != 0:
+            first = (result.stderr.strip().splitlines() or ["(no output)"])[0]
+            raise CompileError(f"compiling {c_file.name} failed: {first}")
+        os.replace(built, target)  # atomic: a concurrent build of the same digest is identical
+    return target
