@@ -17,6 +17,7 @@ import can
 import pytest
 
 import hil.bus.binary as binary_module
+import hil.bus.hosted as hosted_module
 from controllers.canbus import BusOpenError, BusSpec, open_bus
 from hil import run as run_module
 from hil.bus.binary import SofthilBus, busy_poll_seconds
@@ -58,6 +59,19 @@ def count_selects(monkeypatch: pytest.MonkeyPatch) -> list[float | None]:
     return calls
 
 
+def count_yields(monkeypatch: pytest.MonkeyPatch, module: types.ModuleType) -> list[None]:
+    """Every os.sched_yield that `module` makes from now on."""
+    calls: list[None] = []
+
+    def counting() -> None:
+        calls.append(None)
+        os.sched_yield()
+
+    fake_os = types.SimpleNamespace(**{**vars(os), "sched_yield": counting})
+    monkeypatch.setattr(module, "os", fake_os)
+    return calls
+
+
 @pytest.mark.parametrize("budget", [0.0, 0.9])
 def test_a_busy_polling_softhil_bus_reads_a_late_frame_without_sleeping(
     hub: LoopbackHub, monkeypatch: pytest.MonkeyPatch, budget: float
@@ -68,12 +82,15 @@ def test_a_busy_polling_softhil_bus_reads_a_late_frame_without_sleeping(
         joined(hub, 2)
         assert receiver.busy_poll == budget
         selects = count_selects(monkeypatch)
+        yields = count_yields(monkeypatch, binary_module)
         timer = later(0.1, lambda: sender.send(FRAME))
         message = receiver.recv(TIMEOUT)
         timer.join()
         assert message is not None and bytes(message.data) == b"\x01\x02"
-        # within its budget the bus never sleeps in select; without one it sleeps at once
+        # within its budget the bus never sleeps in select, and it yields the core as it polls;
+        # without one it sleeps at once
         assert (selects == []) == (budget > 0.0), selects
+        assert (yields != []) == (budget > 0.0)
     finally:
         receiver.shutdown()
         sender.shutdown()
@@ -102,7 +119,9 @@ def test_busy_polling_ends_at_the_receive_timeout_and_a_zero_timeout_still_reads
 
 
 @pytest.mark.parametrize("budget", [0.0, 0.9])
-def test_a_busy_polling_hosted_bus_turns_its_hub_without_sleeping(budget: float) -> None:
+def test_a_busy_polling_hosted_bus_turns_its_hub_without_sleeping(
+    budget: float, monkeypatch: pytest.MonkeyPatch
+) -> None:
     hosted = HostedBus("sim0", handshake_grace=0.0, busy_poll=budget)
     try:
         (client,) = connect(hosted, binary_client)
@@ -115,12 +134,14 @@ def test_a_busy_polling_hosted_bus_turns_its_hub_without_sleeping(budget: float)
                 poll(timeout)
 
             hosted.hub.poll = recorded  # type: ignore[method-assign]
+            yields = count_yields(monkeypatch, hosted_module)
             timer = later(0.1, lambda: client.send(FRAME))
             message = hosted.recv(TIMEOUT)
             timer.join()
             assert message is not None and message.arbitration_id == 0x123
             sleeping = [t for t in turns if t != 0.0]
             assert (sleeping == []) == (budget > 0.0), sleeping[:3]
+            assert (yields != []) == (budget > 0.0)
             turns.clear()
             assert hosted.recv(0.05) is None  # the timeout still ends the wait
             assert turns and all(t == 0.0 for t in turns) == (budget > 0.0)

@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import os
 import select
 import socket
 import time
@@ -291,6 +292,7 @@ class SofthilBus(can.BusABC):
                 if remaining is not None and remaining <= 0:
                     return None, False
                 if now < busy_until:
+                    os.sched_yield()  # a process that this one waits for may need the core
                     continue
                 ready, _, _ = select.select([self._sock], [], [], remaining)
                 if not ready:

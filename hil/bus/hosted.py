@@ -22,6 +22,7 @@ of microseconds to wake.
 
 from __future__ import annotations
 
+import os
 import time
 from collections.abc import Sequence
 
@@ -83,6 +84,7 @@ class HostedBus(can.BusABC):
             while True:
                 if now < busy_until:
                     self.hub.poll(0.0)  # busy_poll: turn the hub without sleeping
+                    os.sched_yield()  # a process that this one waits for may need the core
                 else:
                     self.hub.poll(None if deadline is None else max(0.0, deadline - now))
                 if inbox:
