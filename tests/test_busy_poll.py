@@ -143,8 +143,17 @@ def test_a_busy_polling_hosted_bus_turns_its_hub_without_sleeping(
             assert (sleeping == []) == (budget > 0.0), sleeping[:3]
             assert (yields != []) == (budget > 0.0)
             turns.clear()
-            assert hosted.recv(0.05) is None  # the timeout still ends the wait
+            start = time.monotonic()
+            assert hosted.recv(0.05) is None  # the timeout still ends the wait, budget or not
+            assert time.monotonic() - start < 0.5
             assert turns and all(t == 0.0 for t in turns) == (budget > 0.0)
+            client.send(FRAME)  # a zero timeout still turns the hub once, and takes it
+            for _ in range(10_000):
+                message = hosted.recv(0.0)
+                if message is not None:
+                    break
+                time.sleep(0.001)
+            assert message is not None and message.arbitration_id == 0x123
         finally:
             client.shutdown()
     finally:
