@@ -50,6 +50,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import ctypes
+import functools
 import json
 import os
 import statistics
@@ -627,6 +628,8 @@ def main() -> int:
         for n in SEGMENTS:
             arm = budget_scenario(scenario, args.seconds, n)
             base = rows[str(n)]["pure C"]["wall_time"] / ticks  # per macro step, n segments
+            # (in-process, hub, kernel, estimator, SOFTHIL_BUSY_POLL)
+            variants: list[tuple[bool, str, bool, str | None, str | None]]
             variants = [(True, "plant", True, None, None), (False, "plant", True, None, None)]
             variants += [(False, "plant", False, None, None)] if n == 1 else []
             variants += [(False, "plant", True, None, "0")]
@@ -642,8 +645,8 @@ def main() -> int:
                 run = arm
                 if estimator:
                     run = replace(arm, controller=replace(arm.controller, estimator=estimator))
-                case = (run, inprocess, kernel, hub, busy_poll)
-                wall = median(args.repeat, lambda c=case: full_run(*c))
+                case = functools.partial(full_run, run, inprocess, kernel, hub, busy_poll)
+                wall = median(args.repeat, case)
                 ratio = wall / (base * round(duration / h))
                 closed[f"{name} / {n}"] = {
                     "segments": n,

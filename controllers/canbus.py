@@ -128,9 +128,9 @@ def open_bus(spec: BusSpec, timeout: float = 2.0) -> can.BusABC:
 
             return SofthilBus(
                 f"{spec.host}:{spec.port}",
-                bus_name=spec.channel,
+                bus_name=spec.channel or DEFAULT_CHANNEL,
                 connect_timeout=timeout,
-                **dict(spec.options),
+                busy_poll=dict(spec.options).get("busy_poll", 0.0),  # the one option it takes
             )
         if spec.kind == "loopback":
             # the client logs a warning each time a TCP read ends inside a frame (not news), and

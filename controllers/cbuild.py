@@ -44,12 +44,13 @@ def compile_library(
     *,
     salt: str = "",
     suffix: str = ".so",
+    error: type[Exception] = CompileError,
 ) -> Path:
     """A shared library compiled from one C `source` (a file, or the code itself) with
     `compiler()` and `flags`, once per compiler, flags, source and `salt` (whatever else the
     library depends on): `<cache>/<kind>/<stem>-<digest><suffix>`, built in a private file and
     renamed into place, so concurrent builds of the same digest never see a half-written file.
-    CompileError, with the compiler's first line, if it cannot be built."""
+    `error` (CompileError by default), with the compiler's first line, if it cannot be built."""
     code = source.read_text() if isinstance(source, Path) else source
     cc = compiler()
     h = hashlib.sha256(" ".join((cc, *flags)).encode())
@@ -59,7 +60,7 @@ def compile_library(
     if target.is_file():
         return target
     if shutil.which(cc) is None:
-        raise CompileError(f"C compiler {cc!r} not found: install gcc or set CC")
+        raise error(f"C compiler {cc!r} not found: install gcc or set CC")
     target.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(prefix=f".{stem}-", dir=target.parent) as work:
         c_file = source if isinstance(source, Path) else Path(work) / f"{stem}.c"
@@ -71,6 +72,6 @@ def compile_library(
         )
         if result.returncode != 0:
             first = (result.stderr.strip().splitlines() or ["(no output)"])[0]
-            raise CompileError(f"compiling {c_file.name} failed: {first}")
+            raise error(f"compiling {c_file.name} failed: {first}")
         os.replace(built, target)  # atomic: a concurrent build of the same digest is identical
     return target

@@ -72,6 +72,16 @@ def count_yields(monkeypatch: pytest.MonkeyPatch, module: types.ModuleType) -> l
     return calls
 
 
+def received_with_zero_timeouts(bus: can.BusABC) -> can.Message:
+    """The next frame, asked for with a zero timeout until it comes (bounded)."""
+    for _ in range(10_000):
+        message = bus.recv(0.0)
+        if message is not None:
+            return message
+        time.sleep(0.001)
+    raise AssertionError("no frame came")
+
+
 @pytest.mark.parametrize("budget", [0.0, 0.9])
 def test_a_busy_polling_softhil_bus_reads_a_late_frame_without_sleeping(
     hub: LoopbackHub, monkeypatch: pytest.MonkeyPatch, budget: float
@@ -107,12 +117,7 @@ def test_busy_polling_ends_at_the_receive_timeout_and_a_zero_timeout_still_reads
         assert receiver.recv(0.05) is None  # the timeout wins over a longer budget
         assert time.monotonic() - start < 0.9
         sender.send(FRAME)
-        for _ in range(10_000):  # until the hub forwarded it (bounded)
-            message = receiver.recv(0.0)
-            if message is not None:
-                break
-            time.sleep(0.001)
-        assert message is not None and message.arbitration_id == 0x123
+        assert received_with_zero_timeouts(receiver).arbitration_id == 0x123
     finally:
         receiver.shutdown()
         sender.shutdown()
@@ -148,12 +153,7 @@ def test_a_busy_polling_hosted_bus_turns_its_hub_without_sleeping(
             assert time.monotonic() - start < 0.5
             assert turns and all(t == 0.0 for t in turns) == (budget > 0.0)
             client.send(FRAME)  # a zero timeout still turns the hub once, and takes it
-            for _ in range(10_000):
-                message = hosted.recv(0.0)
-                if message is not None:
-                    break
-                time.sleep(0.001)
-            assert message is not None and message.arbitration_id == 0x123
+            assert received_with_zero_timeouts(hosted).arbitration_id == 0x123
         finally:
             client.shutdown()
     finally:

@@ -175,7 +175,7 @@ class SofthilBus(can.BusABC):
         bus_name: str = "softhil",
         connect_timeout: float = 2.0,
         can_filters: can.typechecking.CanFilters | None = None,
-        busy_poll: float = 0.0,
+        busy_poll: float | str = 0.0,
         **kwargs: Any,
     ) -> None:
         try:

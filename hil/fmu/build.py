@@ -21,6 +21,7 @@ flipped bit or a copy that kept its mtime would pass a stat check.
 from __future__ import annotations
 
 import contextlib
+import functools
 import hashlib
 import os
 import re
@@ -29,7 +30,6 @@ import subprocess
 import sys
 import tempfile
 import zipfile
-from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -65,21 +65,8 @@ class BuiltFmu:
     guid: str
 
 
-def compile_library(
-    kind: str,
-    stem: str,
-    source: Path | str,
-    flags: Sequence[str],
-    *,
-    salt: str = "",
-    suffix: str = ".so",
-) -> Path:
-    """`controllers.cbuild.compile_library` (a C file compiled into a cached shared library),
-    its failure raised as BuildError."""
-    try:
-        return cbuild.compile_library(kind, stem, source, flags, salt=salt, suffix=suffix)
-    except cbuild.CompileError as exc:
-        raise BuildError(str(exc)) from None
+# a C file compiled into a cached shared library (`controllers.cbuild`), failing with BuildError
+compile_library = functools.partial(cbuild.compile_library, error=BuildError)
 
 
 def model_folder(name: str) -> Path:
