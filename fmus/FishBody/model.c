@@ -108,6 +108,8 @@ typedef struct {
 typedef struct {
     double complex r, J[N_Q], v, acc_vp;
     double phi, phi_rate, a[N_Q];
+    int n;                  /* J and a are zero from index n on (the pieces beyond the point's) */
+    double complex tangent; /* exp(i phi) */
 } Kinematics;
 
 size_t model_state_size(void) { return sizeof(State); }
@@ -221,6 +223,8 @@ static void tail_point(const Instance *inst, const double q[], const double dq[]
         k->phi_rate -= dq[3 + i];
     }
     k->a[3 + j] = -f;
+    k->n = 4 + j;
+    k->tangent = cexp(I * k->phi);
 }
 
 /* Kinematics of a point of the rigid head at `offset` ahead of the joint (tangent: the heading). */
@@ -240,6 +244,8 @@ static void head_point(const double q[], const double dq[], double offset, Kinem
     k->phi = q[2];
     k->phi_rate = dq[2];
     k->a[2] = 1.0;
+    k->n = 3;
+    k->tangent = cexp(I * k->phi);
 }
 
 static void point_kinematics(const Instance *inst, const Point *p, const double q[],
@@ -253,11 +259,17 @@ static void point_kinematics(const Instance *inst, const Point *p, const double 
 /* Real dot product of two plane vectors written as complex numbers. */
 static double vdot(double complex a, double complex b) { return creal(conj(a) * b); }
 
+/* The mass-matrix terms below skip the coordinates a point does not move with (J and a zero
+ * from k->n on: their terms add zeros, which leave a finite sum as it is) and, unless `full`, the
+ * upper triangle, which the Cholesky factor never reads; the entries they add to are the same
+ * sums in the same order, bit for bit. */
+
 /* Adds the inertia of a full point mass m: M += m J^T J, h += m J^T (J' q'). */
-static void add_point_mass(const Kinematics *k, double m, double M[N_Q][N_Q], double h[N_Q]) {
+static void add_point_mass(const Kinematics *k, double m, double M[N_Q][N_Q], double h[N_Q],
+                           int full) {
     int i, l;
-    for (i = 0; i < N_Q; i++) {
-        for (l = 0; l < N_Q; l++) M[i][l] += m * vdot(k->J[i], k->J[l]);
+    for (i = 0; i < k->n; i++) {
+        for (l = 0; l < (full ? k->n : i + 1); l++) M[i][l] += m * vdot(k->J[i], k->J[l]);
         h[i] += m * vdot(k->J[i], k->acc_vp);
     }
 }
@@ -265,17 +277,17 @@ static void add_point_mass(const Kinematics *k, double m, double M[N_Q][N_Q], do
 /* Adds the inertia of a mass m acting on the velocity along the direction d (turning with the
  * point's tangent, e = dd/dphi): see the header. */
 static void add_projected_mass(const Kinematics *k, double complex d, double complex e, double m,
-                               double M[N_Q][N_Q], double h[N_Q]) {
+                               double M[N_Q][N_Q], double h[N_Q], int full) {
     double b[N_Q], je[N_Q];
     const double w = vdot(d, k->v), ev = vdot(e, k->v);
     const double bdot_q = vdot(d, k->acc_vp) + k->phi_rate * ev;
     int i, l;
-    for (i = 0; i < N_Q; i++) {
+    for (i = 0; i < k->n; i++) {
         b[i] = vdot(d, k->J[i]);
         je[i] = vdot(e, k->J[i]);
     }
-    for (i = 0; i < N_Q; i++) {
-        for (l = 0; l < N_Q; l++) M[i][l] += m * b[i] * b[l];
+    for (i = 0; i < k->n; i++) {
+        for (l = 0; l < (full ? k->n : i + 1); l++) M[i][l] += m * b[i] * b[l];
         h[i] += m * (b[i] * bdot_q + w * (k->phi_rate * je[i] - ev * k->a[i]));
     }
 }
@@ -286,32 +298,50 @@ static void add_force(const Kinematics *k, double complex F, double Q[N_Q]) {
     for (i = 0; i < N_Q; i++) Q[i] += vdot(k->J[i], F);
 }
 
-/* Mass matrix M(q) and velocity-product forces h(q, q') of body, tail and entrained water. */
-static void inertia(const Instance *inst, const double q[], const double dq[], double M[N_Q][N_Q],
-                    double h[N_Q]) {
+/* The kinematics of the head's centroid and of every sample point at (q, q'), computed once
+ * for the inertia and the forces of a state. */
+typedef struct {
+    Kinematics head, points[N_POINTS];
+} Sections;
+
+static void sections(const Instance *inst, const double q[], const double dq[], Sections *k) {
     const State *s = (const State *)inst->state;
-    Kinematics k;
+    int p;
+    head_point(q, dq, V(inst, d_head), &k->head);
+    for (p = 0; p < N_POINTS; p++) point_kinematics(inst, &s->points[p], q, dq, &k->points[p]);
+}
+
+/* Mass matrix M(q) (its lower triangle only unless `full`; the rest is zero) and the
+ * velocity-product forces h(q, q') of body, tail and entrained water. */
+static void inertia(const Instance *inst, const Sections *k, double M[N_Q][N_Q], double h[N_Q],
+                    int full) {
+    const State *s = (const State *)inst->state;
     int i, l, p;
     for (i = 0; i < N_Q; i++) {
         h[i] = 0.0;
         for (l = 0; l < N_Q; l++) M[i][l] = 0.0;
     }
-    head_point(q, dq, V(inst, d_head), &k);
-    add_point_mass(&k, V(inst, m_head), M, h);
+    add_point_mass(&k->head, V(inst, m_head), M, h, full);
     M[2][2] += V(inst, I_head);
     {
-        const double complex t = cexp(I * k.phi);
-        add_projected_mass(&k, t, I * t, V(inst, m_added_surge), M, h);
+        const double complex t = k->head.tangent;
+        add_projected_mass(&k->head, t, I * t, V(inst, m_added_surge), M, h, full);
     }
     for (p = 0; p < N_POINTS; p++) {
         const Point *pt = &s->points[p];
-        point_kinematics(inst, pt, q, dq, &k);
-        {
-            const double complex tan = cexp(I * k.phi), n = I * tan;
-            if (pt->mass > 0.0) add_point_mass(&k, pt->mass, M, h);
-            add_projected_mass(&k, n, -tan, pt->added, M, h);
-        }
+        const Kinematics *kp = &k->points[p];
+        const double complex tan = kp->tangent, n = I * tan;
+        if (pt->mass > 0.0) add_point_mass(kp, pt->mass, M, h, full);
+        add_projected_mass(kp, n, -tan, pt->added, M, h, full);
     }
+}
+
+/* The whole mass matrix and h at (q, q'). */
+static void full_inertia(const Instance *inst, const double q[], const double dq[],
+                         double M[N_Q][N_Q], double h[N_Q]) {
+    Sections k;
+    sections(inst, q, dq, &k);
+    inertia(inst, &k, M, h, 1);
 }
 
 /* Cholesky factor of the symmetric positive definite A (lower triangle in L); 0 if not SPD. */
@@ -412,7 +442,7 @@ static void stop_at_limits(const Instance *inst, const double y[], const double 
 
 /* Generalised forces of gas, elasticity, damping and water on q, and the power they dissipate. */
 static double generalised_forces(const Instance *inst, const double y[], const Channels *c,
-                                 double Q[N_Q]) {
+                                 const Sections *sec, double Q[N_Q]) {
     const State *s = (const State *)inst->state;
     const double *q = &y[Q_X], *dq = &y[DQ_X];
     double power_res = 0.0;
@@ -429,27 +459,22 @@ static double generalised_forces(const Instance *inst, const double y[], const C
     /* resistive-force theory on every section */
     for (p = 0; p < N_POINTS; p++) {
         const Point *pt = &s->points[p];
-        point_kinematics(inst, pt, q, dq, &k);
-        {
-            const double complex t = cexp(I * k.phi), n = I * t;
-            const double w = vdot(n, k.v), u_t = vdot(t, k.v);
-            const double complex F =
-                -pt->c_normal * fabs(w) * w * n - pt->c_tangent * fabs(u_t) * u_t * t;
-            add_force(&k, F, Q);
-            power_res -= vdot(F, k.v);
-        }
+        const Kinematics *kp = &sec->points[p];
+        const double complex t = kp->tangent, n = I * t;
+        const double w = vdot(n, kp->v), u_t = vdot(t, kp->v);
+        const double complex F =
+            -pt->c_normal * fabs(w) * w * n - pt->c_tangent * fabs(u_t) * u_t * t;
+        add_force(kp, F, Q);
+        power_res -= vdot(F, kp->v);
     }
     /* form drag of the head in surge, at its centroid */
     {
         const double c_surge = 0.5 * V(inst, rho_water) * V(inst, Cd_surge) * V(inst, S_front);
-        head_point(q, dq, V(inst, d_head), &k);
-        {
-            const double complex t = cexp(I * k.phi);
-            const double u = vdot(t, k.v);
-            const double complex F = -c_surge * fabs(u) * u * t;
-            add_force(&k, F, Q);
-            power_res -= vdot(F, k.v);
-        }
+        const double complex t = sec->head.tangent;
+        const double u = vdot(t, sec->head.v);
+        const double complex F = -c_surge * fabs(u) * u * t;
+        add_force(&sec->head, F, Q);
+        power_res -= vdot(F, sec->head.v);
     }
     /* the reactive force of the caudal fin at the trailing edge (Lighthill 1971) */
     {
@@ -467,11 +492,11 @@ static double generalised_forces(const Instance *inst, const double y[], const C
 }
 
 /* Accelerations q'' at the state y; 0 if the mass matrix is singular. */
-static int accelerations(const Instance *inst, const double y[], const double Q[N_Q],
-                         double acc[N_Q]) {
+static int accelerations(const Instance *inst, const double y[], const Sections *sec,
+                         const double Q[N_Q], double acc[N_Q]) {
     double M[N_Q][N_Q], L[N_Q][N_Q], h[N_Q];
     int i;
-    inertia(inst, &y[Q_X], &y[DQ_X], M, h);
+    inertia(inst, sec, M, h, 0);
     if (!cholesky((const double(*)[N_Q])M, L)) return 0;
     for (i = 0; i < N_Q; i++) acc[i] = Q[i] - h[i];
     cholesky_solve((const double(*)[N_Q])L, acc);
@@ -484,6 +509,7 @@ int model_derivatives(const Instance *inst, const double y[], double dy[]) {
     const double cv = R / (gamma - 1.0), cp = gamma * cv;
     double Q[N_Q], bend_rate = 0.0;
     Channels c;
+    Sections sec;
     int i, side;
     if (!channel_state(inst, y, &c)) return 0;
     /* gas */
@@ -500,9 +526,10 @@ int model_derivatives(const Instance *inst, const double y[], double dy[]) {
                              m * cv * (T - V(inst, T_wall)) / V(inst, tau_thermal);
     }
     dy[W_GAS] = (c.g[0] - c.g[1]) * bend_rate;
-    dy[E_RES] = generalised_forces(inst, y, &c, Q);
+    sections(inst, &y[Q_X], &y[DQ_X], &sec);
+    dy[E_RES] = generalised_forces(inst, y, &c, &sec, Q);
     for (i = 0; i < N_Q; i++) dy[Q_X + i] = y[DQ_X + i];
-    return accelerations(inst, y, Q, &dy[DQ_X]);
+    return accelerations(inst, y, &sec, Q, &dy[DQ_X]);
 }
 
 double model_time_to_event(const Instance *inst) {
@@ -522,7 +549,7 @@ static double elastic_energy(const Instance *inst, const double y[]) {
 static double kinetic_energy(const Instance *inst, const double y[]) {
     double M[N_Q][N_Q], h[N_Q], e = 0.0;
     int i, l;
-    inertia(inst, &y[Q_X], &y[DQ_X], M, h);
+    full_inertia(inst, &y[Q_X], &y[DQ_X], M, h);
     for (i = 0; i < N_Q; i++)
         for (l = 0; l < N_Q; l++) e += 0.5 * y[DQ_X + i] * M[i][l] * y[DQ_X + l];
     return e;
@@ -681,7 +708,7 @@ static double tail_stability_limit(const Instance *inst, int *ok) {
     double M[N_Q][N_Q], L[N_Q][N_Q], h[N_Q], q[N_Q] = {0}, dq[N_Q] = {0};
     double stiffness = 0.0, damping = 0.0;
     int j;
-    inertia(inst, q, dq, M, h);
+    full_inertia(inst, q, dq, M, h);
     *ok = cholesky((const double(*)[N_Q])M, L);
     if (!*ok) return 0.0;
     for (j = 0; j < N_PIECES; j++) {
