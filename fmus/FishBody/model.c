@@ -199,9 +199,8 @@ static void chain_term(const double q[], const double dq[], int m, double l, dou
     }
 }
 
-/* Kinematics of a point on tail piece j at the fraction f of its length. */
-static void tail_point(const Instance *inst, const double q[], const double dq[], int j, double f,
-                       Kinematics *k) {
+/* The tail chain at the joint, before any piece's chord. */
+static void tail_base(const double q[], const double dq[], Kinematics *k) {
     int i;
     for (i = 0; i < N_Q; i++) {
         k->J[i] = 0.0;
@@ -212,7 +211,13 @@ static void tail_point(const Instance *inst, const double q[], const double dq[]
     k->J[1] = I;
     k->v = dq[0] + I * dq[1];
     k->acc_vp = 0.0;
-    for (i = 0; i < j; i++) chain_term(q, dq, i, piece_length(inst, i), 1.0, k);
+}
+
+/* The point on tail piece j at the fraction f of its length, from k holding the chain through
+ * the pieces before j. */
+static void tail_finish(const Instance *inst, const double q[], const double dq[], int j, double f,
+                        Kinematics *k) {
+    int i;
     chain_term(q, dq, j, f * piece_length(inst, j), f, k);
     k->a[2] = 1.0;
     k->phi = q[2] + PI - f * q[3 + j];
@@ -225,6 +230,15 @@ static void tail_point(const Instance *inst, const double q[], const double dq[]
     k->a[3 + j] = -f;
     k->n = 4 + j;
     k->tangent = cexp(I * k->phi);
+}
+
+/* Kinematics of a point on tail piece j at the fraction f of its length. */
+static void tail_point(const Instance *inst, const double q[], const double dq[], int j, double f,
+                       Kinematics *k) {
+    int i;
+    tail_base(q, dq, k);
+    for (i = 0; i < j; i++) chain_term(q, dq, i, piece_length(inst, i), 1.0, k);
+    tail_finish(inst, q, dq, j, f, k);
 }
 
 /* Kinematics of a point of the rigid head at `offset` ahead of the joint (tangent: the heading). */
@@ -248,16 +262,12 @@ static void head_point(const double q[], const double dq[], double offset, Kinem
     k->tangent = cexp(I * k->phi);
 }
 
-static void point_kinematics(const Instance *inst, const Point *p, const double q[],
-                             const double dq[], Kinematics *k) {
-    if (p->piece < 0)
-        head_point(q, dq, p->offset, k);
-    else
-        tail_point(inst, q, dq, p->piece, p->fraction, k);
+/* Real dot product of two plane vectors written as complex numbers: the real part of conj(a) b
+ * (a_r b_r - (-a_i) b_i, the same double), without the imaginary part and the NaN recovery of a
+ * C99 complex product. */
+static double vdot(double complex a, double complex b) {
+    return creal(a) * creal(b) + cimag(a) * cimag(b);
 }
-
-/* Real dot product of two plane vectors written as complex numbers. */
-static double vdot(double complex a, double complex b) { return creal(conj(a) * b); }
 
 /* The mass-matrix terms below skip the coordinates a point does not move with (J and a zero
  * from k->n on: their terms add zeros, which leave a finite sum as it is) and, unless `full`, the
@@ -306,9 +316,25 @@ typedef struct {
 
 static void sections(const Instance *inst, const double q[], const double dq[], Sections *k) {
     const State *s = (const State *)inst->state;
-    int p;
+    Kinematics chain; /* the tail chain through pieces 0 .. done - 1, shared by later points */
+    int p, done = 0;
     head_point(q, dq, V(inst, d_head), &k->head);
-    for (p = 0; p < N_POINTS; p++) point_kinematics(inst, &s->points[p], q, dq, &k->points[p]);
+    tail_base(q, dq, &chain);
+    for (p = 0; p < N_POINTS; p++) {
+        const Point *pt = &s->points[p];
+        if (pt->piece < 0) {
+            head_point(q, dq, pt->offset, &k->points[p]);
+            continue;
+        }
+        if (pt->piece < done) { /* points out of order: the chain again from the joint */
+            tail_base(q, dq, &chain);
+            done = 0;
+        }
+        for (; done < pt->piece; done++)
+            chain_term(q, dq, done, piece_length(inst, done), 1.0, &chain);
+        k->points[p] = chain;
+        tail_finish(inst, q, dq, pt->piece, pt->fraction, &k->points[p]);
+    }
 }
 
 /* Mass matrix M(q) (its lower triangle only unless `full`; the rest is zero) and the
