@@ -316,24 +316,22 @@ typedef struct {
 
 static void sections(const Instance *inst, const double q[], const double dq[], Sections *k) {
     const State *s = (const State *)inst->state;
-    Kinematics chain; /* the tail chain through pieces 0 .. done - 1, shared by later points */
-    int p, done = 0;
+    Kinematics chain[N_PIECES]; /* chain[j]: the tail chain through pieces 0 .. j - 1 */
+    int p, j;
     head_point(q, dq, V(inst, d_head), &k->head);
-    tail_base(q, dq, &chain);
+    tail_base(q, dq, &chain[0]);
+    for (j = 1; j < N_PIECES; j++) {
+        chain[j] = chain[j - 1];
+        chain_term(q, dq, j - 1, piece_length(inst, j - 1), 1.0, &chain[j]);
+    }
     for (p = 0; p < N_POINTS; p++) {
         const Point *pt = &s->points[p];
         if (pt->piece < 0) {
             head_point(q, dq, pt->offset, &k->points[p]);
-            continue;
+        } else {
+            k->points[p] = chain[pt->piece];
+            tail_finish(inst, q, dq, pt->piece, pt->fraction, &k->points[p]);
         }
-        if (pt->piece < done) { /* points out of order: the chain again from the joint */
-            tail_base(q, dq, &chain);
-            done = 0;
-        }
-        for (; done < pt->piece; done++)
-            chain_term(q, dq, done, piece_length(inst, done), 1.0, &chain);
-        k->points[p] = chain;
-        tail_finish(inst, q, dq, pt->piece, pt->fraction, &k->points[p]);
     }
 }
 
