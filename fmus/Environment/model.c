@@ -392,14 +392,21 @@ typedef struct {
 
 static void add_point_force(ArmForces *out, const Backbone *bb, int q, const double F[2],
                             const double K[2][2], const double C[2][2], double H) {
+    const int last = bb->segment[q];
+    double M[2][2];
     int i, j, a, b;
-    for (i = 0; i <= bb->segment[q]; i++)
-        out->tau[i] += F[0] * bb->J[q][i][0] + F[1] * bb->J[q][i][1];
-    for (i = 0; i <= bb->segment[q]; i++)
-        for (j = 0; j <= bb->segment[q]; j++)
+    for (i = 0; i <= last; i++) out->tau[i] += F[0] * bb->J[q][i][0] + F[1] * bb->J[q][i][1];
+    /* A_ij += sum_ab (J_ia (H K_ab + C_ab)) J_jb, its factors formed once (the same doubles) */
+    for (a = 0; a < 2; a++)
+        for (b = 0; b < 2; b++) M[a][b] = H * K[a][b] + C[a][b];
+    for (i = 0; i <= last; i++) {
+        double row[2][2];
+        for (a = 0; a < 2; a++)
+            for (b = 0; b < 2; b++) row[a][b] = bb->J[q][i][a] * M[a][b];
+        for (j = 0; j <= last; j++)
             for (a = 0; a < 2; a++)
-                for (b = 0; b < 2; b++)
-                    out->A[i][j] += bb->J[q][i][a] * (H * K[a][b] + C[a][b]) * bb->J[q][j][b];
+                for (b = 0; b < 2; b++) out->A[i][j] += row[a][b] * bb->J[q][j][b];
+    }
 }
 
 /* Adds a contact force at point q to its segment's (or finger's) resultant. */
