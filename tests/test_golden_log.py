@@ -14,7 +14,15 @@ import can
 import pytest
 
 from hil.scenario import load_scenario
-from tests.golden import DEFAULT_LOG, DURATION, replay, write_scenario
+from tests.golden import (
+    DEFAULT_LOG,
+    DURATION,
+    PLANT_GOLDENS,
+    plant_golden,
+    replay,
+    write_plant_scenario,
+    write_scenario,
+)
 
 START = 1433116800.0  # 2015-06-01T00:00:00Z, the default log start
 RECEIVED_IDS = {0x080, 0x201, 0x381}  # SYNC, DriveCommand1, ControllerState1: the controller's
@@ -33,6 +41,21 @@ def test_plant_replays_the_golden_log_byte_for_byte(tmp_path: Path) -> None:
     got, want = out.read_text().splitlines(), DEFAULT_LOG.read_text().splitlines()
     assert got == want, first_difference(got, want)
     assert out.read_bytes() == DEFAULT_LOG.read_bytes()
+
+
+@pytest.mark.parametrize("name", sorted(PLANT_GOLDENS))
+def test_plant_replays_the_golden_logs_of_the_other_robots_byte_for_byte(
+    tmp_path: Path, name: str
+) -> None:
+    """The fish's and the gripper arm's FMUs (FishBody, FishValve, GasSource; Environment with
+    table, walls and objects) and device nodes, fed the frames they received, write their log
+    again to the bit."""
+    golden = plant_golden(name)
+    scenario = load_scenario(write_plant_scenario(name, tmp_path))
+    out = replay(golden, scenario, tmp_path)
+    got, want = out.read_text().splitlines(), golden.read_text().splitlines()
+    assert got == want, first_difference(got, want)
+    assert any(line.endswith(" T") for line in want) and any(line.endswith(" R") for line in want)
 
 
 def test_golden_log_is_the_plants_view_of_the_bus() -> None:

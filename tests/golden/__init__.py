@@ -7,9 +7,14 @@ time. `replay` feeds a fresh Plant only the received frames, in the logged order
 virtual bus, and returns the log the plant writes; the test requires it to equal the golden file
 byte for byte.
 
-The golden file changes only on purpose, never in a test run:
+Beside it, `PLANT_GOLDENS` hold the same kind of log for robots with other FMUs (the soft fish;
+the planar arm with gripper, table and objects in the Environment FMU), cut short: replayed the
+same way, they pin the plant's models to the bit, so that a change meant to keep the results
+(an FMU made faster) is checked to keep them.
 
-    python -m tests.golden --regenerate    # then review the diff of tests/golden/default.log
+The golden files change only on purpose, never in a test run:
+
+    python -m tests.golden --regenerate    # then review the diff of tests/golden/*.log
 """
 
 from __future__ import annotations
@@ -34,6 +39,28 @@ DEFAULT_LOG = GOLDEN_DIR / "default.log"
 # the same run in the other formats CAN tools exchange, for the controller replay tests
 FORMATS = (".log", ".asc", ".blf")
 DURATION = 2.0  # [s] of the default scenario: the first step and most of its hold
+SCENARIOS = DEFAULT_SCENARIO.parent
+# name: (shipped scenario, seconds kept); their logs are tests/golden/<name>.log
+PLANT_GOLDENS = {
+    "fish-escape": ("fish-escape.toml", 0.4),
+    "planar-grasp": ("planar-grasp.toml", 1.5),
+}
+
+
+def plant_golden(name: str) -> Path:
+    return GOLDEN_DIR / f"{name}.log"
+
+
+def write_plant_scenario(name: str, folder: Path) -> Path:
+    """Scenario `name` of PLANT_GOLDENS cut to its seconds, written to folder/<name>.toml."""
+    source, seconds = PLANT_GOLDENS[name]
+    lines = (SCENARIOS / source).read_text().splitlines()
+    if not any(line.startswith("duration = ") for line in lines):
+        raise RuntimeError(f"{source} no longer has a duration line: update tests/golden")
+    lines = [f"duration = {seconds}" if line.startswith("duration = ") else line for line in lines]
+    path = folder / f"{name}.toml"
+    path.write_text("\n".join(lines) + "\n")
+    return path
 
 
 def write_scenario(folder: Path) -> Path:
@@ -98,10 +125,20 @@ def replay(log: Path, scenario: Scenario, folder: Path) -> Path:
     return out
 
 
-def regenerate() -> Path:
-    """Rewrite default.log, default.asc and default.blf from fresh in-process runs."""
+def regenerate() -> list[Path]:
+    """Rewrite default.log, default.asc and default.blf and the PLANT_GOLDENS from fresh
+    in-process runs; the files written."""
+    written = []
     with tempfile.TemporaryDirectory() as tmp:
         for suffix in FORMATS:
             log = run_default(Path(tmp), f"can{suffix}")
             DEFAULT_LOG.with_suffix(suffix).write_bytes(log.read_bytes())
-    return DEFAULT_LOG
+            written.append(DEFAULT_LOG.with_suffix(suffix))
+        for name in PLANT_GOLDENS:
+            scenario = load_scenario(write_plant_scenario(name, Path(tmp)))
+            result = run_scenario(
+                scenario, RunOptions(out=Path(tmp) / name, inprocess=True, progress=False)
+            )
+            plant_golden(name).write_bytes((result.out / "can.log").read_bytes())
+            written.append(plant_golden(name))
+    return written

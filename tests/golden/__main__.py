@@ -1,22 +1,22 @@
-"""`python -m tests.golden --regenerate`: rewrite the golden CAN log (then review its diff)."""
+"""`python -m tests.golden --regenerate`: rewrite the golden CAN logs (then review their diff)."""
 
 from __future__ import annotations
 
 import argparse
 
-from tests.golden import DEFAULT_LOG, regenerate
+from tests.golden import regenerate
 
 
 def main() -> int:
     parser = argparse.ArgumentParser(prog="python -m tests.golden", description=__doc__)
     parser.add_argument(
-        "--regenerate", action="store_true", help=f"rewrite {DEFAULT_LOG.name} from a fresh run"
+        "--regenerate", action="store_true", help="rewrite the golden CAN logs from fresh runs"
     )
     args = parser.parse_args()
     if not args.regenerate:
-        parser.error("nothing to do: pass --regenerate to rewrite the golden CAN log")
-    path = regenerate()
-    print(f"wrote {path} ({len(path.read_text().splitlines())} frames); review the diff")
+        parser.error("nothing to do: pass --regenerate to rewrite the golden CAN logs")
+    for path in regenerate():
+        print(f"wrote {path}; review the diff")
     return 0
 
 
