@@ -62,6 +62,7 @@ from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
+from unittest import mock
 
 import numpy as np
 
@@ -213,24 +214,15 @@ def full_run(
     hub: str = "plant",
     busy_poll: str | None = None,
 ) -> float:
-    previous = os.environ.get("SOFTHIL_KERNEL")
-    os.environ["SOFTHIL_KERNEL"] = "1" if kernel else "0"
-    os.environ["SOFTHIL_HUB"] = hub
+    settings = {"SOFTHIL_KERNEL": "1" if kernel else "0", "SOFTHIL_HUB": hub}
     if busy_poll is not None:
-        os.environ["SOFTHIL_BUSY_POLL"] = busy_poll
-    try:
-        with tempfile.TemporaryDirectory() as out:
-            result = run_scenario(
-                scenario, RunOptions(out=Path(out), inprocess=inprocess, progress=False)
-            )
-            return float(result.summary["wall_time"])
-    finally:
-        if previous is None:
-            del os.environ["SOFTHIL_KERNEL"]
-        else:
-            os.environ["SOFTHIL_KERNEL"] = previous
-        del os.environ["SOFTHIL_HUB"]
-        os.environ.pop("SOFTHIL_BUSY_POLL", None)
+        settings["SOFTHIL_BUSY_POLL"] = busy_poll
+    # the environment as it was afterwards, a user's own settings included
+    with mock.patch.dict(os.environ, settings), tempfile.TemporaryDirectory() as out:
+        result = run_scenario(
+            scenario, RunOptions(out=Path(out), inprocess=inprocess, progress=False)
+        )
+        return float(result.summary["wall_time"])
 
 
 def round_trip(kind: str, frames: int, repeat: int) -> float:
