@@ -259,7 +259,7 @@ static void head_point(const double q[], const double dq[], double offset, Kinem
     k->phi_rate = dq[2];
     k->a[2] = 1.0;
     k->n = 3;
-    k->tangent = cexp(I * k->phi);
+    k->tangent = E; /* exp(i phi), phi = q[2]: the same call */
 }
 
 /* Real dot product of two plane vectors written as complex numbers: the real part of conj(a) b
