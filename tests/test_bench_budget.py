@@ -122,3 +122,34 @@ def test_a_short_run_adds_up(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) ->
     frames = len((tmp_path / "run" / "can.csv").read_text().splitlines()) - 1
     assert budget.calls["codec"] == 2 * frames
     assert budget.calls["plant node"] == frames - summary["frames"]["sent"]
+
+
+def test_a_closed_loop_row_leaves_the_environment_as_it_found_it(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """full_run sets SOFTHIL_KERNEL, SOFTHIL_HUB and SOFTHIL_BUSY_POLL for its run only: a
+    user's own setting is there again afterwards, and nothing else is left behind."""
+    import os
+
+    from bench.bench_run import full_run
+    from hil.scenario import DEFAULT_SCENARIO, load_scenario
+
+    monkeypatch.setenv("SOFTHIL_BUSY_POLL", "0.001")
+    monkeypatch.delenv("SOFTHIL_HUB", raising=False)
+    monkeypatch.delenv("SOFTHIL_KERNEL", raising=False)
+    seen: dict[str, str | None] = {}
+
+    import bench.bench_run as bench_module
+
+    real = bench_module.run_scenario
+
+    def spy(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202 - run_scenario's own signature
+        seen.update({k: os.environ.get(k) for k in ("SOFTHIL_BUSY_POLL", "SOFTHIL_HUB")})
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(bench_module, "run_scenario", spy)
+    scenario = budget_scenario(load_scenario(DEFAULT_SCENARIO), 0.05, 1)
+    assert full_run(scenario, True, True, "thread", "0") > 0.0
+    assert seen == {"SOFTHIL_BUSY_POLL": "0", "SOFTHIL_HUB": "thread"}
+    assert os.environ.get("SOFTHIL_BUSY_POLL") == "0.001"
+    assert "SOFTHIL_HUB" not in os.environ and "SOFTHIL_KERNEL" not in os.environ
