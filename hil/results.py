@@ -27,6 +27,49 @@ from hil.errors import HilError
 LOCK = ".softhil.lock"
 MANIFEST = ".softhil-manifest"
 
+# Every file a run may write in its folder, whatever its robot (a plot is one of its robot kind's
+# plot specs or figures, the CAN log one of the can.* names or the one the run was given): a run
+# refuses to replace such a file that its folder's manifest does not name
+RESULT_FILES = (
+    "summary.json",
+    "signals.csv",
+    "signals.units.csv",
+    "signals.mf4",
+    "can.log",
+    "can.asc",
+    "can.blf",
+    "can.trc",
+    "can.csv",
+    "can.mf4",
+    "controller.json",
+    "controller.log",
+    "controller.pid",
+    "controller_report.json",
+    "scenario.toml",
+    "curvature.png",
+    "pressures.png",
+    "piston.png",
+    "estimation.png",
+    "arm.png",
+    "arm.gif",
+    "arm.mp4",
+    "heading.png",
+    "valves.png",
+    "fish.png",
+    "fish.gif",
+    "fish.mp4",
+)
+# what `hil estimate RUN` adds to a run's folder (and to its manifest)
+ESTIMATE_FILES = ("estimation.json", "estimation.png")
+
+
+def is_result_file(name: str) -> bool:
+    """Whether `name` is one of softhil's own result files other than a default CAN log name
+    (can.*), which a CAN log named by the user must not take (compared without case, as some
+    file systems do)."""
+    own = {n.casefold() for n in (*RESULT_FILES, *ESTIMATE_FILES) if not n.startswith("can.")}
+    return name.casefold() in own
+
 
 class WriteError(HilError):
     """A results file could not be written (disk full, permissions): names the file and cause."""

@@ -48,9 +48,9 @@ from hil.devices import HEARTBEAT_PERIOD
 from hil.errors import BusError, HilError, Terminated
 from hil.plant import Plant
 from hil.recording import CanLogger, SignalRecorder
-from hil.results import ResultsFolder, note, write_file
+from hil.results import RESULT_FILES, ResultsFolder, note, write_file
 from hil.robots import robot_kind
-from hil.scenario import LOG_SUFFIXES, Scenario, log_start
+from hil.scenario import Scenario, can_log_problem, log_start
 from hil.summary import read_signals, realtime_failure, summarise
 
 
@@ -97,14 +97,10 @@ def run_scenario(scenario: Scenario, options: RunOptions) -> RunResult:
         mf4=recording.mf4 if options.mf4 is None else options.mf4,
     )
     scenario = replace(scenario, recording=recording)
-    if options.can_log is not None and (
-        not re.fullmatch(r"[A-Za-z0-9_.-]+", options.can_log)
-        or Path(options.can_log).suffix not in LOG_SUFFIXES
-    ):
-        raise HilError(
-            f"--can-log: {options.can_log!r}: a file name (no folder) ending in one of "
-            f"{', '.join(LOG_SUFFIXES)}"
-        )
+    if options.can_log is not None:
+        problem = can_log_problem(options.can_log)
+        if problem is not None:
+            raise HilError(f"--can-log: {problem}")
     if options.animate is not None:  # before anything runs: a format this machine can write
         check_format(options.animate)
     try:
@@ -268,35 +264,6 @@ def _estimation_report(
             yield future.result
         return
     yield lambda: _score_estimators(out)
-
-
-RESULT_FILES = (
-    "summary.json",
-    "signals.csv",
-    "signals.units.csv",
-    "signals.mf4",
-    "can.log",
-    "can.asc",
-    "can.blf",
-    "can.trc",
-    "can.csv",
-    "can.mf4",
-    "controller.json",
-    "controller.log",
-    "controller.pid",
-    "controller_report.json",
-    "scenario.toml",
-    "curvature.png",
-    "pressures.png",
-    "piston.png",
-    "estimation.png",
-    "arm.png",
-    "arm.gif",
-    "arm.mp4",
-    "fish.png",
-    "fish.gif",
-    "fish.mp4",
-)
 
 
 def _scenario_text(scenario: Scenario) -> str:

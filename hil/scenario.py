@@ -25,6 +25,7 @@ from controllers.node import ESTIMATORS, POLICIES
 from controllers.protocol import Protocol
 from controllers.trajectories import CurvatureProfile, Sine
 from hil.errors import HilError, ScenarioError
+from hil.results import is_result_file
 from hil.vision import CameraEffects, check_effects
 
 SCENARIO_FOLDER = Path(str(files("hil") / "scenarios"))  # the built-in scenarios
@@ -468,13 +469,9 @@ def _check(s: Scenario) -> None:
         log_start(s)
     except ValueError as exc:
         raise _fail(file, "recording.start", str(exc)) from None
-    can_log = s.recording.can_log
-    if not _NAME.fullmatch(can_log) or Path(can_log).suffix not in LOG_SUFFIXES:
-        raise _fail(
-            file,
-            "recording.can_log",
-            f"{can_log!r}: a file name ending in one of {', '.join(LOG_SUFFIXES)}",
-        )
+    problem = can_log_problem(s.recording.can_log)
+    if problem is not None:
+        raise _fail(file, "recording.can_log", problem)
     robot = robot_kind(s.robot.kind)
     robot.check(s)
     reach = robot.reach(s)
@@ -522,6 +519,22 @@ def _check(s: Scenario) -> None:
 
 
 LOG_SUFFIXES = (".log", ".asc", ".blf", ".trc", ".csv", ".mf4")
+
+
+def can_log_problem(name: str) -> str | None:
+    """Why `name` cannot be a run's CAN log (None if it can): it must be a plain file name in the
+    results folder, end in a suffix python-can writes, and not be one of softhil's own result
+    files (`signals.csv` would be overwritten by the log, and the signals lost)."""
+    suffix = Path(name).suffix
+    if not _NAME.fullmatch(name) or suffix not in LOG_SUFFIXES:
+        return f"{name!r}: a file name (no folder) ending in one of {', '.join(LOG_SUFFIXES)}"
+    if is_result_file(name):
+        return (
+            f"{name!r} is one of softhil's own result files; name the CAN log otherwise "
+            f"(e.g. can{suffix})"
+        )
+    return None
+
 
 # Bounds of what a run can be asked for (issue 7): a macro step the FMUs' fixed substeps can
 # resolve and that does not spin (1 us .. 100 ms), a control period up to 1 s, at most a day of

@@ -101,6 +101,38 @@ def test_out_never_touches_foreign_files(tmp_path: Path, capsys) -> None:
     assert not (out / hil.results.LOCK).exists()
 
 
+@pytest.mark.parametrize(
+    "name",
+    [
+        "signals.csv",
+        "signals.units.csv",
+        "controller.log",
+        "signals.mf4",
+        "SIGNALS.csv",
+        "logs/can.log",
+        "../can.log",
+    ],
+)
+def test_a_can_log_named_as_a_result_file_is_refused_before_the_run(
+    tmp_path: Path, capsys, name: str
+) -> None:
+    # the CAN log would replace the signals (or the controller's log) the run writes: refused,
+    # on the command line and in the scenario, in one line, before anything is written
+    out = tmp_path / "out"
+    scenario = scenario_file(tmp_path, 0.2)
+    code, lines = run_cli(
+        capsys, str(scenario), "--inprocess", "--out", str(out), "--can-log", name
+    )
+    assert code == 1 and len(lines) == 1
+    assert lines[0].startswith("hil: error: --can-log: ") and repr(name) in lines[0]
+    assert not out.exists()
+    keyed = scenario_file(tmp_path, 0.2, ("[robot]", f'[recording]\ncan_log = "{name}"\n\n[robot]'))
+    code, lines = run_cli(capsys, str(keyed), "--inprocess", "--out", str(out))
+    assert code == 1 and len(lines) == 1
+    assert ": recording.can_log: " in lines[0] and repr(name) in lines[0]
+    assert not out.exists()
+
+
 def test_rerun_into_its_own_folder_keeps_the_input_scenario(tmp_path: Path, capsys) -> None:
     out = tmp_path / "run"
     assert (

@@ -388,3 +388,19 @@ def test_log_start_reads_offsets_and_naive_instants_as_utc(tmp_path: Path) -> No
     assert at("2015-06-01T00:00:00Z") == START
     assert at("2015-06-01T02:00:00+02:00") == START
     assert at("2015-06-01T00:00:00") == START
+
+
+@pytest.mark.parametrize("name", sorted(p.stem for p in DEFAULT_SCENARIO.parent.glob("*.toml")))
+def test_every_file_a_run_writes_is_a_result_file(name: str) -> None:
+    # RESULT_FILES is what --overwrite and a user's --can-log are checked against: every plot,
+    # figure and animation of every robot kind's built-in scenarios must be in it
+    from hil.results import RESULT_FILES
+
+    rig = build_rig(load_scenario(DEFAULT_SCENARIO.parent / f"{name}.toml"))
+    try:
+        names = [f"{spec.name}.png" for spec in rig.plots] + [f"{n}.png" for n, _ in rig.figures]
+        if rig.animation is not None:
+            names += [f"{rig.animation[0]}.{fmt}" for fmt in ("gif", "mp4")]
+    finally:
+        rig.close()
+    assert set(names) <= set(RESULT_FILES)
