@@ -107,11 +107,11 @@ class SignalRecorder:
 
     def write_mf4(self, path: Path) -> None:
         """The signals as an MF4 file (asammdf), with units and comments."""
-        try:
-            import numpy as np
-            from asammdf import MDF, Signal
-        except ImportError:
-            raise HilError("writing MF4 needs asammdf: pip install 'softhil[mf4]'") from None
+        import numpy as np
+
+        require_asammdf(path.name)
+        from asammdf import MDF, Signal
+
         data = np.array(self.table, dtype=float).reshape(-1, len(self.columns))
         t = data[:, 0]
         mdf = MDF(version="4.10")
@@ -123,6 +123,17 @@ class SignalRecorder:
             comment="softhil signals",
         )
         mdf.save(str(path), overwrite=True)
+
+
+def require_asammdf(what: str) -> None:
+    """HilError naming `what` (the flag, key or file asking for MF4) unless asammdf, which writes
+    MF4, can be imported: a run checks it before it starts, not after."""
+    try:
+        import asammdf  # noqa: F401
+    except ImportError:
+        raise HilError(
+            f"{what}: MF4 needs asammdf, which is not installed: pip install asammdf"
+        ) from None
 
 
 _FRAME_BITS = [frame_bits(dlc) for dlc in range(65)]  # by data length (CAN FD: up to 64)
@@ -166,7 +177,7 @@ class CanLogger:
                 self._writer = can.Logger(str(path))  # type: ignore[abstract]
         except OSError as exc:
             raise WriteError(f"{path}: cannot create: {exc.strerror or exc}") from None
-        except ImportError as exc:
+        except (ImportError, NotImplementedError) as exc:  # python-can's MF4 writer: the latter
             raise HilError(f"{path.name}: this log format needs an extra package ({exc})") from None
         except ValueError as exc:
             raise HilError(f"{path.name}: {exc}") from None

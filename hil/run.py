@@ -47,7 +47,7 @@ from hil.bus.loopback import HubProcess, LoopbackHub
 from hil.devices import HEARTBEAT_PERIOD
 from hil.errors import BusError, HilError, Terminated
 from hil.plant import Plant
-from hil.recording import CanLogger, SignalRecorder
+from hil.recording import CanLogger, SignalRecorder, require_asammdf
 from hil.results import RESULT_FILES, ResultsFolder, note, write_file
 from hil.robots import robot_kind
 from hil.scenario import Scenario, can_log_problem, log_start
@@ -101,6 +101,11 @@ def run_scenario(scenario: Scenario, options: RunOptions) -> RunResult:
         problem = can_log_problem(options.can_log)
         if problem is not None:
             raise HilError(f"--can-log: {problem}")
+    source = scenario.source
+    if recording.mf4:  # before anything runs: MF4 needs asammdf
+        require_asammdf("--mf4" if options.mf4 else f"{source}: recording.mf4")
+    if Path(recording.can_log).suffix == ".mf4":
+        require_asammdf("--can-log" if options.can_log else f"{source}: recording.can_log")
     if options.animate is not None:  # before anything runs: a format this machine can write
         check_format(options.animate)
     try:

@@ -233,6 +233,29 @@ def test_signals_as_mf4(tmp_path: Path) -> None:
 
 
 @pytest.mark.parametrize(
+    ("options", "extra", "names"),
+    [
+        ({"mf4": True}, "", "--mf4: "),
+        ({"can_log": "can.mf4"}, "", "--can-log: "),
+        ({}, "\n[recording]\nmf4 = true\n", "s.toml: recording.mf4: "),
+        ({}, '\n[recording]\ncan_log = "run.mf4"\n', "s.toml: recording.can_log: "),
+    ],
+)
+def test_mf4_without_asammdf_fails_before_the_run(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, options: dict, extra: str, names: str
+) -> None:
+    import sys
+
+    monkeypatch.setitem(sys.modules, "asammdf", None)  # as if it were not installed
+    scenario = short_default(tmp_path, extra)
+    with pytest.raises(HilError) as error:
+        run(tmp_path, scenario, "out", **options)
+    message = str(error.value)
+    assert names in message and "MF4 needs asammdf" in message and "pip install asammdf" in message
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize(
     ("text", "expected"),
     [
         ("loopback", BusSpec("loopback", "softhil", "127.0.0.1", 29536)),
