@@ -1,5 +1,6 @@
-"""Tests for controllers.loop_design: the designed loop meets its phase margin at a unit-gain
-crossover, a later estimate forces a slower loop, and the Bode plot is written where asked."""
+"""Tests for controllers.loop_design and `hil tune`: the designed loop meets its phase margin at
+a unit-gain crossover, a later estimate forces a slower loop, and the Bode plot is written where
+asked (a PNG file; anything else is one line naming the path)."""
 
 from __future__ import annotations
 
@@ -63,3 +64,20 @@ def test_bode_png_is_written(tmp_path: Path) -> None:
     path = tmp_path / "bode.png"
     write_bode_png(SegmentModel(), design, path)
     assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def _tune(capsys: pytest.CaptureFixture[str], *argv: str) -> tuple[int, str, list[str]]:
+    from hil.cli import main
+
+    code = main(["tune", *argv])
+    captured = capsys.readouterr()
+    assert "Traceback" not in captured.err
+    return code, captured.out, captured.err.splitlines()
+
+
+def test_hil_tune_of_a_fish_scenario_is_one_line(capsys: pytest.CaptureFixture[str]) -> None:
+    from hil.scenario import SCENARIO_FOLDER
+
+    code, _, lines = _tune(capsys, str(SCENARIO_FOLDER / "fish-escape.toml"))
+    assert code == 1 and len(lines) == 1
+    assert "hil tune applies to planar-arm scenarios" in lines[0] and "'fish'" in lines[0]

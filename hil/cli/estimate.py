@@ -6,6 +6,8 @@ import argparse
 import json
 from pathlib import Path
 
+from hil.errors import HilError
+
 
 def add_parser(commands: argparse._SubParsersAction) -> None:
     from hil.cli import example_parser
@@ -59,6 +61,11 @@ def _tune(args: argparse.Namespace) -> int:
 
     scenario = load_scenario(args.scenario)
     robot = robot_kind(scenario.robot.kind)
+    if not hasattr(robot, "segment_models"):  # the outer curvature loop is the planar arm's
+        raise HilError(
+            f"{scenario.source}: hil tune applies to planar-arm scenarios, not robot kind "
+            f"{scenario.robot.kind!r}"
+        )
     c, T = scenario.controller, scenario.timing.control_period
     delay = effective_delay(estimator_delay(c.estimator, T, c.latency_compensation), T)
     out = args.out or Path(f"tune-{scenario.name}.png")
