@@ -206,5 +206,10 @@ def _plot(
     axes[-1].set_xlabel("time [s]")
     axes[-1].grid(True, alpha=0.3)
     stack_layout(fig)
-    fig.savefig(run / "estimation.png", dpi=100)
-    plt.close(fig)
+    path = run / "estimation.png"
+    try:
+        fig.savefig(path, dpi=100)
+    except OSError as exc:
+        raise HilError(f"{path}: cannot write: {exc.strerror or exc}") from None
+    finally:
+        plt.close(fig)

@@ -50,6 +50,22 @@ def default_run(tmp_path_factory: pytest.TempPathFactory):  # noqa: ANN201
 
 
 @pytest.fixture(scope="module")
+def short_run(tmp_path_factory: pytest.TempPathFactory):  # noqa: ANN201
+    """A 1 s run of the default scenario, for tests that read it or copy its folder."""
+    folder = tmp_path_factory.mktemp("short")
+    return run(scenario(folder, "short", ("duration = 10.0", "duration = 1.0")), folder / "run")
+
+
+def hil_estimate(capsys: pytest.CaptureFixture[str], *argv: str) -> tuple[int, list[str]]:
+    from hil.cli import main
+
+    code = main(["estimate", *argv])
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    return code, err.splitlines()
+
+
+@pytest.fixture(scope="module")
 def ideal_run(tmp_path_factory: pytest.TempPathFactory):  # noqa: ANN201
     folder = tmp_path_factory.mktemp("ideal")
     return run(scenario(folder, "ideal", *IDEAL), folder / "ideal")
@@ -322,3 +338,18 @@ def test_a_failed_report_is_a_warning_and_the_run_stands(
     assert s["status"] == "completed"
     assert s["estimation"] == {"error": "run/can.log: made unreadable"}
     assert "no estimation report: run/can.log: made unreadable" in s["warnings"]
+
+
+@pytest.mark.parametrize("name", ["estimation.json", "estimation.png"])
+def test_hil_estimate_into_a_folder_in_the_way_is_one_line(
+    short_run, tmp_path: Path, capsys: pytest.CaptureFixture[str], name: str
+) -> None:  # noqa: ANN001
+    import shutil
+
+    folder = tmp_path / "run"
+    shutil.copytree(short_run.out, folder)
+    (folder / name).unlink(missing_ok=True)
+    (folder / name).mkdir()
+    code, lines = hil_estimate(capsys, str(folder))
+    assert code == 1 and len(lines) == 1
+    assert lines[0].startswith(f"hil: error: {folder / name}: cannot write: ")

@@ -81,3 +81,22 @@ def test_hil_tune_of_a_fish_scenario_is_one_line(capsys: pytest.CaptureFixture[s
     code, _, lines = _tune(capsys, str(SCENARIO_FOLDER / "fish-escape.toml"))
     assert code == 1 and len(lines) == 1
     assert "hil tune applies to planar-arm scenarios" in lines[0] and "'fish'" in lines[0]
+
+
+def test_hil_tune_out_is_a_png_file_and_its_path_is_printed(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    (tmp_path / "afile").write_text("")
+    (tmp_path / "folder").mkdir()
+    for out, reason in (
+        ("x.txt", "a PNG"),
+        ("afile/x.png", "not a folder"),
+        ("missing/x.png", "no such folder"),
+        ("folder", "is a folder"),
+    ):
+        code, _, lines = _tune(capsys, "--out", str(tmp_path / out))
+        assert code == 1 and len(lines) == 1, out
+        assert f"--out {tmp_path / out}: " in lines[0] and reason in lines[0]
+    code, printed, _ = _tune(capsys, "--out", str(tmp_path / "bode"))
+    assert code == 0 and (tmp_path / "bode.png").read_bytes()[:4] == b"\x89PNG"
+    assert printed.splitlines()[-1].endswith(f": {tmp_path / 'bode.png'}")

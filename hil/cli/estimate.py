@@ -35,9 +35,10 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
 
 def _estimate(args: argparse.Namespace) -> int:
     from hil.estimation import estimation_report
+    from hil.results import write_file
 
     report = estimation_report(args.run, plot=not args.no_plot)
-    (args.run / "estimation.json").write_text(json.dumps(report, indent=2, sort_keys=True) + "\n")
+    write_file(args.run / "estimation.json", json.dumps(report, indent=2, sort_keys=True) + "\n")
     print(f"{args.run}: estimation against the true curvature (controller used {report['chosen']})")
     print("  estimator   rms [1/m]   max [1/m]   gated   update [us]")
     for name in ("raw", "kf", "ukf"):
@@ -68,7 +69,7 @@ def _tune(args: argparse.Namespace) -> int:
         )
     c, T = scenario.controller, scenario.timing.control_period
     delay = effective_delay(estimator_delay(c.estimator, T, c.latency_compensation), T)
-    out = args.out or Path(f"tune-{scenario.name}.png")
+    out = _png_path(args.out) if args.out else Path(f"tune-{scenario.name}.png")
     print(
         f"{scenario.name}: estimator {c.estimator} (latency compensation "
         f"{'on' if c.latency_compensation else 'off'}), effective delay {1e3 * delay:.1f} ms, "
@@ -82,9 +83,28 @@ def _tune(args: argparse.Namespace) -> int:
             f"{design.phase_margin_deg:.1f} deg, gain margin {_decibels(design.gain_margin)}"
         )
         if n == 1:
-            write_bode_png(model, design, out)
+            try:
+                write_bode_png(model, design, out)
+            except OSError as exc:
+                raise HilError(f"--out {out}: cannot write: {exc.strerror or exc}") from None
     print(f"  Bode plot of segment 1: {out}")
     return 0
+
+
+def _png_path(out: Path) -> Path:
+    """The Bode plot's file for --out: a PNG file (".png" added to a name without a suffix) in
+    an existing folder; HilError naming the path otherwise."""
+    if out.is_dir():
+        raise HilError(f"--out {out}: is a folder; name the PNG file (e.g. {out / 'bode.png'})")
+    if not out.suffix:
+        out = out.with_name(out.name + ".png")
+    if out.suffix.lower() != ".png":
+        raise HilError(f"--out {out}: the Bode plot is a PNG; name a .png file")
+    folder = out.parent
+    if not folder.is_dir():
+        reason = "is not a folder" if folder.exists() else "no such folder"
+        raise HilError(f"--out {out}: {folder}: {reason}")
+    return out
 
 
 def _decibels(ratio: float) -> str:
