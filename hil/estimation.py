@@ -12,6 +12,7 @@ the visible markers against the chosen estimate.
 
 from __future__ import annotations
 
+import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -102,11 +103,12 @@ def score(name: str, config: ControllerConfig, cycles: list[Cycle]) -> Estimator
     )
 
 
-def estimation_report(run: Path, plot: bool = True) -> dict[str, Any]:
+def estimation_report(run: Path, plot: bool = True, log: Path | None = None) -> dict[str, Any]:
     """Per estimator: `rms` and `max` curvature error against truth [1/m] over every cycle but
     the first (nothing is measured before the first picture arrives), `gated` (share of camera
-    measurements rejected as outliers) and `update_time` [s]."""
-    log = _log_of(run)
+    measurements rejected as outliers) and `update_time` [s]. The CAN log is `log`, by default
+    the one the run in `run` wrote (`_log_of`)."""
+    log = log or _log_of(run)
     config = config_beside(log)
     signals = read_signals(run / "signals.csv")
     truth = np.column_stack([signals[f"kappa_{n}"] for n in range(1, config.segments + 1)])
@@ -132,10 +134,19 @@ def estimation_report(run: Path, plot: bool = True) -> dict[str, Any]:
 
 
 def _log_of(run: Path) -> Path:
-    for name in ("can.log", "can.blf", "can.asc", "can.trc", "can.csv", "can.mf4"):
+    """The CAN log of the run in `run`: the one its summary.json names (a run's --can-log or
+    [recording] can_log), else the first of the default names (can.log, can.blf, ...) there."""
+    try:
+        named = json.loads((run / "summary.json").read_text(encoding="utf-8")).get("can_log")
+    except (OSError, ValueError, AttributeError):
+        named = None
+    names = ("can.log", "can.blf", "can.asc", "can.trc", "can.csv", "can.mf4")
+    if isinstance(named, str) and named and Path(named).name == named:
+        names = (named, *names)
+    for name in names:
         if (run / name).is_file():
             return run / name
-    raise HilError(f"{run}: no CAN log (can.log, can.blf, ...) in this folder")
+    raise HilError(f"{run}: no CAN log (the one summary.json names, can.log, ...) in this folder")
 
 
 def marker_residuals(

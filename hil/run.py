@@ -122,6 +122,7 @@ def run_scenario(scenario: Scenario, options: RunOptions) -> RunResult:
             "scenario": scenario.name,
             "seed": scenario.seed,
             "status": "failed",
+            "can_log": recording.can_log,  # where `hil estimate` finds it, whatever stops the run
         }
         try:
             return _run(scenario, options, folder, start, scenario_text, summary)
@@ -214,7 +215,9 @@ def _run(
         ):  # the curvature estimators' report: the planar arm's
             folder.claim("estimation.png")
             summary["estimation"] = None  # its place in summary.json; filled below
-            estimation = post.enter_context(_estimation_report(out, options.parallel_report))
+            estimation = post.enter_context(
+                _estimation_report(out, options.parallel_report, recording.can_log)
+            )
         from hil.plots import plot_run
 
         for spec in rig.plots:
@@ -240,21 +243,24 @@ def _run(
     return RunResult(out, summary)
 
 
-def _score_estimators(out: Path) -> tuple[dict[str, Any] | None, str | None]:
-    """The estimation report of the run in `out`, or why there is none."""
+def _score_estimators(
+    out: Path, can_log: str | None = None
+) -> tuple[dict[str, Any] | None, str | None]:
+    """The estimation report of the run in `out` (its CAN log `can_log`, by default the one
+    found there), or why there is none."""
     from hil.estimation import estimation_report
 
     try:
-        return estimation_report(out), None
+        return estimation_report(out, log=None if can_log is None else out / can_log), None
     except HilError as exc:
         return None, str(exc)
 
 
 @contextlib.contextmanager
 def _estimation_report(
-    out: Path, parallel: bool
+    out: Path, parallel: bool, can_log: str | None = None
 ) -> Iterator[Callable[[], tuple[dict[str, Any] | None, str | None]]]:
-    """`_score_estimators(out)`, started in a forked child process if `parallel` (and the
+    """`_score_estimators(out, can_log)`, started in a forked child process if `parallel` (and the
     platform forks, and this process may have children: a daemon may not), else when asked
     for; yields the call that returns it."""
     if (
@@ -265,10 +271,10 @@ def _estimation_report(
         with concurrent.futures.ProcessPoolExecutor(
             1, mp_context=multiprocessing.get_context("fork")
         ) as pool:
-            future = pool.submit(_score_estimators, out)
+            future = pool.submit(_score_estimators, out, can_log)
             yield future.result
         return
-    yield lambda: _score_estimators(out)
+    yield lambda: _score_estimators(out, can_log)
 
 
 def _scenario_text(scenario: Scenario) -> str:

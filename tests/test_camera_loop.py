@@ -326,7 +326,7 @@ def test_a_failed_report_is_a_warning_and_the_run_stands(
     import hil.estimation
     from hil.errors import HilError
 
-    def unreadable(out: Path, plot: bool = True) -> dict:
+    def unreadable(out: Path, plot: bool = True, log: Path | None = None) -> dict:
         raise HilError(f"{out.name}/can.log: made unreadable")
 
     monkeypatch.setattr(hil.estimation, "estimation_report", unreadable)
@@ -353,3 +353,18 @@ def test_hil_estimate_into_a_folder_in_the_way_is_one_line(
     code, lines = hil_estimate(capsys, str(folder))
     assert code == 1 and len(lines) == 1
     assert lines[0].startswith(f"hil: error: {folder / name}: cannot write: ")
+
+
+@pytest.mark.parametrize("can_log", ["run.log", "trace.blf"])
+def test_the_report_reads_the_can_log_by_the_name_the_run_gave_it(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], can_log: str
+) -> None:
+    path = scenario(tmp_path, "short", ("duration = 10.0", "duration = 1.0"))
+    options = RunOptions(out=tmp_path / "run", inprocess=True, progress=False, can_log=can_log)
+    s = run_scenario(load_scenario(path), options).summary
+    assert not [w for w in s["warnings"] if "estimation" in w]
+    assert set(s["estimation"]) == {"chosen", "raw", "kf", "ukf"}
+    code, lines = hil_estimate(capsys, str(tmp_path / "run"), "--no-plot")
+    assert code == 0 and not lines
+    again = json.loads((tmp_path / "run" / "estimation.json").read_text())
+    assert again["kf"]["rms"] == s["estimation"]["kf"]["rms"]
