@@ -318,6 +318,22 @@ class ResultsFolder:
         return self.out / name
 
 
+def list_in_manifest(out: Path, names: Iterable[str]) -> None:
+    """Add files softhil writes into a run's folder after the run (`hil estimate`'s) to the
+    folder's manifest, before they are written, so that a rerun with --overwrite replaces them
+    with the rest."""
+    path = out / MANIFEST
+    try:
+        listed = [n for n in path.read_text(encoding="utf-8", errors="replace").splitlines() if n]
+    except FileNotFoundError:
+        listed = []
+    except OSError as exc:
+        raise WriteError(f"{path}: cannot read: {_cause(exc)}") from None
+    missing = [n for n in names if n not in listed]
+    if missing:
+        write_file(path, "".join(f"{n}\n" for n in (*listed, *missing)))
+
+
 def _lock_pid(lock: Path) -> int | None:
     try:
         return int(lock.read_text().strip())

@@ -368,3 +368,21 @@ def test_the_report_reads_the_can_log_by_the_name_the_run_gave_it(
     assert code == 0 and not lines
     again = json.loads((tmp_path / "run" / "estimation.json").read_text())
     assert again["kf"]["rms"] == s["estimation"]["kf"]["rms"]
+
+
+def test_a_rerun_with_overwrite_replaces_what_hil_estimate_wrote(
+    short_run, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:  # noqa: ANN001
+    import shutil
+
+    folder = tmp_path / "run"
+    shutil.copytree(short_run.out, folder)
+    assert hil_estimate(capsys, str(folder)) == (0, [])
+    assert (folder / "estimation.json").is_file()
+    (folder / "notes.txt").write_text("mine\n")
+    path = scenario(tmp_path, "short", ("duration = 10.0", "duration = 0.3"))
+    options = RunOptions(out=folder, inprocess=True, progress=False, overwrite=True)
+    run_scenario(load_scenario(path, seed=3), options)
+    assert not (folder / "estimation.json").exists()  # the earlier run's report is gone
+    assert (folder / "notes.txt").read_text() == "mine\n"
+    assert json.loads((folder / "summary.json").read_text())["seed"] == 3
