@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import time
+import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -108,6 +109,7 @@ def estimation_report(run: Path, plot: bool = True, log: Path | None = None) -> 
     the first (nothing is measured before the first picture arrives), `gated` (share of camera
     measurements rejected as outliers) and `update_time` [s]. The CAN log is `log`, by default
     the one the run in `run` wrote (`_log_of`)."""
+    check_estimable(run)
     log = log or _log_of(run)
     config = config_beside(log)
     signals = read_signals(run / "signals.csv")
@@ -131,6 +133,26 @@ def estimation_report(run: Path, plot: bool = True, log: Path | None = None) -> 
     if plot:
         _plot(run, config, signals, cycles, scores)
     return report
+
+
+def check_estimable(run: Path) -> None:
+    """HilError unless the run in `run` is of a robot kind with this report (the planar arm's
+    curvature estimators), as its scenario.toml says; a folder without one is taken for an arm."""
+    from hil.robots import robot_kind
+
+    try:
+        data = tomllib.loads((run / "scenario.toml").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return
+    section = data.get("robot")
+    kind = section.get("kind", "planar_arm") if isinstance(section, dict) else "planar_arm"
+    if not isinstance(kind, str):
+        return
+    if not getattr(robot_kind(kind), "estimation_report", True):
+        raise HilError(
+            f"{run}: the estimation report applies to planar-arm runs, not robot kind {kind!r} "
+            "(scenario.toml)"
+        )
 
 
 def _log_of(run: Path) -> Path:

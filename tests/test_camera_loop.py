@@ -386,3 +386,20 @@ def test_a_rerun_with_overwrite_replaces_what_hil_estimate_wrote(
     assert not (folder / "estimation.json").exists()  # the earlier run's report is gone
     assert (folder / "notes.txt").read_text() == "mine\n"
     assert json.loads((folder / "summary.json").read_text())["seed"] == 3
+
+
+def test_hil_estimate_of_a_fish_run_is_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from hil.scenario import SCENARIO_FOLDER
+
+    text = (SCENARIO_FOLDER / "fish-escape.toml").read_text()
+    path = tmp_path / "fish.toml"
+    path.write_text(text.replace("duration = 0.4", "duration = 0.1"))
+    assert "duration = 0.1" in path.read_text()
+    folder = tmp_path / "run"
+    run(path, folder)
+    code, lines = hil_estimate(capsys, str(folder))
+    assert code == 1 and len(lines) == 1
+    assert "estimation report applies to planar-arm runs" in lines[0] and "'fish'" in lines[0]
+    assert not (folder / "estimation.json").exists()

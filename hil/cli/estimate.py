@@ -34,11 +34,12 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
 
 
 def _estimate(args: argparse.Namespace) -> int:
-    from hil.estimation import estimation_report
+    from hil.estimation import check_estimable, estimation_report
     from hil.results import ESTIMATE_FILES, list_in_manifest, write_file
 
     if not args.run.is_dir():
         raise HilError(f"{args.run}: no such results folder")
+    check_estimable(args.run)
     # listed in the run's manifest first: a rerun with --overwrite replaces them too
     list_in_manifest(args.run, ESTIMATE_FILES if not args.no_plot else ("estimation.json",))
     report = estimation_report(args.run, plot=not args.no_plot)
