@@ -162,9 +162,9 @@ def _log_of(run: Path) -> Path:
         named = json.loads((run / "summary.json").read_text(encoding="utf-8")).get("can_log")
     except (OSError, ValueError, AttributeError):
         named = None
-    names = ("can.log", "can.blf", "can.asc", "can.trc", "can.csv", "can.mf4")
+    names = ["can.log", "can.blf", "can.asc", "can.trc", "can.csv", "can.mf4"]
     if isinstance(named, str) and named and Path(named).name == named:
-        names = (named, *names)
+        names.insert(0, named)
     for name in names:
         if (run / name).is_file():
             return run / name
