@@ -423,6 +423,19 @@ def test_send_over_the_hub(spec: str, open_buses: list[can.BusABC]) -> None:
     assert Protocol().decode(second) == Sync(7)
 
 
+def test_send_refuses_a_remote_frame_the_hub_cannot_carry(
+    spec: str, open_buses: list[can.BusABC], capsys: pytest.CaptureFixture[str]
+) -> None:
+    listener = connect(spec, open_buses)
+    for frame in ("123#R", "123#R3"):
+        assert main(["bus", "send", spec, frame]) == 1
+        line = one_error_line(capsys)
+        assert "0x123" in line and "remote" in line, line
+    assert main(["bus", "send", spec, "456#01"]) == 0
+    (only,) = recv_n(listener, 1)  # nothing of the remote frames reached the bus before it
+    assert key(only) == (0x456, False, False, b"\x01")
+
+
 # ------------------------------------------------------------------------------ record
 
 

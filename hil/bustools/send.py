@@ -4,6 +4,11 @@ cansend syntax: `ID#DATA` with ID 3 hex digits (standard, up to 7FF) or 8 (exten
 1FFFFFFF), DATA 0..8 bytes in hex, optionally dot-separated (`181#D4.30.00`); `ID#R` or
 `ID#R<dlc>` is a remote frame. CAN FD (`ID##...`) is refused. With `--message`, every signal of
 the message must be given as `name=value` in physical units and within the DBC's range.
+
+Remote frames go only where the bus can carry them: the loopback hub's socketcand protocol
+has no RTR flag (`< send ID LEN DATA >`; socketcand itself drops RTR frames), so python-can's
+client would send a 0-byte data frame instead, and softhil's binary records carry data frames
+only. `send_one` refuses them there with one line instead of sending something else.
 """
 
 from __future__ import annotations
@@ -11,6 +16,7 @@ from __future__ import annotations
 import re
 
 import can
+from can.interfaces.socketcand import SocketCanDaemonBus
 from cantools.database.can import Database
 
 from hil.errors import BusError, HilError
@@ -90,6 +96,12 @@ def encode_message(database: Database, name: str, assignments: list[str]) -> can
 
 
 def send_one(bus: can.BusABC, msg: can.Message) -> None:
+    if msg.is_remote_frame and isinstance(bus, SocketCanDaemonBus):
+        raise BusError(
+            f"cannot send 0x{msg.arbitration_id:X}: a remote (RTR) frame cannot cross the "
+            "loopback hub (its socketcand protocol carries data frames only); use a CAN "
+            "interface, e.g. socketcan:vcan0"
+        )
     try:
         bus.send(msg, timeout=1.0)
     except can.CanError as exc:

@@ -155,7 +155,7 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
         "send one frame: cansend ID#DATA, or a DBC message from signal values",
         "  hil bus send loopback 080#05\n"
         "  hil bus send loopback 18FF1234#01.02.03\n"
-        "  hil bus send loopback 123#R\n"
+        "  hil bus send socketcan:vcan0 123#R    remote frame (the loopback hub carries none)\n"
         "  hil bus send loopback --message DriveCommand1 piston_setpoint=0.05 enable=1 "
         "counter=3\n",
     )
