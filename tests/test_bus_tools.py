@@ -227,6 +227,40 @@ def test_malformed_logs_are_one_line_naming_file_and_place(
         assert capsys.readouterr().out == ""
 
 
+@pytest.mark.parametrize(
+    ("name", "frame_line", "reason"),
+    [
+        ("odd.log", "(0.000000) vcan0 181#D43", "data 'D43' has an odd number of hex digits"),
+        ("bigid.log", "(0.000000) vcan0 9999999999#00", "CAN id '9999999999' is not 3"),
+        ("flags.log", "(0.000000) vcan0 40000123#00", "CAN id 40000123 is above 1FFFFFFF"),
+        ("remote.log", "(0.000000) vcan0 123#R12", "R takes one dlc digit 0-8"),
+        ("short.asc", " 0.000000 1  181             Rx   d 5 10 27", "dlc 5 but 2 data bytes"),
+    ],
+)
+def test_reader_refuses_frames_python_can_would_silently_change(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], name: str, frame_line: str, reason: str
+) -> None:
+    """python-can reads these as D4 03, id 0x19999999, id 0x123, R1 and a 2-byte frame."""
+    if name.endswith(".asc"):
+        good = tmp_path / "good.asc"
+        write_log(good, [can.Message(arbitration_id=0x181, is_extended_id=False, data=b"\x01")])
+        lines = good.read_text().splitlines()
+        at = lines.index("End TriggerBlock") + 1
+        text = "\n".join([*lines[: at - 1], frame_line, *lines[at - 1 :]]) + "\n"
+    else:
+        at = 2
+        text = f"(0.000000) vcan0 080#00 R\n{frame_line} R\n(0.000001) vcan0 080#01 R\n"
+    path = tmp_path / name
+    path.write_text(text)
+    with pytest.raises(LogError) as caught:
+        read_log(path)
+    assert str(caught.value).startswith(f"{path}: line {at}: malformed")
+    assert reason in str(caught.value)
+    assert main(["bus", "dump", "--log", str(path)]) == 1
+    line = one_error_line(capsys)
+    assert f"{path}: line {at}:" in line and reason in line, line
+
+
 def test_missing_log_and_truncated_mf4(tmp_path: Path, run_log: Path) -> None:
     with pytest.raises(LogError, match="no such log file"):
         read_log(tmp_path / "absent.log")

@@ -2,9 +2,12 @@
 
 `read_log` turns every malformed input (an unknown suffix, an empty log, a garbage line, a
 truncated or random-byte binary file) into one `LogError` naming the file and where: the line
-number of text formats, the record number of binary ones. `write_log` writes by suffix through
-`can.Logger` and removes the file again if writing fails, so a failure never leaves a
-half-written log behind under the requested name.
+number of text formats, the record number of binary ones. It is stricter than python-can's
+readers, which silently change some frames (an odd number of data digits, an id beyond 29
+bits masked, a dlc the data does not fill): those are malformed lines too.
+
+`write_log` writes by suffix through `can.Logger` and removes the file again if writing fails,
+so a failure never leaves a half-written log behind under the requested name.
 """
 
 from __future__ import annotations
@@ -13,7 +16,7 @@ import contextlib
 import gc
 import re
 import sys
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import TextIO
 
@@ -36,7 +39,51 @@ _ASC_ACCEPTED = re.compile(
 )
 # PEAK TRC: comment/header lines start with ';', messages with their number ("12)" in v1.x)
 _TRC_ACCEPTED = re.compile(r"^(;|\d+\)?\s)")
-_CHECKS = {".asc": _ASC_ACCEPTED, ".trc": _TRC_ACCEPTED}
+_HEX = re.compile(r"[0-9A-Fa-f]*")
+_CAN_ERR_FLAG = 0x20000000
+_CAN_ERR_BUSERROR = 0x80  # with the error flag: what python-can reads as an error frame
+
+
+def _matches(pattern: re.Pattern[str]) -> Callable[[str], None]:
+    def check(line: str) -> None:
+        if not pattern.match(line):
+            raise ValueError(f"not a log line: {line[:40]!r}")
+
+    return check
+
+
+def _check_candump(line: str) -> None:
+    """Refuse what python-can's .log reader would silently change: an odd number of data
+    digits (it reads `D43` as D4 03), an id that is not 3 or 8 hex digits or above 1FFFFFFF
+    (it masks it), a remote frame's dlc that is not one digit 0-8."""
+    fields = line.split()
+    if len(fields) not in (3, 4) or "#" not in fields[2]:
+        raise ValueError(f"not a candump line (TIME IFACE ID#DATA [R|T]): {line[:40]!r}")
+    can_id, _, data = fields[2].partition("#")
+    if len(can_id) not in (3, 8) or not _HEX.fullmatch(can_id):
+        raise ValueError(f"CAN id {can_id!r} is not 3 (standard) or 8 (extended) hex digits")
+    value = int(can_id, 16)
+    error_frame = value & _CAN_ERR_FLAG and value & _CAN_ERR_BUSERROR
+    if value > MAX_EXT_ID and not error_frame:
+        raise ValueError(f"CAN id {can_id} is above 1FFFFFFF")
+    if data.startswith("#"):  # CAN FD: one flags digit, then the data
+        flags, data = data[1:2], data[2:]
+        if not _HEX.fullmatch(flags) or not flags:
+            raise ValueError(f"CAN FD frame {fields[2]!r} has no flags digit after '##'")
+    if data[:1] in ("R", "r"):
+        if data[1:] and not (len(data) == 2 and data[1] in "012345678"):
+            raise ValueError(f"remote frame {fields[2]!r}: R takes one dlc digit 0-8")
+    elif not _HEX.fullmatch(data):
+        raise ValueError(f"data {data!r} is not hex")
+    elif len(data) % 2:
+        raise ValueError(f"data {data!r} has an odd number of hex digits")
+
+
+_CHECKS: dict[str, Callable[[str], None]] = {
+    ".asc": _matches(_ASC_ACCEPTED),
+    ".trc": _matches(_TRC_ACCEPTED),
+    ".log": _check_candump,
+}
 
 
 class LogError(HilError):
@@ -46,7 +93,7 @@ class LogError(HilError):
 class _NumberedLines:
     """A text file that counts the lines python-can's reader has taken from it."""
 
-    def __init__(self, file: TextIO, check: re.Pattern[str] | None) -> None:
+    def __init__(self, file: TextIO, check: Callable[[str], None] | None) -> None:
         self.file = file
         self.line = 0
         self.check = check
@@ -63,8 +110,8 @@ class _NumberedLines:
             self.line -= 1
             raise
         stripped = text.strip()
-        if self.check is not None and stripped and not self.check.match(stripped):
-            raise ValueError(f"not a log line: {stripped[:40]!r}")
+        if self.check is not None and stripped:
+            self.check(stripped)
         return text
 
     def readline(self) -> str:
@@ -93,6 +140,9 @@ def _check_message(msg: can.Message) -> None:
         raise ValueError(f"CAN id 0x{msg.arbitration_id:X} out of range")
     if not msg.is_fd and msg.dlc > 8:
         raise ValueError(f"{msg.dlc} data bytes in a classic CAN frame")
+    # python-can's readers keep a dlc the data does not fill (.asc `d 5 10 27`)
+    if not (msg.is_fd or msg.is_remote_frame or msg.is_error_frame) and msg.dlc != len(msg.data):
+        raise ValueError(f"dlc {msg.dlc} but {len(msg.data)} data bytes")
 
 
 def iter_log(path: Path | str) -> Iterator[can.Message]:
