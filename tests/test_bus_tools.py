@@ -199,7 +199,7 @@ def _bad_logs(run_log: Path, tmp: Path) -> list[tuple[Path, str]]:
         "garbage.asc": (_lines_with_garbage(tmp / "good.asc", "garbage here", 9), "line 9"),
         "garbage.trc": (_lines_with_garbage(tmp / "good.trc", "not a trc line", 25), "line 25"),
         "garbage.csv": (_lines_with_garbage(tmp / "good.csv", "garbage", 5), "line 5"),
-        "truncated.blf": (blf[: len(blf) // 2], "truncated"),
+        "truncated.blf": (blf[:150], "truncated"),  # cut in the first object's header
         "random.blf": (bytes(range(256)) * 8, "file header"),
         "binary.log": (b"\xff\xfe\x00garbage", "line 1"),
         "unknown.xyz": ("(0.0) can0 080#00 R\n", "unknown log format"),
@@ -259,6 +259,32 @@ def test_reader_refuses_frames_python_can_would_silently_change(
     assert main(["bus", "dump", "--log", str(path)]) == 1
     line = one_error_line(capsys)
     assert f"{path}: line {at}:" in line and reason in line, line
+
+
+def test_truncated_blf_yields_the_frames_before_the_cut_and_warns_once(
+    run_log: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    original = read_log(run_log)
+    good = tmp_path / "good.blf"
+    write_log(good, original)
+    data = good.read_bytes()
+    cut = tmp_path / "cut.blf"
+    cut.write_bytes(data[: len(data) // 2])
+    never_closed = tmp_path / "never-closed.blf"  # what a killed recorder leaves: header unset
+    never_closed.write_bytes(data[:16] + (144).to_bytes(8, "little") + data[24:])
+    for path, frames in ((cut, None), (never_closed, len(original))):
+        warnings: list[str] = []
+        back = read_log(path, warnings.append)
+        assert 0 < len(back) == (frames or len(back)) <= len(original)
+        assert [key(m) for m in back] == [key(m) for m in original[: len(back)]]
+        assert len(warnings) == 1 and str(path) in warnings[0], warnings
+        assert "truncated" in warnings[0] and f"read the {len(back)} frames" in warnings[0]
+        assert main(["bus", "dump", "--raw", "--log", str(path)]) == 0
+        out, err = capsys.readouterr()
+        assert len(out.strip().splitlines()) == len(back)
+        assert [x for x in err.splitlines() if "warning" in x] == [f"hil: warning: {warnings[0]}"]
+        assert "Traceback" not in err
+    assert len(read_log(cut, lambda _: None)) < len(original)  # the cut lost frames
 
 
 def test_missing_log_and_truncated_mf4(tmp_path: Path, run_log: Path) -> None:

@@ -1,10 +1,11 @@
 """Reading and writing CAN logs in every format python-can knows, chosen by file suffix.
 
 `read_log` turns every malformed input (an unknown suffix, an empty log, a garbage line, a
-truncated or random-byte binary file) into one `LogError` naming the file and where: the line
-number of text formats, the record number of binary ones. It is stricter than python-can's
-readers, which silently change some frames (an odd number of data digits, an id beyond 29
-bits masked, a dlc the data does not fill): those are malformed lines too.
+random-byte binary file, a truncated one with no complete frame) into one `LogError` naming the
+file and where: the line number of text formats, the record number of binary ones. It is
+stricter than python-can's readers, which silently change some frames (an odd number of data
+digits, an id beyond 29 bits masked, a dlc the data does not fill): those are malformed lines
+too. A .blf cut short yields its frames before the cut and a warning (`iter_log`).
 
 `write_log` writes by suffix through `can.Logger` and removes the file again if writing fails,
 so a failure never leaves a half-written log behind under the requested name.
@@ -145,8 +146,19 @@ def _check_message(msg: can.Message) -> None:
         raise ValueError(f"dlc {msg.dlc} but {len(msg.data)} data bytes")
 
 
-def iter_log(path: Path | str) -> Iterator[can.Message]:
-    """The messages of a log one by one; malformed input raises `LogError` (file and where)."""
+def warn_stderr(text: str) -> None:
+    """Where the reader's warnings go by default: one `hil: warning:` line on stderr."""
+    print(f"hil: warning: {text}", file=sys.stderr)
+
+
+def iter_log(path: Path | str, warn: Callable[[str], None] = warn_stderr) -> Iterator[can.Message]:
+    """The messages of a log one by one; malformed input raises `LogError` (file and where).
+
+    A .blf cut short (a crash or a full disk while recording) yields the frames of its complete
+    objects before the cut, then `warn`s once naming the file and how many frames were read; it
+    is an error only if no frame is readable. A text log cut at a line end reads the same way
+    (silently: nothing there says it was cut); one cut inside a line is malformed at that line.
+    """
     path = Path(path)
     suffix = suffix_of(path)
     if not path.is_file():
@@ -161,6 +173,7 @@ def iter_log(path: Path | str) -> Iterator[can.Message]:
     count = 0
     lines: _NumberedLines | None = None
     reader: can.io.generic.MessageReader | None = None
+    cut: str | None = None
     failure = ""
     try:
         if suffix in TEXT_SUFFIXES:
@@ -169,12 +182,35 @@ def iter_log(path: Path | str) -> Iterator[can.Message]:
             # python-can's text readers take an open file; ours counts its lines
             reader = can.io.player.MESSAGE_READERS[suffix](lines)  # type: ignore[arg-type]
         else:
-            reader = _binary_reader(path, suffix)
+            reader, cut = _binary_reader(path, suffix)
         with reader:
-            for msg in reader:
+            frames = iter(reader)
+            while True:
+                try:
+                    msg = next(frames)
+                except StopIteration:
+                    break
+                except Exception:
+                    # python-can stops on an object header the cut split; anything else than
+                    # the end of the file is corruption, an error as ever
+                    cut_reached = isinstance(reader, can.BLFReader) and (
+                        reader.file.tell() >= path.stat().st_size
+                    )
+                    if cut is None or not cut_reached:
+                        raise
+                    break
                 _check_message(msg)
                 count += 1
                 yield msg
+        if cut is not None and count:
+            expected = getattr(reader, "object_count", 0)
+            counted = f" (the header counts {expected} objects)" if expected > count else ""
+            warn(
+                f"{path}: truncated or never closed ({cut}): read the {count} frames before "
+                f"the end{counted}; whatever was logged after them is lost"
+            )
+        elif cut is not None:
+            raise ValueError(f"truncated: {cut}, no complete frame before the cut")
     except Exception as exc:  # python-can's readers raise anything on bad input
         if lines is not None:
             where = f"line {lines.line}"
@@ -205,7 +241,9 @@ def _collect_quietly() -> None:
         sys.unraisablehook = previous
 
 
-def _binary_reader(path: Path, suffix: str) -> can.io.generic.MessageReader:
+def _binary_reader(path: Path, suffix: str) -> tuple[can.io.generic.MessageReader, str | None]:
+    """python-can's reader for the file, and how a .blf's size disagrees with its header (a
+    file cut short, or never closed: BLFWriter writes the size when it stops), else None."""
     size = path.stat().st_size
     with path.open("rb") as f:
         head = f.read(8)
@@ -213,16 +251,13 @@ def _binary_reader(path: Path, suffix: str) -> can.io.generic.MessageReader:
         raise ValueError("not an MDF file (bad magic)")
     reader = can.LogReader(str(path))
     if isinstance(reader, can.BLFReader) and reader.file_size != size:
-        reader.stop()
-        raise ValueError(
-            f"truncated: the header says {reader.file_size} bytes, the file has {size}"
-        )
-    return reader
+        return reader, f"the header says {reader.file_size} bytes, the file has {size}"
+    return reader, None
 
 
-def read_log(path: Path | str) -> list[can.Message]:
+def read_log(path: Path | str, warn: Callable[[str], None] = warn_stderr) -> list[can.Message]:
     """Every message of a log, read completely before anything is done with them."""
-    return list(iter_log(path))
+    return list(iter_log(path, warn))
 
 
 def open_writer(path: Path) -> can.io.generic.MessageWriter:
