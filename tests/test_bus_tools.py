@@ -513,6 +513,27 @@ def test_record_from_the_hub_in_every_format(
         assert [key(m) for m in read_log(path)] == [key(m) for m in frames]
 
 
+def test_record_mf4_without_asammdf_is_one_line_before_recording(
+    tmp_path: Path,
+    run_log: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.setitem(sys.modules, "asammdf", None)  # absent, installed or not
+    path = tmp_path / "x.mf4"
+    # port 9: nothing listens; the format is refused before the bus is opened
+    assert main(["bus", "record", str(path), "--bus", "loopback:127.0.0.1:9"]) == 1
+    line = one_error_line(capsys)
+    assert line == f"hil: error: {path}: writing .mf4 needs asammdf (pip install asammdf)"
+    with pytest.raises(LogError, match="needs asammdf"):
+        write_log(path, read_log(run_log))
+    assert not path.exists()
+    existing = tmp_path / "y.mf4"
+    existing.write_bytes(b"MDF     ")
+    with pytest.raises(LogError, match="reading .mf4 needs asammdf"):
+        read_log(existing)
+
+
 class _InterruptedBus(can.BusABC):
     """A bus that delivers some frames, then Ctrl-C arrives."""
 

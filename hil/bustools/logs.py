@@ -135,6 +135,17 @@ def suffix_of(path: Path) -> str:
     return suffix
 
 
+def check_format_available(path: Path, action: str = "writing") -> None:
+    """LogError unless the optional package `path`'s format needs is installed: .mf4 needs
+    asammdf (python-can's MF4 reader and writer only fail once used, with a traceback)."""
+    if suffix_of(path) != ".mf4":
+        return
+    try:
+        import asammdf  # noqa: F401
+    except ImportError:
+        raise LogError(f"{path}: {action} .mf4 needs asammdf (pip install asammdf)") from None
+
+
 def _check_message(msg: can.Message) -> None:
     limit = MAX_EXT_ID if msg.is_extended_id else MAX_STD_ID
     if not 0 <= msg.arbitration_id <= limit and not msg.is_error_frame:
@@ -163,13 +174,7 @@ def iter_log(path: Path | str, warn: Callable[[str], None] = warn_stderr) -> Ite
     suffix = suffix_of(path)
     if not path.is_file():
         raise LogError(f"{path}: no such log file")
-    if suffix == ".mf4":
-        try:
-            import asammdf  # noqa: F401
-        except ImportError:
-            raise LogError(
-                f"{path}: reading .mf4 needs asammdf (pip install 'softhil[mf4]')"
-            ) from None
+    check_format_available(path, "reading")
     count = 0
     lines: _NumberedLines | None = None
     reader: can.io.generic.MessageReader | None = None
@@ -262,7 +267,7 @@ def read_log(path: Path | str, warn: Callable[[str], None] = warn_stderr) -> lis
 
 def open_writer(path: Path) -> can.io.generic.MessageWriter:
     """A python-can writer for `path`'s suffix (`.mf4` needs the optional asammdf)."""
-    suffix_of(path)
+    check_format_available(path)
     if not path.parent.is_dir():
         raise LogError(f"{path}: no such folder {path.parent}")
     try:

@@ -309,10 +309,10 @@ def _dump(args: argparse.Namespace) -> int:
 
 def _record(args: argparse.Namespace) -> int:
     from hil.bustools.frames import open_spec
-    from hil.bustools.logs import suffix_of
+    from hil.bustools.logs import check_format_available
     from hil.bustools.record import record
 
-    suffix_of(args.file)
+    check_format_available(args.file)
     if args.file.exists() and not args.overwrite:
         raise HilError(f"{args.file}: exists; pass --overwrite to replace it")
     bus = open_spec(args.bus)
