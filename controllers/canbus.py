@@ -150,6 +150,8 @@ def open_bus(spec: BusSpec, timeout: float = 2.0) -> can.BusABC:
         if spec.channel is None:
             return can.Bus(interface=spec.kind, **kwargs)
         return can.Bus(interface=spec.kind, channel=spec.channel, **kwargs)
+    except BusOpenError:
+        raise  # _probe_hub's, already naming the spec (it is an OSError too)
     except OSError as exc:
         if exc.errno == errno.EAFNOSUPPORT:
             raise BusOpenError(

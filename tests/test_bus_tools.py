@@ -7,6 +7,7 @@ loopback hub on 127.0.0.1 with a free port; waits are receive timeouts, never sl
 
 from __future__ import annotations
 
+import argparse
 import importlib.util
 import os
 import signal
@@ -38,7 +39,7 @@ from hil.bustools.record import record, sigterm_interrupts
 from hil.bustools.replay import replay_lockstep, replay_timed
 from hil.bustools.send import encode_message, parse_cansend
 from hil.bustools.vcan import socketcan_available
-from hil.cli import main
+from hil.cli import build_parser, main
 from hil.errors import BusError, HilError
 from hil.recording import CanLogger
 from tests.helpers import blocking_sockets_time_out, interruptible
@@ -764,6 +765,44 @@ def test_load_bad_inputs(run_log: Path, capsys: pytest.CaptureFixture[str]) -> N
     one_error_line(capsys)
     assert main(["bus", "load"]) == 0  # the scenario's implied load is still there
     assert "bus load" in capsys.readouterr().out
+
+
+def _subparsers(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentParser]:
+    (action,) = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+    return dict(action.choices)
+
+
+def test_bus_help_states_each_default_once() -> None:
+    bus = _subparsers(build_parser())["bus"]
+    checked = 0
+    for name, command in _subparsers(bus).items():
+        formatter = command._get_formatter()
+        for action in command._actions:
+            if action.help is None:
+                continue
+            text = formatter._get_help_string(action) % {"default": action.default}
+            assert text.lower().count("default") <= 1, (name, action.dest, text)
+            checked += 1
+    assert checked > 20
+
+
+def test_bus_spec_errors_are_one_line_naming_the_option(
+    tmp_path: Path, run_log: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    for argv in (
+        ["dump", "--timeout", "0.1"],
+        ["record", str(tmp_path / "x.log"), "--timeout", "0.1"],
+        ["replay", str(run_log)],
+        ["load", "--seconds", "0.1"],
+    ):
+        assert main(["bus", *argv, "--bus", ""]) == 1
+        assert one_error_line(capsys) == (
+            "hil: error: --bus: empty bus spec; give one, e.g. loopback or socketcan:vcan0"
+        )
+    assert not (tmp_path / "x.log").exists()
+    assert main(["bus", "dump", "--bus", "loopback:127.0.0.1:9"]) == 1  # nothing listens
+    line = one_error_line(capsys)
+    assert line.count("cannot open CAN bus loopback:127.0.0.1:9") == 1, line
 
 
 def test_bus_up_without_socketcan_exits_2_with_the_hub_hint(

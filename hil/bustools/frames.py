@@ -113,12 +113,16 @@ def load_database() -> Database:
     return Protocol().database
 
 
-def open_spec(text: str) -> can.BusABC:
-    """Open a bus from a spec string; a bad spec or a bus that will not open is one line."""
+def open_spec(text: str, flag: str | None = "--bus") -> can.BusABC:
+    """Open a bus from a spec string (given as option `flag`, if any); a bad spec or a bus
+    that will not open is one line."""
+    named = f"{flag}: " if flag else ""
+    if not text.strip():
+        raise BusError(f"{named}empty bus spec; give one, e.g. loopback or socketcan:vcan0")
     try:
         spec = BusSpec.parse(text)
     except ValueError as exc:
-        raise BusError(str(exc)) from None
+        raise BusError(f"{named}{exc}") from None
     try:
         return open_bus(spec)
     except BusOpenError as exc:

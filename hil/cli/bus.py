@@ -13,7 +13,7 @@ from hil.bus import loopback
 from hil.errors import HilError
 
 DEFAULT_BUS = "loopback"
-BUS_HELP = "bus spec: loopback[:HOST:PORT] (default, the hub of `hil bus serve`), socketcan:IFACE"
+BUS_HELP = "bus spec: loopback[:HOST:PORT] (the hub of `hil bus serve`), socketcan:IFACE"
 
 
 def add_parser(commands: argparse._SubParsersAction) -> None:
@@ -141,7 +141,7 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
         "--direction",
         choices=("R", "T", "all"),
         default="all",
-        help="replay only frames the logging node received (R) or sent (T); default all",
+        help="replay only frames the logging node received (R) or sent (T), or all",
     )
     replay.add_argument(
         "--timeout", type=float, default=2.0, help="lockstep: longest wait for one echo [s]"
@@ -180,14 +180,12 @@ def _add_filters(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--id",
         action="append",
-        default=[],
         metavar="ID",
         help="hex id (0x181) or range (0x180-0x18F), repeatable, comma lists ok",
     )
     parser.add_argument(
         "--message",
         action="append",
-        default=[],
         metavar="NAME",
         help="DBC message name, glob ok (DriveStatus*), repeatable",
     )
@@ -282,7 +280,7 @@ def _frames_of(args: argparse.Namespace):  # noqa: ANN202 - (frames, bus or None
 
     if args.log is not None:
         return iter_log(args.log), None
-    bus = open_spec(args.bus or DEFAULT_BUS)
+    bus = open_spec(DEFAULT_BUS if args.bus is None else args.bus)
     return live_frames(bus, args.timeout), bus
 
 
@@ -293,7 +291,7 @@ def _dump(args: argparse.Namespace) -> int:
     if args.count is not None and args.count <= 0:
         raise HilError(f"--count must be positive, got {args.count}")
     database = load_database()
-    selection = FrameFilter.parse(args.id, args.message, database)
+    selection = FrameFilter.parse(args.id or [], args.message or [], database)
     frames, bus = _frames_of(args)
     tally = DumpCount()
     try:
@@ -331,7 +329,7 @@ def _replay(args: argparse.Namespace) -> int:
     from hil.bustools.replay import check_lockstep_direction, replay_lockstep, replay_timed
 
     database = load_database()
-    selection = FrameFilter.parse(args.id, args.message, database)
+    selection = FrameFilter.parse(args.id or [], args.message or [], database)
     messages = read_log(args.file)
     if not args.lockstep and not args.speed > 0:
         raise HilError(f"--speed must be positive, got {args.speed}")
@@ -365,7 +363,7 @@ def _send(args: argparse.Namespace) -> int:
                 "give one frame as ID#DATA (cansend syntax), or --message NAME sig=value"
             )
         msg = parse_cansend(args.frame)
-    bus = open_spec(args.spec)
+    bus = open_spec(args.spec, flag=None)
     try:
         send_one(bus, msg)
     finally:
