@@ -242,6 +242,24 @@ def test_do_step_error_names_both_communication_points() -> None:
             slave.do_step(0.5, 1e-3)
 
 
+def test_each_instance_gets_its_own_messages_however_many_are_alive() -> None:
+    """fmpy's logger proxy keeps one logger per process: an FMU's message must still reach the
+    instance that sent it, not the one made last (a run's cylinder1 failed with no reason)."""
+    with (
+        FmuSlave(
+            "DriveCylinder", "cylinder1", {"v_stiction": 1e-6}, exit_initialization=False
+        ) as unstable,
+        FmuSlave("DriveCylinder", "cylinder2", exit_initialization=False) as sound,
+    ):
+        with pytest.raises(FmuError) as info:
+            unstable.get("x")
+        assert str(info.value).startswith(
+            "cylinder1 (DriveCylinder): fmi2GetReal(x) failed: invalid parameter substep = "
+        )
+        assert "beyond the stability limit" in str(info.value)
+        assert sound.messages == []
+
+
 def test_compiled_libraries_are_cached_by_compiler_flags_salt_and_source(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
+import itertools
 import shutil
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
@@ -35,6 +36,25 @@ _free = _libc.free
 _free.argtypes = [ctypes.c_void_p]
 
 Value = float | int | bool
+
+# fmpy's logger proxy (it formats the C varargs) keeps one logger for the whole process, and each
+# addLoggerProxy call replaces it: with a logger per instance, every FMU's messages went to the
+# instance made last. So one logger serves them all and hands each message to the list of the
+# instance that sent it, found by the componentEnvironment given to fmi2Instantiate (FMI 2.0,
+# 2.1.5: the FMU passes it back with every message).
+_message_lists: dict[int, list[str]] = {}
+_environment_ids = itertools.count(1)
+
+
+def _log(
+    environment: int | None, instance: bytes, status: int, category: bytes, message: bytes
+) -> None:
+    messages = _message_lists.get(environment or 0)
+    if messages is not None:
+        messages.append(message.decode("utf-8", "replace"))
+
+
+_LOGGER = fmi2CallbackLoggerTYPE(_log)
 
 
 class FmuSlave:
@@ -93,6 +113,7 @@ class FmuSlave:
             self._callbacks = self._make_callbacks()
             self._call("fmi2Instantiate", self._fmu.instantiate, callbacks=self._callbacks)
         except BaseException:
+            self._forget_messages()
             self._remove_extracted()
             raise
         self._alive = True
@@ -137,19 +158,20 @@ class FmuSlave:
             return self._extracted
         return build_fmu(str(fmu)).unzipdir
 
+    def _forget_messages(self) -> None:
+        _message_lists.pop(getattr(self, "_environment", 0), None)
+
     def _remove_extracted(self) -> None:
         if self._extracted is not None:
             shutil.rmtree(self._extracted, ignore_errors=True)
             self._extracted = None
 
     def _make_callbacks(self) -> fmi2CallbackFunctions:
-        def logger(
-            component: object, instance: bytes, status: int, category: bytes, message: bytes
-        ) -> None:
-            self.messages.append(message.decode("utf-8", "replace"))
-
+        self._environment = next(_environment_ids)
+        _message_lists[self._environment] = self.messages
         callbacks = fmi2CallbackFunctions()
-        callbacks.logger = fmi2CallbackLoggerTYPE(logger)
+        callbacks.logger = _LOGGER
+        callbacks.componentEnvironment = self._environment
         callbacks.allocateMemory = fmi2CallbackAllocateMemoryTYPE(_calloc)
         callbacks.freeMemory = fmi2CallbackFreeMemoryTYPE(_free)
         from fmpy.logging import addLoggerProxy  # formats the C varargs before our logger
@@ -248,6 +270,7 @@ class FmuSlave:
         with contextlib.suppress(Exception):  # an instance in error may refuse; free it anyway
             self._fmu.terminate()
         self._fmu.freeInstance()
+        self._forget_messages()
         self._remove_extracted()
 
     def __enter__(self) -> FmuSlave:
