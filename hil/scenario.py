@@ -218,6 +218,13 @@ class Scenario:
 # TOML key -> field name where Python needs another name
 _ALIASES = {"from": "source", "to": "target"}
 _DISPLAY = {"source": "from", "target": "to"}
+# keys whose absence means "draw from the seed": given, they must not be empty
+_NOT_EMPTY = {
+    TaskSpec: {
+        "targets": "must not be empty (leave it out to draw task.count targets from the seed)",
+        "paths": "must not be empty (leave it out to draw task.count paths from the seed)",
+    }
+}
 
 
 def load_scenario(path: Path | None = None, *, seed: int | None = None) -> Scenario:
@@ -323,6 +330,8 @@ def _build(cls: type, data: Any, file: str, key: str) -> Any:
             shown = [_DISPLAY.get(k, k) for k in known if k != "source" or cls is not Scenario]
             allowed = ", ".join(shown)
             raise _fail(file, sub, f"unknown key (allowed: {allowed})")
+        if raw == [] and name in _NOT_EMPTY.get(cls, {}):
+            raise _fail(file, sub, _NOT_EMPTY[cls][name])
         values[name] = _convert(hints[name], raw, file, sub)
     if cls is Scenario and "robot" not in values:
         values["robot"] = _robot_section({}, file, "robot")

@@ -111,6 +111,31 @@ def test_the_camera_reports_the_object_marker_after_the_arms(approach_run) -> No
             "objects = [{ x = 0.1, y = 0.1 }]",
             r"objects\[0\]\.x: placed by the task",
         ),
+        (
+            "objects = [{ radius = 0.0125, mass = 0.005, height = 0.05 }]",
+            "objects = []",
+            r"robot\.environment\.objects: a grasp task needs its object",
+        ),
+        (
+            "objects = [{ radius = 0.0125, mass = 0.005, height = 0.05 }]",
+            "objects = 5",
+            r"robot\.environment\.objects: must be a list of at most 4 tables, got 5",
+        ),
+        (
+            "objects = [{ radius = 0.0125, mass = 0.005, height = 0.05 }]",
+            "objects = [{ radius = -1, mass = 0.005, height = 0.05 }]",
+            r"robot\.environment\.objects\[0\]\.radius: -1 is outside the allowed range",
+        ),
+        (
+            "objects = [{ radius = 0.0125, mass = 0.005, height = 0.05 }]",
+            "objects = [{ radius = 0.0125, mass = 0.005, height = 0.05 }, 3]",
+            r"robot\.environment\.objects\[1\]: a table",
+        ),
+        (
+            "objects = [{ radius = 0.0125, mass = 0.005, height = 0.05 }]",
+            "objects = [{ radius = 0.3, mass = 0.005, height = 0.05 }]",
+            r"task: grasp task: no object and place found in 200 draws for an object of radius",
+        ),
     ],
 )
 def test_gripper_and_grasp_keys_are_checked(

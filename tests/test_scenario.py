@@ -185,6 +185,16 @@ CASES: dict[str, tuple[str, str, str]] = {
         "controller.policy",
         "must be one of strict, hold",
     ),
+    "empty task targets": (
+        MINIMAL + '[robot]\nsegments = 2\n[task]\nkind = "point_to_point"\ntargets = []\n',
+        "task.targets",
+        "must not be empty (leave it out to draw task.count targets from the seed)",
+    ),
+    "empty task paths": (
+        MINIMAL + '[robot]\nsegments = 2\n[task]\nkind = "path"\npaths = []\n',
+        "task.paths",
+        "must not be empty",
+    ),
     "connection to a participant that does not exist": (
         MINIMAL + '[[connections]]\nfrom = "segment1.kappa"\nto = "segment2.tau_ext"\n',
         "connections[0].to",

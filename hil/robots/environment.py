@@ -85,34 +85,18 @@ def parameters(
         for v, vertex in enumerate(wall, start=1):
             x, y = _point(file, f"{key}[{v - 1}]", vertex)
             values[f"wall{w}_x_{v}"], values[f"wall{w}_y_{v}"] = x, y
-    objects = raw.get("objects", [])
-    if not isinstance(objects, list) or len(objects) > MAX_OBJECTS:
-        raise fail(file, "robot.environment.objects", f"a list of at most {MAX_OBJECTS} tables")
-    values["n_objects"] = float(len(objects))
-    for o, item in enumerate(objects, start=1):
+    items = objects(scenario)
+    values["n_objects"] = float(len(items))
+    for o, item in enumerate(items, start=1):
         key = f"robot.environment.objects[{o - 1}]"
-        if not isinstance(item, dict):
-            raise fail(file, key, "a table {x, y, radius, mass, mu, yaw}")
-        unknown = set(item) - set(OBJECT_KEYS)
-        if unknown:
-            raise fail(
-                file,
-                f"{key}.{sorted(unknown)[0]}",
-                f"unknown key (allowed: {', '.join(OBJECT_KEYS)})",
-            )
-        for name, default in OBJECT_KEYS.items():
-            value = item.get(name, default)
+        for name, value in item.items():
             if placed and o in placed and name in ("x", "y"):
-                if name in item:
+                if value is not None:
                     raise fail(file, f"{key}.{name}", "placed by the task: leave it out")
                 value = placed[o][0 if name == "x" else 1]
             if value is None:
                 raise fail(file, f"{key}.{name}", "missing required key")
-            number = _number(file, f"{key}.{name}", value)
-            target = {"x": "object_x0", "y": "object_y0", "yaw": "object_yaw0"}.get(
-                name, f"object_{name}"
-            )
-            values[f"{target}_{o}"] = number
+            values[_object_parameter(name, o)] = value
     for name, value in raw.items():
         if name in OWN_KEYS:
             continue
@@ -124,6 +108,52 @@ def parameters(
     for name, value in values.items():
         check_parameter(file, f"robot.environment ({name})", interface, name, value)
     return values
+
+
+def objects(scenario: Scenario) -> list[dict[str, float | None]]:
+    """`[robot.environment] objects`, each a table of OBJECT_KEYS with the defaults filled in
+    (x and y None where not given: a task may place them), every value a finite number within
+    the Environment FMU's range; raises ScenarioError naming the key, such as
+    `robot.environment.objects[0].radius`, before anything (a grasp task's draw, the camera's
+    markers) uses them."""
+    from hil.scenario import check_parameter, fail, fmu_interface
+
+    file = scenario.source
+    raw = scenario.robot.environment.get("objects", [])
+    if not isinstance(raw, list) or len(raw) > MAX_OBJECTS:
+        raise fail(
+            file,
+            "robot.environment.objects",
+            f"must be a list of at most {MAX_OBJECTS} tables, got {raw!r}",
+        )
+    interface = fmu_interface(file, "robot.environment", FMU)
+    items = []
+    for o, item in enumerate(raw, start=1):
+        key = f"robot.environment.objects[{o - 1}]"
+        if not isinstance(item, dict):
+            raise fail(file, key, "a table {x, y, radius, mass, mu, yaw, height}")
+        unknown = set(item) - set(OBJECT_KEYS)
+        if unknown:
+            raise fail(
+                file,
+                f"{key}.{sorted(unknown)[0]}",
+                f"unknown key (allowed: {', '.join(OBJECT_KEYS)})",
+            )
+        checked: dict[str, float | None] = {}
+        for name, default in OBJECT_KEYS.items():
+            value = item.get(name, default)
+            if value is not None:
+                value = _number(file, f"{key}.{name}", value)
+                check_parameter(file, f"{key}.{name}", interface, _object_parameter(name, o), value)
+            checked[name] = value
+        items.append(checked)
+    return items
+
+
+def _object_parameter(name: str, o: int) -> str:
+    """The Environment FMU's parameter for key `name` of object `o` (1-based)."""
+    stem = {"x": "object_x0", "y": "object_y0", "yaw": "object_yaw0"}.get(name, f"object_{name}")
+    return f"{stem}_{o}"
 
 
 def connections(segments: int) -> list[tuple[str, str]]:

@@ -207,6 +207,8 @@ class PlanarArm:
                 "robot.actuator",
                 f"unknown parameter set {r.actuator!r} (known: {', '.join(PARAMETER_SETS)})",
             )
+        if environment.present(s):
+            environment.objects(s)  # the markers and a grasp task's draw count on them
         if s.camera and self.markers(s) > protocol.count("CameraMarker"):
             raise fail(file, "robot.segments", "more markers than the DBC's CameraMarker frames")
         for name in ("segment_decimation", "cylinder_decimation"):
@@ -411,6 +413,7 @@ class PlanarArm:
         """Where a grasp task's object starts and where it is to be placed [m]: the task's
         `pick` and `place`, else drawn from the seed within the reachable workspace."""
         from controllers.grasp import draw_grasp_task
+        from hil.scenario import fail
 
         task = scenario.task
         if task.pick is not None and task.place is not None:
@@ -425,16 +428,26 @@ class PlanarArm:
         start = [
             p.get("theta_start", 0.0) / p["length"] for p in self.parameters(scenario, "segment")
         ]
-        pick, place = draw_grasp_task(
-            rng,
-            lengths,
-            scenario.robot.base,
-            mid - half,
-            mid + half,
-            gripper.geometry(scenario),
-            self.grasp_object(scenario)["radius"],
-            start,
-        )
+        radius = self.grasp_object(scenario)["radius"]
+        try:
+            pick, place = draw_grasp_task(
+                rng,
+                lengths,
+                scenario.robot.base,
+                mid - half,
+                mid + half,
+                gripper.geometry(scenario),
+                radius,
+                start,
+            )
+        except ValueError as exc:
+            raise fail(
+                scenario.source,
+                "task",
+                f"{exc} for an object of radius {radius:g} m "
+                "(robot.environment.objects[0].radius): give task.pick and task.place, "
+                "or a smaller object",
+            ) from None
         layout = (task.pick or pick, task.place or place)
         if len(_LAYOUTS) >= 64:
             _LAYOUTS.clear()
@@ -443,8 +456,14 @@ class PlanarArm:
 
     def grasp_object(self, scenario: Scenario) -> dict[str, float]:
         """The grasp task's object (the first of `[robot.environment] objects`): its keys."""
-        item = scenario.robot.environment.get("objects", [{}])[0]
-        return {k: item.get(k, v) for k, v in environment.OBJECT_KEYS.items() if v is not None}
+        from hil.scenario import fail
+
+        items = environment.objects(scenario) if environment.present(scenario) else []
+        if not items:
+            raise fail(
+                scenario.source, "robot.environment.objects", "a grasp task needs its object"
+            )
+        return {k: v for k, v in items[0].items() if v is not None}
 
     def reach(self, scenario: Scenario) -> float:
         """Farthest a marker can be from the base [m]: the arm's length."""
