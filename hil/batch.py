@@ -38,7 +38,7 @@ from pathlib import Path
 from typing import Any
 
 from hil.errors import HilError, ScenarioError
-from hil.results import ResultsFolder, write_file
+from hil.results import ResultsFolder, note, write_file
 from hil.run import RunOptions, run_scenario
 from hil.scenario import Scenario, load_scenario
 
@@ -633,13 +633,26 @@ def timing(
     }
 
 
-def run_plan(plan: Plan, execution: Execution) -> dict[str, Any]:
+def run_plan(plan: Plan, execution: Execution, overwrite: bool = False) -> dict[str, Any]:
     """Run every trial into `plan.out` (new or empty) and write batch.json, timing.json and
     batch.png; returns the batch.json content. Failed trials do not raise: see its
-    `failed_trials`."""
+    `failed_trials`.
+
+    With `overwrite` the folder may hold an earlier batch's: as `hil run --overwrite` (the same
+    `ResultsFolder`), it replaces only what softhil wrote there. The batch's manifest lists its
+    files and its trial folders, so a foreign folder named like a trial is refused before
+    anything runs; in a trial folder each trial's run replaces only its own earlier files."""
     # connect first: an unreachable scheduler leaves no results folder behind
     client = connect(execution.scheduler) if execution.scheduler else None
-    with client or contextlib.nullcontext(), ResultsFolder(plan.out, OUTPUT_FILES) as folder:
+    planned = (*OUTPUT_FILES, *(spec.name for spec in plan.trials))
+    with (
+        client or contextlib.nullcontext(),
+        ResultsFolder(plan.out, planned, overwrite) as folder,
+    ):
+        for text in folder.notes:
+            note(text)
+        for spec in plan.trials:  # listed before the workers make them
+            folder.claim(spec.name)
         started = time.perf_counter()
         outcomes = execute(plan.trials, execution, client)
         wall_time = time.perf_counter() - started

@@ -141,6 +141,36 @@ def test_dask_local_cluster_gives_the_local_batch_json(
     assert timing["executor"] == "dask" and timing["scheduler"] == cluster.scheduler_address
 
 
+def test_overwrite_replaces_an_earlier_batch_and_keeps_foreign_files(
+    local_batch: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """As `hil run --overwrite`: the files and trial folders softhil wrote are replaced, a
+    user's files are kept, and a foreign folder named like a trial is refused before any run."""
+    out = tmp_path / "batch"
+    code, _, _ = hil(capsys, "batch", "short", "--trials", 1, "--workers", 1, "--out", out,
+                     "--no-progress")  # fmt: skip
+    assert code == 0
+    (out / "notes.txt").write_text("mine")
+    (out / "trial-000" / "notes.txt").write_text("mine too")
+    (out / "trial-001").mkdir()
+    (out / "trial-001" / "data.csv").write_text("foreign")
+    before = (out / "batch.json").read_bytes()
+    code, _, err = hil(capsys, "batch", "short", "--trials", 3, "--workers", 1, "--out", out,
+                       "--no-progress", "--overwrite")  # fmt: skip
+    assert code == 1 and len(err) == 1 and "trial-001 was not written by softhil" in err[0]
+    assert (out / "batch.json").read_bytes() == before and not (out / "trial-002").exists()
+    (out / "trial-001" / "data.csv").unlink()
+    (out / "trial-001").rmdir()
+    (out / "trial-000" / "summary.json").write_text("{}")  # replaced, not kept
+    code, _, err = hil(capsys, "batch", "short", "--trials", 3, "--workers", 1, "--out", out,
+                       "--no-progress", "--overwrite")  # fmt: skip
+    assert code == 0, err
+    assert (out / "batch.json").read_bytes() == (local_batch / "batch.json").read_bytes()
+    assert (out / "notes.txt").read_text() == "mine"
+    assert (out / "trial-000" / "notes.txt").read_text() == "mine too"
+    assert load(out / "trial-000" / "summary.json")["status"] == "completed"
+
+
 def test_an_unreachable_scheduler_is_one_line(
     builtins: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

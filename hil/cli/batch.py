@@ -94,6 +94,12 @@ def _common(parser: argparse.ArgumentParser, trials: int) -> None:
         help="results folder, new or empty (default: runs/NAME-batch-SEED or runs/NAME-sweep-SEED)",
     )
     parser.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="reuse a results folder: replace the files and trial folders an earlier batch "
+        "wrote there (listed in its .softhil-manifest), never other files",
+    )
+    parser.add_argument(
         "--workers",
         type=int,
         metavar="W",
@@ -135,6 +141,7 @@ def _execute(args: argparse.Namespace, kind: str, overrides: list[Override]) -> 
     content = run_plan(
         plan,
         Execution(workers=args.workers, scheduler=args.scheduler, progress=not args.no_progress),
+        overwrite=args.overwrite,
     )
     _print(plan, content)
     failed = content["failed_trials"]
