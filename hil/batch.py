@@ -503,12 +503,31 @@ def connect(address: str) -> Any:
         raise HilError(
             "--scheduler: needs dask.distributed (pip install 'dask[distributed]')"
         ) from None
+    _check_address(address)
     try:
         # the connect timeout is dask's (distributed.comm.timeouts.connect, 30 s by default)
         client = Client(address, set_as_default=False)
     except (OSError, TimeoutError, ValueError) as exc:
         raise HilError(f"--scheduler {address}: cannot connect: {_one_line(exc)}") from None
     return client
+
+
+def _check_address(address: str) -> None:
+    """Refuse an address dask cannot parse before a Client is made: a Client whose address
+    fails to parse is half made, and its finaliser then waits 60 s for a loop that never ran
+    (and prints a traceback) before the process can exit."""
+    from distributed.comm import parse_address
+    from distributed.comm.addressing import parse_host_port
+
+    try:
+        scheme, location = parse_address(address)
+        if scheme in ("tcp", "tls"):
+            parse_host_port(location)
+    except (ValueError, TypeError) as exc:
+        raise HilError(
+            f"--scheduler {address}: not a scheduler address ({_one_line(exc)}); "
+            "give one as tcp://HOST:PORT"
+        ) from None
 
 
 def _run_dask(

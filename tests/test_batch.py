@@ -13,6 +13,8 @@ import math
 import os
 import re
 import statistics
+import subprocess
+import sys
 import tomllib
 from collections.abc import Iterator
 from pathlib import Path
@@ -179,6 +181,24 @@ def test_an_unreachable_scheduler_is_one_line(
         code, _, err = hil(capsys, "batch", "short", "--trials", 1, "--out", tmp_path / "x",
                            "--scheduler", "tcp://127.0.0.1:1", "--no-progress")  # fmt: skip
     assert code == 1 and len(err) == 1 and "--scheduler tcp://127.0.0.1:1" in err[0]
+    assert not (tmp_path / "x").exists()
+
+
+@pytest.mark.parametrize("address", ["garbage", "tcp://host:x"])
+def test_a_malformed_scheduler_address_is_one_line_at_once(
+    builtins: Path, tmp_path: Path, address: str
+) -> None:
+    """Refused before dask makes a Client: a half-made one kept the process from exiting for
+    60 s and printed a traceback after the error (run as a user would, in its own process)."""
+    pytest.importorskip("distributed")
+    done = subprocess.run(
+        [sys.executable, "-m", "hil", "batch", str(builtins / "short.toml"), "--trials", "1",
+         "--out", str(tmp_path / "x"), "--scheduler", address, "--no-progress"],
+        cwd=builtins, capture_output=True, text=True, timeout=40,
+    )  # fmt: skip
+    assert done.returncode == 1, done.stderr
+    lines = done.stderr.splitlines()
+    assert len(lines) == 1 and f"--scheduler {address}: not a scheduler address" in lines[0]
     assert not (tmp_path / "x").exists()
 
 
