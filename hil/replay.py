@@ -249,6 +249,23 @@ def compare(
     return result
 
 
+def check_tolerances(protocol: Protocol, tolerances: Mapping[str, float]) -> None:
+    """Refuse a tolerance for a signal the DBC does not have (SIGNAL or MESSAGE.SIGNAL): a
+    misspelt name would otherwise leave the signal at the default tolerance, silently."""
+    known = {
+        name
+        for message in protocol.database.messages
+        for signal in message.signals
+        for name in (signal.name, f"{message.name}.{signal.name}")
+    }
+    for name in tolerances:
+        if name not in known:
+            raise ReplayError(
+                f"tolerance for {name!r}: no such signal in {protocol.path.name} "
+                "(name one as SIGNAL or MESSAGE.SIGNAL, e.g. DriveCommand1.piston_setpoint)"
+            )
+
+
 def _by_name(messages: Iterable[can.Message], protocol: Protocol) -> dict[str, dict[str, float]]:
     frames = {}
     for message in messages:
@@ -275,6 +292,7 @@ def replay(
     """Replay `log` (any python-can format) against the controller `config` (default: the
     run's controller.json beside the log), in this process or as a separate program."""
     protocol = Protocol()
+    check_tolerances(protocol, tolerances or {})
     cycles = read_cycles(read_log(log), protocol, str(log))
     config = config or config_beside(log)
     if config.cycles != len(cycles) - 1:

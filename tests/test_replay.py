@@ -4,6 +4,7 @@ the first diverging cycle and signal; bad logs get one line."""
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -103,6 +104,42 @@ def test_assert_replays_raises_with_the_first_divergence(recorded: Path, tmp_pat
     changed.write_text(text.replace("crossover = 1.0", "crossover = 1.5"))
     with pytest.raises(AssertionError, match=r"first: cycle \d+ .*DriveCommand1\.piston_setpoint"):
         assert_replays(recorded, load_scenario_config(changed))
+
+
+def test_bad_options_are_one_line_before_the_replay_runs(
+    recorded: Path,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """--json a folder or in a missing folder, and a tolerance for a signal the DBC lacks, are
+    refused before any cycle is replayed (no IsADirectoryError after the whole replay)."""
+    import hil.replay
+
+    ran: list[bool] = []
+    monkeypatch.setattr(hil.replay, "read_cycles", lambda *a: ran.append(True) or [])
+    cases = {
+        ("--json", str(tmp_path)): f"--json {tmp_path}: is a folder",
+        ("--json", str(tmp_path / "no" / "r.json")): f"{tmp_path / 'no'}: no such folder",
+        ("--tolerance-for", "nosuch=1"): "tolerance for 'nosuch': no such signal in",
+        ("--tolerance-for", "DriveCommand1.nosuch=1"): "'DriveCommand1.nosuch': no such signal",
+    }
+    for argv, reason in cases.items():
+        assert main(["replay", str(recorded), *argv]) == 1, argv
+        err = capsys.readouterr().err.splitlines()
+        assert len(err) == 1 and reason in err[0], (argv, err)
+    assert not ran
+    # the signal and the message's signal are both names a tolerance may use
+    assert hil.replay.check_tolerances(hil.replay.Protocol(), {"piston_setpoint": 1}) is None
+    hil.replay.check_tolerances(hil.replay.Protocol(), {"DriveCommand1.piston_setpoint": 1})
+
+
+def test_the_json_summary_is_written_after_the_report(recorded: Path, tmp_path: Path) -> None:
+    out = tmp_path / "r.json"
+    assert main(["replay", str(recorded), "--json", str(out),
+                 "--tolerance-for", "DriveCommand1.piston_setpoint=0.1"]) == 0  # fmt: skip
+    summary = json.loads(out.read_text())
+    assert summary["cycles"] == 151 and summary["divergences"] == 0, summary
 
 
 def _write(tmp_path: Path, name: str, data: bytes | str) -> Path:

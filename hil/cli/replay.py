@@ -49,6 +49,7 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
 
 def _replay(args: argparse.Namespace) -> int:
     from hil.replay import replay
+    from hil.results import write_file
     from hil.robots import robot_kind
     from hil.scenario import load_scenario
 
@@ -63,6 +64,7 @@ def _replay(args: argparse.Namespace) -> int:
             raise HilError(f"--tolerance-for {item!r}: expected SIGNAL=NUMBER >= 0")
     if not args.tolerance >= 0:
         raise HilError(f"--tolerance must not be negative, got {args.tolerance}")
+    json_out = _json_path(args.json) if args.json else None
     config = None
     if args.scenario is not None:
         scenario = load_scenario(args.scenario)
@@ -74,16 +76,26 @@ def _replay(args: argparse.Namespace) -> int:
         tolerance=args.tolerance,
         tolerances=tolerances,
     )
-    summary = result.summary()
-    if args.json:
-        args.json.write_text(json.dumps(summary, indent=2) + "\n")
     print(
         f"{args.log}: {result.cycles} cycles, {result.frames_compared} controller frames "
         f"compared, {len(result.divergences)} divergence(s)"
     )
-    if result.ok:
-        return 0
-    print(f"  first divergence: {result.divergences[0]}")
-    for signal, count in sorted(result.by_signal.items()):
-        print(f"  {signal}: {count} cycle(s)")
-    return 1
+    if not result.ok:
+        print(f"  first divergence: {result.divergences[0]}")
+        for signal, count in sorted(result.by_signal.items()):
+            print(f"  {signal}: {count} cycle(s)")
+    if json_out:  # after the report: a failing write loses no result
+        write_file(json_out, json.dumps(result.summary(), indent=2) + "\n")
+    return 0 if result.ok else 1
+
+
+def _json_path(out: Path) -> Path:
+    """--json's file, checked before the replay runs: not a folder, in an existing folder."""
+    if out.is_dir():
+        raise HilError(
+            f"--json {out}: is a folder; name the JSON file (e.g. {out / 'replay.json'})"
+        )
+    if not out.parent.is_dir():
+        reason = "is not a folder" if out.parent.exists() else "no such folder"
+        raise HilError(f"--json {out}: {out.parent}: {reason}")
+    return out
