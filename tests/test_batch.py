@@ -202,6 +202,42 @@ def test_a_malformed_scheduler_address_is_one_line_at_once(
     assert not (tmp_path / "x").exists()
 
 
+def _examples() -> list[str]:
+    """Every `hil batch`/`hil sweep` command the help and the README show."""
+    from hil.cli.batch import BATCH_EXAMPLES, SWEEP_EXAMPLES
+
+    readme = (Path(__file__).parents[1] / "README.md").read_text(encoding="utf-8")
+    lines = [*BATCH_EXAMPLES.splitlines(), *SWEEP_EXAMPLES.splitlines()]
+    lines += [line for line in readme.splitlines() if line.startswith("    hil ")]
+    commands = [re.split(r"\s{2,}", line.strip())[0] for line in lines]
+    return [c for c in commands if c.startswith(("hil batch", "hil sweep"))]
+
+
+@pytest.mark.parametrize("command", _examples())
+def test_every_example_command_plans(
+    command: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The examples users copy are plans that load (each --set key exists, each value fits);
+    `hil sweep --set segment.bore=...` in the help named a key the scenario does not have."""
+    import shlex
+
+    import hil.cli.batch
+
+    planned: list[batch.Plan] = []
+    monkeypatch.setattr(
+        hil.cli.batch,
+        "run_plan",
+        lambda plan, *a, **k: planned.append(plan) or {"failed_trials": []},
+    )
+    monkeypatch.setattr(hil.cli.batch, "_print", lambda *a: None)
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "my.toml").write_text(DEFAULT_SCENARIO.read_text())
+    argv = shlex.split(command.replace("HOST", "127.0.0.1"))[1:]
+    assert main([*argv, "--out", str(tmp_path / "out")]) == 0, command
+    assert len(planned) == 1, command
+    assert len(planned[0].trials) >= 1
+
+
 # ------------------------------------------------------------------ sweep
 
 

@@ -24,7 +24,7 @@ SWEEP_EXAMPLES = (
     "  hil sweep --set controller.crossover=0.5,1.0,2.0\n"
     "  hil sweep --set controller.crossover=0.5,1.0 --set camera.noise=0.0005,0.001 --trials 5\n"
     "  hil sweep --set controller.estimator=raw,kf,ukf   (bare words are strings)\n"
-    "  hil sweep --set segment.bore=0.02,0.0254        ([robot] keys need no 'robot.')\n"
+    "  hil sweep --set cylinder.bore=0.02,0.0254        ([robot] keys need no 'robot.')\n"
 )
 COMMON = (
     "Trials run in-process on --workers local processes, or on the workers of a Dask scheduler "
