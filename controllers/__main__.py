@@ -16,6 +16,7 @@ from typing import Any
 
 import can
 
+from controllers import ccodec
 from controllers.canbus import BusOpenError, BusSpec, open_bus
 from controllers.node import (
     ControllerError,
@@ -74,6 +75,11 @@ def _read_config(path: Path) -> Any:
 
 
 def run(args: argparse.Namespace) -> int:
+    try:
+        ccodec.setting()
+    except ValueError as exc:
+        print(f"controller: error: {exc}", file=sys.stderr)
+        return 1
     try:
         config = _read_config(args.config)
     except ValueError as exc:

@@ -64,6 +64,18 @@ def _build() -> Path:
     return compile_library("codec", "ccodec", SOURCE, flags, salt=salt, suffix=suffix)
 
 
+def setting() -> str:
+    """SOFTHIL_CODEC: "c" (unset or empty: the C codec wherever it builds) or "python";
+    ValueError naming the variable for any other value."""
+    value = os.environ.get(ENV, "").strip().lower() or "c"
+    if value not in ("c", "python"):
+        raise ValueError(
+            f"{ENV}={os.environ[ENV]!r}: must be c (the C codec where it builds, the default) "
+            "or python"
+        )
+    return value
+
+
 def load() -> ModuleType | None:
     """The C codec module, built if needed; None if it cannot be (why: `failure()`)."""
     if _module is not None or _failure is not None:
@@ -76,7 +88,7 @@ def _load() -> ModuleType | None:
     global _module, _failure  # noqa: PLW0603 - the loaded module is immutable code, loaded once
     if _module is not None or _failure is not None:
         return _module
-    if os.environ.get(ENV, "").strip().lower() == "python":
+    if setting() == "python":
         _failure = f"{ENV}=python"
         return None
     try:

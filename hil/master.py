@@ -19,13 +19,13 @@ start of the tick (Jacobi), so the result does not depend on the order of partic
 from __future__ import annotations
 
 import operator
-import os
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from types import MappingProxyType
 from typing import Any, Protocol
 
 from hil import kernel as kernel_module
+from hil.environment import kernel_enabled
 from hil.errors import BuildError, HilError
 from hil.fmu.slave import FmuSlave
 
@@ -177,7 +177,7 @@ class Master:
         self._kernel_synced = False
         self._initialise()
         if kernel is None:
-            kernel = os.environ.get("SOFTHIL_KERNEL", "1") != "0"
+            kernel = kernel_enabled()
             try:
                 self._kernel = self._make_kernel() if kernel else None
             except BuildError:

@@ -272,6 +272,32 @@ def test_the_python_codec_alone_gives_the_same_frames(monkeypatch: pytest.Monkey
     assert codec.c_decoders == {}
 
 
+def test_a_misspelt_codec_setting_is_one_line_in_hil_and_the_controller(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """SOFTHIL_CODEC=pyhton is refused (it silently meant "c"), by `hil` before any command
+    and by the controller program before it opens the bus; "C" and "Python" are accepted."""
+    from controllers.__main__ import main as controller_main
+    from hil.cli import main as hil_main
+
+    for value, meant in (("", "c"), ("C", "c"), (" Python ", "python")):
+        monkeypatch.setenv(ccodec.ENV, value)
+        assert ccodec.setting() == meant
+    monkeypatch.setenv(ccodec.ENV, "pyhton")
+    monkeypatch.setattr(ccodec, "_module", None)
+    monkeypatch.setattr(ccodec, "_failure", None)
+    with pytest.raises(ValueError, match="^SOFTHIL_CODEC='pyhton': must be c .* or python$"):
+        ccodec.load()
+    assert hil_main(["scenarios"]) == 1
+    out, err = capsys.readouterr()
+    assert out == "" and err.startswith("hil: error: SOFTHIL_CODEC='pyhton': must be c")
+    assert err.count("\n") == 1
+    (tmp_path / "controller.json").write_text("{}")
+    assert controller_main(["--config", str(tmp_path / "controller.json")]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("controller: error: SOFTHIL_CODEC='pyhton'") and err.count("\n") == 1
+
+
 def test_a_damaged_cache_entry_is_built_again(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from hil.errors import FmuError
+from hil.errors import FmuError, HilError
 from hil.fmu.build import BuiltFmu
 from hil.fmu.slave import FmuSlave
 from hil.master import Connection, FmuParticipant, Master
@@ -222,6 +222,10 @@ def test_environment_variable_and_argument_select_the_python_path(
         assert master.tick == 3
         monkeypatch.setenv("SOFTHIL_KERNEL", "1")
         assert Master(participants, [], H).uses_kernel
+        for value in ("yes", "off", "2", ""):  # a misspelt switch is not silently "on"
+            monkeypatch.setenv("SOFTHIL_KERNEL", value)
+            with pytest.raises(HilError, match=rf"^SOFTHIL_KERNEL='{value}': must be 1 .* or 0"):
+                Master(participants, [], H)
 
 
 def test_master_without_fmus_does_not_use_the_kernel() -> None:

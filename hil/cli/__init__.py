@@ -23,6 +23,7 @@ from hil.cli import fmu as fmu_command
 from hil.cli import replay as replay_command
 from hil.cli import run as run_command
 from hil.cli import scenarios as scenarios_command
+from hil.environment import check as check_environment
 from hil.errors import HilError, Terminated
 
 SUBCOMMANDS = (
@@ -101,6 +102,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     main_thread = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGTERM, _terminate) if main_thread else None
     try:
+        check_environment()
         return handler(args)
     except Terminated:
         print("hil: terminated", file=sys.stderr)
