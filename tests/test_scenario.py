@@ -332,3 +332,28 @@ def test_parameters_geometry_and_protocol_ranges_are_checked_before_running(
 def test_negative_seed_override_names_the_option() -> None:
     with pytest.raises(ScenarioError, match=r"^--seed: must not be negative, got -1$"):
         load_scenario(seed=-1)
+
+
+@pytest.mark.parametrize(
+    ("argv", "expected"),
+    [
+        (["bus", "load", "fish-swim"], "fish-swim: bus load"),
+        (["tune", "fish-swim"], "hil tune applies to planar-arm scenarios"),
+        (["replay", "missing.log", "--scenario", "planar-path"], "missing.log: no such log file"),
+    ],
+)
+def test_every_command_taking_a_scenario_takes_a_built_in_name(
+    argv: list[str],
+    expected: str,
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """As `hil run` and `hil batch`: NAME or FILE (hil tune and hil bus load said 'default: no
+    such scenario file'); the command gets past the scenario to its own work or error."""
+    from hil.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    main(argv)
+    out, err = capsys.readouterr()
+    assert expected in out + err and "no such scenario" not in err, (out, err)

@@ -71,7 +71,9 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
         "  hil bus load --log runs/default-1/can.log\n"
         "  hil bus load --bus loopback --seconds 5\n",
     )
-    load.add_argument("scenario", nargs="?", help="scenario TOML (default: built-in)")
+    load.add_argument(
+        "scenario", nargs="?", help="scenario NAME or FILE (default: the default scenario)"
+    )
     load.add_argument(
         "--bitrate",
         type=int,
@@ -201,13 +203,12 @@ def _load(args: argparse.Namespace) -> int:
     if args.log is not None or args.bus is not None:
         return _measured_load(args)
     from dataclasses import replace
-    from pathlib import Path
 
     from controllers.protocol import Protocol
-    from hil.scenario import load_scenario
+    from hil.scenario import load_scenario, resolve_scenario
     from hil.summary import BUS_LOAD_WARNING, bus_load_of
 
-    scenario = load_scenario(Path(args.scenario) if args.scenario else None)
+    scenario = load_scenario(resolve_scenario(args.scenario) if args.scenario else None)
     if args.bitrate is not None and args.bitrate <= 0:
         raise HilError(f"--bitrate must be positive, got {args.bitrate}")
     if args.bitrate:

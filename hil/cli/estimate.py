@@ -28,7 +28,12 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
         "  hil tune                        the default scenario\n"
         "  hil tune my.toml --out bode.png\n",
     )
-    tune.add_argument("scenario", nargs="?", type=Path, help="scenario TOML (default: built-in)")
+    tune.add_argument(
+        "scenario",
+        nargs="?",
+        type=Path,
+        help="scenario NAME or FILE (default: the default scenario)",
+    )
     tune.add_argument("--out", type=Path, help="Bode plot PNG (default: tune-NAME.png)")
     tune.set_defaults(handler=_tune)
 
@@ -63,9 +68,9 @@ def _tune(args: argparse.Namespace) -> int:
         write_bode_png,
     )
     from hil.robots import robot_kind
-    from hil.scenario import load_scenario
+    from hil.scenario import load_scenario, resolve_scenario
 
-    scenario = load_scenario(args.scenario)
+    scenario = load_scenario(None if args.scenario is None else resolve_scenario(args.scenario))
     robot = robot_kind(scenario.robot.kind)
     if not hasattr(robot, "segment_models"):  # the outer curvature loop is the planar arm's
         raise HilError(

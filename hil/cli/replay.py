@@ -25,7 +25,8 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--scenario",
         type=Path,
-        help="scenario whose controller to replay (default: controller.json beside the log)",
+        help="scenario NAME or FILE whose controller to replay (default: controller.json beside "
+        "the log)",
     )
     parser.add_argument(
         "--tolerance",
@@ -51,7 +52,7 @@ def _replay(args: argparse.Namespace) -> int:
     from hil.replay import replay
     from hil.results import write_file
     from hil.robots import robot_kind
-    from hil.scenario import load_scenario
+    from hil.scenario import load_scenario, resolve_scenario
 
     tolerances: dict[str, float] = {}
     for item in args.tolerance_for:
@@ -67,7 +68,7 @@ def _replay(args: argparse.Namespace) -> int:
     json_out = _json_path(args.json) if args.json else None
     config = None
     if args.scenario is not None:
-        scenario = load_scenario(args.scenario)
+        scenario = load_scenario(resolve_scenario(args.scenario))
         config = robot_kind(scenario.robot.kind).controller_config(scenario)
     result = replay(
         args.log,
