@@ -490,7 +490,7 @@ def _check(s: Scenario) -> None:
         raise _fail(
             file,
             "robot",
-            f"the arm can reach {reach:g} m from its base at "
+            f"the robot's markers reach {reach:g} m from its base at "
             f"({base[0]:g}, {base[1]:g}): beyond the camera's +-{marker_range:g} m "
             "(the CameraMarker range in the DBC)",
         )

@@ -254,6 +254,8 @@ def test_calibration_is_monotonic_and_inverted_by_interpolation() -> None:
     ("replace", "extra", "key"),
     [
         ({"side": "side = 3"}, "", "robot.side"),
+        ({"[robot]": "[robot]\nfrequency = 1000.0"}, "", "robot.frequency"),
+        ({"[robot]": "[robot]\nfrequency = 125.1"}, "", "robot.frequency"),
         ({"open_time": "open_time = 2.0"}, "", "robot.valve.open_time"),
         ({}, "\n[robot.valve.3]\nd_nozzle = 1e-3\n", "robot.valve.3"),
         ({}, "\n[robot.body]\nx_start = 0.1\n", "robot.body.x_start"),
@@ -270,6 +272,18 @@ def test_scenario_errors_name_the_key(tmp_path: Path, replace, extra, key) -> No
         load_scenario(path)
     message = str(error.value)
     assert f": {key}: " in message and "\n" not in message
+
+
+def test_the_highest_beat_frequency_loads_and_errors_list_tasks_by_name(tmp_path: Path) -> None:
+    """A half beat of exactly two control periods (2 ms: 125 Hz) is the limit, not refused; the
+    unknown-task error lists the tasks as words, not a Python tuple."""
+    text = resolve_scenario("fish-escape").read_text()
+    path = tmp_path / "fast.toml"
+    path.write_text(text.replace("[robot]", "[robot]\nfrequency = 125.0", 1))
+    assert load_scenario(path).robot.frequency == 125.0
+    path.write_text(text.replace('kind = "escape"', 'kind = "dance"'))
+    with pytest.raises(ScenarioError, match=r"\(known: escape, swim, heading\)$"):
+        load_scenario(path)
 
 
 def test_heading_hold_lengthens_the_strokes_that_turn_towards_the_reference() -> None:

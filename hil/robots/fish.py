@@ -171,7 +171,9 @@ class Fish:
 
         s, file, r = scenario, scenario.source, scenario.robot
         if s.task.kind not in TASKS:
-            raise fail(file, "task.kind", f"unknown fish task {s.task.kind!r} (known: {TASKS})")
+            raise fail(
+                file, "task.kind", f"unknown fish task {s.task.kind!r} (known: {', '.join(TASKS)})"
+            )
         for table, model in TABLES.items():
             interface = fmu_interface(file, f"robot.{table}", model)
             for index in range(1, (VALVES if table == "valve" else 1) + 1):
@@ -188,8 +190,16 @@ class Fish:
             raise fail(file, "robot.side", f"must be 1 (turn left) or 2 (turn right), got {r.side}")
         if not 0.0 < r.duty <= 1.0:
             raise fail(file, "robot.duty", f"must be in (0, 1], got {r.duty}")
-        if r.frequency <= 0.0:
-            raise fail(file, "robot.frequency", f"must be positive, got {r.frequency}")
+        highest = 1.0 / (4.0 * s.timing.control_period)
+        if not 0.0 < r.frequency <= highest:
+            # a stroke every half beat, opened and closed on the controller's clock: a shorter
+            # half beat would fall behind a stroke per cycle and beat slower than asked
+            raise fail(
+                file,
+                "robot.frequency",
+                f"must be in (0, {highest:g}] Hz (a half beat of at least two control periods "
+                f"of {s.timing.control_period:g} s), got {r.frequency:g}",
+            )
         if not 0.0 <= r.start < s.duration:
             raise fail(file, "robot.start", "must be within the run")
         if not 0.0 < r.turn_angle <= math.degrees(CALIBRATION[-1][1]):
