@@ -215,9 +215,8 @@ class Scenario:
         return round(self.camera.latency / self.timing.step)
 
 
-# TOML key -> field name where Python needs another name
-_ALIASES = {"from": "source", "to": "target"}
-_DISPLAY = {"source": "from", "target": "to"}
+# a table's TOML key -> its field's name, where Python needs another name ("from")
+_ALIASES: dict[type, dict[str, str]] = {ConnectionSpec: {"from": "source", "to": "target"}}
 # keys whose absence means "draw from the seed": given, they must not be empty
 _NOT_EMPTY = {
     TaskSpec: {
@@ -321,13 +320,16 @@ def _build(cls: type, data: Any, file: str, key: str) -> Any:
     hints = typing.get_type_hints(cls)
     if cls is Scenario:
         hints["robot"] = RobotSection
+    aliases = _ALIASES.get(cls, {})
+    display = {name: raw_name for raw_name, name in aliases.items()}
     known = {f.name: f for f in fields(cls)}
     values: dict[str, Any] = {}
     for raw_name, raw in data.items():
-        name = _ALIASES.get(raw_name, raw_name)
+        # a field with a TOML name is known by that name only ("source" in a connection is not)
+        name = aliases.get(raw_name, "" if raw_name in display else raw_name)
         sub = f"{key}.{raw_name}" if key else raw_name
         if name not in known:
-            shown = [_DISPLAY.get(k, k) for k in known if k != "source" or cls is not Scenario]
+            shown = [display.get(k, k) for k in known if k != "source" or cls is not Scenario]
             allowed = ", ".join(shown)
             raise _fail(file, sub, f"unknown key (allowed: {allowed})")
         if raw == [] and name in _NOT_EMPTY.get(cls, {}):
@@ -337,7 +339,8 @@ def _build(cls: type, data: Any, file: str, key: str) -> Any:
         values["robot"] = _robot_section({}, file, "robot")
     for f in fields(cls):
         if f.name not in values and f.default is MISSING and f.default_factory is MISSING:
-            raise _fail(file, f"{key}.{f.name}" if key else f.name, "missing required key")
+            shown = display.get(f.name, f.name)
+            raise _fail(file, f"{key}.{shown}" if key else shown, "missing required key")
     return cls(**values)
 
 

@@ -195,6 +195,21 @@ CASES: dict[str, tuple[str, str, str]] = {
         "task.paths",
         "must not be empty",
     ),
+    "connection without its to": (
+        MINIMAL + '[[connections]]\nfrom = "segment1.kappa"\n',
+        "connections[0].to",
+        "missing required key",
+    ),
+    "connection naming its end by the Python field": (
+        MINIMAL + '[[connections]]\nsource = "segment1.kappa"\nto = "cylinder1.x"\n',
+        "connections[0].source",
+        "unknown key (allowed: from, to, gain, offset)",
+    ),
+    "a connection's from at the top level": (
+        MINIMAL.replace("seed", 'from = "other.toml"\nseed', 1),
+        "from",
+        "unknown key (allowed: name, seed, duration,",
+    ),
     "connection to a participant that does not exist": (
         MINIMAL + '[[connections]]\nfrom = "segment1.kappa"\nto = "segment2.tau_ext"\n',
         "connections[0].to",
