@@ -108,6 +108,7 @@ def run_scenario(scenario: Scenario, options: RunOptions) -> RunResult:
         require_asammdf("--can-log" if options.can_log else f"{source}: recording.can_log")
     if options.animate is not None:  # before anything runs: a format this machine can write
         check_format(options.animate)
+    bus_option(options)
     try:
         start = log_start(scenario)
     except ValueError as exc:
@@ -309,29 +310,46 @@ def _open(spec: BusSpec):  # noqa: ANN202 - can.BusABC
         raise BusError(str(exc)) from exc
 
 
+def bus_option(options: RunOptions) -> BusSpec | None:
+    """--bus as a spec (None: not given, or --inprocess's virtual bus); HilError for a spec
+    that cannot be, checked before the results folder is made (a misspelt interface is not a
+    failed run)."""
+    if not options.bus:
+        return None
+    if options.inprocess:
+        if not options.bus.startswith("virtual"):
+            raise HilError(f"--inprocess runs on the virtual bus, not {options.bus}")
+        return None
+    try:
+        spec = BusSpec.parse(options.bus)
+    except ValueError as exc:
+        raise HilError(str(exc)) from exc
+    if spec.kind == "virtual":
+        raise HilError("a virtual bus only joins one process: use --inprocess, or --bus loopback")
+    return spec
+
+
 def _bus_specs(
     scenario: Scenario, options: RunOptions, stack: ExitStack
 ) -> tuple[BusSpec, BusSpec, HostedBus | None, str | None]:
     """(plant's spec, controller's spec, the plant's bus if the plant hosts the hub, where
     the run's own hub runs if it has one). A loopback bus without a port gets its own hub."""
+    given = bus_option(options)
     if options.inprocess:
-        if options.bus and not options.bus.startswith("virtual"):
-            raise HilError(f"--inprocess runs on the virtual bus, not {options.bus}")
         channel = f"softhil-{uuid.uuid4().hex[:8]}"  # a private channel per run
         if options.bus and options.bus.startswith("virtual:"):
             channel = options.bus.partition(":")[2]  # a channel named by the user
         spec = BusSpec("virtual", channel)
         return spec, spec, None, None
-    if options.bus:
-        try:
-            spec = BusSpec.parse(options.bus)
-        except ValueError as exc:
-            raise HilError(str(exc)) from exc
+    if given is not None:
+        spec = given
     else:
         b = scenario.bus
         spec = BusSpec(b.kind, b.channel, b.host, b.port or 0)
-    if spec.kind == "virtual":
-        raise HilError("a virtual bus only joins one process: use --inprocess, or --bus loopback")
+        if spec.kind == "virtual":
+            raise HilError(
+                "a virtual bus only joins one process: use --inprocess, or --bus loopback"
+            )
     if spec.kind in HUB_KINDS and (options.bus is None and scenario.bus.port == 0):
         # our own hub: plant and controller speak its binary records (the ASCII socketcand
         # protocol stays open on the same port for tools); the hub runs where SOFTHIL_HUB says

@@ -291,6 +291,26 @@ def test_bad_bus_specs_are_one_line(text: str, reason: str) -> None:
         BusSpec.parse(text)
 
 
+@pytest.mark.parametrize(
+    ("bus", "inprocess", "reason"),
+    [
+        ("bogus:1", False, "bus spec 'bogus:1': 'bogus' is neither loopback"),
+        ("virtual:x", False, "a virtual bus only joins one process"),
+        ("loopback", True, "--inprocess runs on the virtual bus, not loopback"),
+    ],
+)
+def test_a_bad_bus_option_is_refused_before_the_results_folder(
+    tmp_path: Path, bus: str, inprocess: bool, reason: str
+) -> None:
+    """A misspelt --bus is the user's option, not a failed run: no folder with a 'failed'
+    summary is left behind (as for --start, --can-log and --animate)."""
+    out = tmp_path / "run"
+    options = RunOptions(out=out, bus=bus, inprocess=inprocess, progress=False)
+    with pytest.raises(HilError, match=reason):
+        run_scenario(load_scenario(DEFAULT_SCENARIO), options)
+    assert not out.exists()
+
+
 def test_python_can_configuration_is_honoured(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv("CAN_INTERFACE", "virtual")
     monkeypatch.setenv("CAN_CHANNEL", "from-env")
