@@ -158,6 +158,11 @@ def _run(
     write_file(folder.claim("controller.json"), config.to_json() + "\n")
     if not folder.kept("scenario.toml"):  # never the input scenario (a rerun in its folder)
         write_file(folder.claim("scenario.toml"), scenario_text)
+    elif scenario_text.partition("\n")[2] != Path(scenario.source).read_text(encoding="utf-8"):
+        note(
+            f"{out / 'scenario.toml'} is this run's input and is kept as it is; the run used "
+            f"seed {scenario.seed} (summary.json)"
+        )
     protocol = Protocol()
     with ExitStack() as stack:
         rig = robot.build(scenario)

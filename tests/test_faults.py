@@ -143,11 +143,20 @@ def test_rerun_into_its_own_folder_keeps_the_input_scenario(tmp_path: Path, caps
     (out / "my-notes.md").write_text("keep me\n")
     code, lines = run_cli(capsys, str(recorded), "--inprocess", "--out", str(out))
     assert code == 1 and "not empty" in lines[0]
-    code, _ = run_cli(capsys, str(recorded), "--inprocess", "--out", str(out), "--overwrite")
-    assert code == 0
+    code, lines = run_cli(capsys, str(recorded), "--inprocess", "--out", str(out), "--overwrite")
+    assert code == 0 and not lines  # the same scenario as the file: nothing to say
     assert recorded.read_bytes() == text
     assert (out / "my-notes.md").read_text() == "keep me\n"
     assert summary(out)["status"] == "completed"
+    # another seed than the kept file's: the file stays, and the run says where its seed is
+    code, lines = run_cli(
+        capsys, str(recorded), "--inprocess", "--out", str(out), "--overwrite", "--seed", "7"
+    )
+    assert code == 0 and recorded.read_bytes() == text and summary(out)["seed"] == 7
+    assert lines == [
+        f"hil: note: {recorded} is this run's input and is kept as it is; the run used seed 7 "
+        "(summary.json)"
+    ]
 
 
 def test_second_run_into_a_locked_folder_is_refused_and_a_stale_lock_taken_over(
