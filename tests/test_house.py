@@ -363,6 +363,34 @@ def test_version_and_defaults_in_help(capsys: pytest.CaptureFixture[str]) -> Non
     assert "(default: 29536)" in text and "(default: 127.0.0.1)" in text
 
 
+def _subparsers(parser):  # noqa: ANN001, ANN202 - argparse parsers
+    import argparse
+
+    yield parser
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for sub in action.choices.values():
+                yield from _subparsers(sub)
+
+
+def test_every_help_states_each_default_once() -> None:
+    """No '(default: [])' for a repeatable option, and no default both in the text and added
+    by the formatter ('(default 0.5) (default: 0.5)' in `hil fmu check --help`)."""
+    import re
+
+    from hil.cli import build_parser
+
+    helps = [sub.format_help() for sub in _subparsers(build_parser())]
+    assert len(helps) > 15
+    for text in helps:
+        flat = " ".join(text.split())
+        assert "(default: [])" not in flat, flat
+        for option in re.split(r" (?=--?[a-z])", flat):
+            assert option.count("(default") <= 1, option
+    replay = next(h for h in helps if h.startswith("usage: hil replay"))
+    assert "(default: 0.0)" in " ".join(replay.split())  # a zero default is a default
+
+
 def test_direct_in_process_bus_equals_the_virtual_bus_with_a_thread(
     tmp_path: Path, short_run
 ) -> None:

@@ -54,14 +54,16 @@ exit codes: 0 success, 1 error, 2 wrong usage, 130 interrupted, 143 terminated
 
 
 class HelpFormatter(argparse.RawDescriptionHelpFormatter):
-    """Keeps the examples' layout and shows every option's default (where it has one)."""
+    """Keeps the examples' layout and shows every option's default (where it has one), once."""
 
     def _get_help_string(self, action: argparse.Action) -> str:
         text = action.help or ""
         default = action.default
         if (
             "%(default)" not in text
-            and default not in (None, False, argparse.SUPPRESS)
+            and "(default" not in text  # the text states it already
+            and all(default is not no for no in (None, False, argparse.SUPPRESS))  # 0 is shown
+            and default != []  # a repeatable option given no times
             and action.option_strings
         ):
             text += " (default: %(default)s)"

@@ -48,7 +48,7 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
         "--stop-time",
         type=float,
         default=0.5,
-        help=f"simulated time [s], at most {MAX_CHECK_STOP_TIME:g} (default 0.5)",
+        help=f"simulated time [s], at most {MAX_CHECK_STOP_TIME:g}",
     )
     check.add_argument(
         "--step",
