@@ -37,7 +37,7 @@ from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
 
-from hil.errors import HilError, ScenarioError
+from hil.errors import HilError, ScenarioError, Terminated
 from hil.results import ResultsFolder, note, write_file
 from hil.run import RunOptions, run_scenario
 from hil.scenario import Scenario, load_scenario
@@ -415,14 +415,18 @@ class Execution:
 
 
 def execute(
-    specs: Sequence[TrialSpec], execution: Execution, client: Any = None
+    specs: Sequence[TrialSpec],
+    execution: Execution,
+    client: Any = None,
+    by_index: dict[int, dict[str, Any]] | None = None,
 ) -> list[dict[str, Any]]:
     """Run every trial, on `client` (a connected dask.distributed Client) if given, else on
     local processes; the outcomes ordered by trial index. A trial whose worker died comes back
-    failed like any other; only an interrupt or a lost scheduler ends the whole batch."""
+    failed like any other; only an interrupt or a lost scheduler ends the whole batch, and then
+    `by_index` (trial index -> outcome) holds the trials that finished."""
     from tqdm import tqdm
 
-    by_index: dict[int, dict[str, Any]] = {}
+    by_index = {} if by_index is None else by_index
     with tqdm(
         total=len(specs),
         unit="trial",
@@ -478,19 +482,29 @@ def _run_local(
     if workers < 1:
         raise HilError(f"--workers: must be at least 1, got {workers}")
     pool = ProcessPoolExecutor(max_workers=min(workers, len(specs)), mp_context=_context())
+    futures: dict[Future[dict[str, Any]], TrialSpec] = {}
+    reported: set[Future[dict[str, Any]]] = set()
     try:
-        futures: dict[Future[dict[str, Any]], TrialSpec] = {
-            pool.submit(run_trial, spec): spec for spec in specs
-        }
+        futures = {pool.submit(run_trial, spec): spec for spec in specs}
         for future in as_completed(futures):
             spec = futures[future]
             try:
                 outcome = future.result()
             except Exception as exc:  # BrokenProcessPool: a worker died under this trial
                 outcome = _lost(spec, exc)
+            reported.add(future)
             done(spec, outcome)
     except BaseException:
+        # an interrupt: the trials not started are dropped, those running finish (a worker
+        # cannot be stopped between two FMU steps) and are reported with the rest
         pool.shutdown(wait=True, cancel_futures=True)
+        for future, spec in futures.items():
+            if future not in reported and future.done() and not future.cancelled():
+                try:
+                    outcome = future.result()
+                except BaseException:  # noqa: BLE001 - interrupted or died: not finished
+                    continue
+                done(spec, outcome)
         raise
     pool.shutdown(wait=True)
 
@@ -673,7 +687,12 @@ def run_plan(plan: Plan, execution: Execution, overwrite: bool = False) -> dict[
         for spec in plan.trials:  # listed before the workers make them
             folder.claim(spec.name)
         started = time.perf_counter()
-        outcomes = execute(plan.trials, execution, client)
+        finished: dict[int, dict[str, Any]] = {}
+        try:
+            outcomes = execute(plan.trials, execution, client, finished)
+        except (KeyboardInterrupt, Terminated) as exc:
+            _write_stopped(folder, plan, finished, exc)
+            raise
         wall_time = time.perf_counter() - started
         content = report(plan, outcomes)
         write_file(folder.claim("batch.json"), batch_json(content))
@@ -681,6 +700,41 @@ def run_plan(plan: Plan, execution: Execution, overwrite: bool = False) -> dict[
         write_file(folder.claim("timing.json"), text + "\n")
         write_file(folder.claim("batch.png"), plot(plan, content))
     return content
+
+
+def _write_stopped(
+    folder: ResultsFolder,
+    plan: Plan,
+    finished: Mapping[int, dict[str, Any]],
+    exc: BaseException,
+) -> None:
+    """batch.json of a batch stopped by Ctrl-C or SIGTERM: the trials that finished with their
+    metrics, the others failed as stopped, and `stopped` saying by what; no timing or plot. The
+    finished trials' results are not lost with the rest (a full disk may refuse this too)."""
+    word = "terminated" if isinstance(exc, Terminated) else "interrupted"
+    outcomes = [
+        finished.get(spec.index)
+        or {
+            "index": spec.index,
+            "seed": spec.seed,
+            "status": word,
+            "error": f"the batch was {word} before this trial finished",
+            "metrics": {},
+            "success": None,
+        }
+        for spec in plan.trials
+    ]
+    content = {**report(plan, outcomes), "stopped": word}
+    if "success_rate" in content:  # of the trials that finished, not of those never run
+        content["success_rate"] = sum(o["success"] is True for o in finished.values()) / len(
+            finished
+        )
+    with contextlib.suppress(HilError):
+        write_file(folder.claim("batch.json"), batch_json(content))
+    note(
+        f"{word}: {len(finished)} of {len(plan.trials)} trials finished; their results are in "
+        f"{folder.out / 'batch.json'}"
+    )
 
 
 # ------------------------------------------------------------------ the plot

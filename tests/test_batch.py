@@ -173,6 +173,63 @@ def test_overwrite_replaces_an_earlier_batch_and_keeps_foreign_files(
     assert load(out / "trial-000" / "summary.json")["status"] == "completed"
 
 
+@pytest.mark.parametrize("signal_name", ["interrupted", "terminated"])
+def test_a_stopped_batch_keeps_the_trials_that_finished(
+    builtins: Path,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+    signal_name: str,
+) -> None:
+    """Ctrl-C or SIGTERM after two of three trials: batch.json holds those two with their
+    metrics, the third as stopped, and says by what; the exit is the interrupt's."""
+    from hil.errors import Terminated
+
+    def two_then_stop(specs, workers, done):  # noqa: ANN001, ANN202
+        for spec in specs[:2]:
+            done(spec, batch.run_trial(spec))
+        raise KeyboardInterrupt if signal_name == "interrupted" else Terminated
+
+    monkeypatch.setattr(batch, "_run_local", two_then_stop)
+    out = tmp_path / "batch"
+    code, _, err = hil(capsys, "batch", "short", "--trials", 3, "--out", out, "--no-progress")
+    assert code == (130 if signal_name == "interrupted" else 143)
+    assert err[0] == (
+        f"hil: note: {signal_name}: 2 of 3 trials finished; their results are in "
+        f"{out / 'batch.json'}"
+    )
+    content = load(out / "batch.json")
+    assert content["stopped"] == signal_name and content["completed"] == 2
+    assert [t["status"] for t in content["trials"]] == ["completed", "completed", signal_name]
+    assert content["trials"][0]["metrics"] and not content["trials"][2]["metrics"]
+    assert content["failed_trials"][0]["index"] == 2
+    assert not (out / "batch.png").exists() and not (out / ".softhil.lock").exists()
+
+
+def test_trials_running_when_the_batch_is_stopped_are_kept(
+    builtins: Path,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Real worker processes: Ctrl-C as the first trial finishes; the second, running on the
+    other worker, is waited for (a worker cannot stop between FMU steps) and reported too."""
+    from concurrent.futures import as_completed
+
+    def first_then_stop(futures):  # noqa: ANN001, ANN202
+        yield next(iter(as_completed(futures)))
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(batch, "as_completed", first_then_stop)
+    out = tmp_path / "batch"
+    code, _, _ = hil(capsys, "batch", "short", "--trials", 3, "--workers", 2, "--out", out,
+                     "--no-progress")  # fmt: skip
+    content = load(out / "batch.json")
+    assert code == 130 and content["stopped"] == "interrupted"
+    assert [t["status"] for t in content["trials"][:2]] == ["completed", "completed"]
+    assert content["completed"] >= 2
+
+
 def test_an_unreachable_scheduler_is_one_line(
     builtins: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
