@@ -19,7 +19,7 @@ import contextlib
 import errno
 import os
 import sys
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 from hil.errors import HilError
@@ -316,6 +316,20 @@ class ResultsFolder:
             self.written.append(name)
             write_file(self.out / MANIFEST, "".join(f"{n}\n" for n in self.written))
         return self.out / name
+
+
+@contextlib.contextmanager
+def locked(out: Path) -> Iterator[None]:
+    """Hold an existing results folder's lock, as a run does, while a command writes into it
+    after the run (`hil estimate`): refused while a run or another command holds it."""
+    folder = ResultsFolder(out, ())
+    folder._lock()
+    try:
+        for text in folder.notes:
+            note(text)
+        yield
+    finally:
+        folder.release()
 
 
 def list_in_manifest(out: Path, names: Iterable[str]) -> None:

@@ -355,6 +355,32 @@ def test_hil_estimate_into_a_folder_in_the_way_is_one_line(
     assert lines[0].startswith(f"hil: error: {folder / name}: cannot write: ")
 
 
+def test_hil_estimate_waits_for_no_run_writing_in_the_folder(
+    short_run, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:  # noqa: ANN001
+    """A run (or another hil estimate) holding the folder's lock: refused in one line, nothing
+    written; a lock left by a process that is gone is taken over with a note."""
+    import os
+    import shutil
+
+    import hil.results
+
+    folder = tmp_path / "run"
+    shutil.copytree(short_run.out, folder)
+    (folder / "estimation.json").unlink(missing_ok=True)
+    lock = folder / hil.results.LOCK
+    lock.write_text(f"{os.getppid()}\n")  # a live process holds it
+    manifest = (folder / hil.results.MANIFEST).read_bytes()
+    code, lines = hil_estimate(capsys, str(folder), "--no-plot")
+    assert code == 1 and len(lines) == 1 and "is in use by another run" in lines[0]
+    assert not (folder / "estimation.json").exists()
+    assert (folder / hil.results.MANIFEST).read_bytes() == manifest
+    lock.write_text("999999999\n")  # gone
+    code, lines = hil_estimate(capsys, str(folder), "--no-plot")
+    assert code == 0 and len(lines) == 1 and "took over the stale lock" in lines[0]
+    assert (folder / "estimation.json").is_file() and not lock.exists()
+
+
 @pytest.mark.parametrize("can_log", ["run.log", "trace.blf"])
 def test_the_report_reads_the_can_log_by_the_name_the_run_gave_it(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], can_log: str

@@ -40,15 +40,17 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
 
 def _estimate(args: argparse.Namespace) -> int:
     from hil.estimation import check_estimable, estimation_report
-    from hil.results import ESTIMATE_FILES, list_in_manifest, write_file
+    from hil.results import ESTIMATE_FILES, list_in_manifest, locked, write_file
 
     if not args.run.is_dir():
         raise HilError(f"{args.run}: no such results folder")
     check_estimable(args.run)
-    # listed in the run's manifest first: a rerun with --overwrite replaces them too
-    list_in_manifest(args.run, ESTIMATE_FILES if not args.no_plot else ("estimation.json",))
-    report = estimation_report(args.run, plot=not args.no_plot)
-    write_file(args.run / "estimation.json", json.dumps(report, indent=2, sort_keys=True) + "\n")
+    with locked(args.run):  # not while a run (or another estimate) writes there
+        # listed in the run's manifest first: a rerun with --overwrite replaces them too
+        list_in_manifest(args.run, ESTIMATE_FILES if not args.no_plot else ("estimation.json",))
+        report = estimation_report(args.run, plot=not args.no_plot)
+        text = json.dumps(report, indent=2, sort_keys=True) + "\n"
+        write_file(args.run / "estimation.json", text)
     print(f"{args.run}: estimation against the true curvature (controller used {report['chosen']})")
     print("  estimator   rms [1/m]   max [1/m]   gated   update [us]")
     for name in ("raw", "kf", "ukf"):
