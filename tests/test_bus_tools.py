@@ -288,6 +288,43 @@ def test_truncated_blf_yields_the_frames_before_the_cut_and_warns_once(
     assert len(read_log(cut, lambda _: None)) < len(original)  # the cut lost frames
 
 
+@pytest.mark.parametrize("suffix", [".log", ".asc"])
+def test_a_text_log_cut_inside_its_last_line_yields_the_lines_before_and_warns(
+    run_log: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], suffix: str
+) -> None:
+    """What a recorder killed mid-write leaves: the last line without its end, malformed. The
+    frames before it are read and one warning names the line; the same line with its line end
+    (not a cut) stays an error, and a file whose only frame line is cut is an error."""
+    original = read_log(run_log)
+    good = tmp_path / f"good{suffix}"
+    write_log(good, original[:40])
+    lines = good.read_text().splitlines()
+    frame_lines = [i for i, x in enumerate(lines) if "#" in x or " d " in x]  # log, asc
+    last = frame_lines[29]  # the 30th frame, cut inside its data
+    text = "\n".join(lines[:last]) + "\n" + lines[last][: lines[last].rindex(" ") - 1]
+    cut = tmp_path / f"cut{suffix}"
+    cut.write_text(text)
+    warnings: list[str] = []
+    back = read_log(cut, warnings.append)
+    assert [key(m) for m in back] == [key(m) for m in original[:29]]
+    assert warnings == [
+        f"{cut}: line {last + 1} cut short (no line end, malformed): read the 29 frames before "
+        "it; whatever was logged after them is lost"
+    ]
+    assert main(["bus", "dump", "--raw", "--log", str(cut)]) == 0
+    out, err = capsys.readouterr()
+    assert len(out.strip().splitlines()) == 29
+    assert [x for x in err.splitlines() if "warning" in x] == [f"hil: warning: {warnings[0]}"]
+    ended = tmp_path / f"ended{suffix}"
+    ended.write_text(text + "\n")
+    with pytest.raises(LogError, match=f"line {last + 1}: malformed"):
+        read_log(ended)
+    alone = tmp_path / f"alone{suffix}"
+    alone.write_text("\n".join(lines[: frame_lines[0]]) + "\n" + lines[frame_lines[0]][:-3])
+    with pytest.raises(LogError, match="malformed"):
+        read_log(alone, lambda w: pytest.fail(w))
+
+
 def test_missing_log_and_truncated_mf4(tmp_path: Path, run_log: Path) -> None:
     with pytest.raises(LogError, match="no such log file"):
         read_log(tmp_path / "absent.log")

@@ -5,7 +5,8 @@ random-byte binary file, a truncated one with no complete frame) into one `LogEr
 file and where: the line number of text formats, the record number of binary ones. It is
 stricter than python-can's readers, which silently change some frames (an odd number of data
 digits, an id beyond 29 bits masked, a dlc the data does not fill): those are malformed lines
-too. A .blf cut short yields its frames before the cut and a warning (`iter_log`).
+too. A .blf cut short, or a text log cut inside its last line, yields its frames before the cut
+and a warning (`iter_log`).
 
 `write_log` writes by suffix through `can.Logger` and removes the file again if writing fails,
 so a failure never leaves a half-written log behind under the requested name.
@@ -99,6 +100,7 @@ class _NumberedLines:
         self.line = 0
         self.check = check
         self.closed = False
+        self.unterminated = False  # the last line taken has no line end: the file's last
 
     def __iter__(self) -> _NumberedLines:
         return self
@@ -110,6 +112,7 @@ class _NumberedLines:
         except StopIteration:
             self.line -= 1
             raise
+        self.unterminated = not text.endswith("\n")
         stripped = text.strip()
         if self.check is not None and stripped:
             self.check(stripped)
@@ -167,8 +170,9 @@ def iter_log(path: Path | str, warn: Callable[[str], None] = warn_stderr) -> Ite
 
     A .blf cut short (a crash or a full disk while recording) yields the frames of its complete
     objects before the cut, then `warn`s once naming the file and how many frames were read; it
-    is an error only if no frame is readable. A text log cut at a line end reads the same way
-    (silently: nothing there says it was cut); one cut inside a line is malformed at that line.
+    is an error only if no frame is readable. A text log cut inside its last line (no line end,
+    the line malformed) reads the same way, warning once; one cut at a line end reads silently
+    (nothing there says it was cut); a malformed line anywhere else is an error at that line.
     """
     path = Path(path)
     suffix = suffix_of(path)
@@ -217,6 +221,13 @@ def iter_log(path: Path | str, warn: Callable[[str], None] = warn_stderr) -> Ite
         elif cut is not None:
             raise ValueError(f"truncated: {cut}, no complete frame before the cut")
     except Exception as exc:  # python-can's readers raise anything on bad input
+        if lines is not None and lines.unterminated and count:
+            # the last line, malformed and without its line end: the writer stopped in it
+            warn(
+                f"{path}: line {lines.line} cut short (no line end, malformed): read the "
+                f"{count} frames before it; whatever was logged after them is lost"
+            )
+            return
         if lines is not None:
             where = f"line {lines.line}"
         else:
