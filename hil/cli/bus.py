@@ -71,9 +71,7 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
         "  hil bus load --log runs/default-1/can.log\n"
         "  hil bus load --bus loopback --seconds 5\n",
     )
-    load.add_argument(
-        "scenario", nargs="?", help="scenario NAME or FILE (default: the default scenario)"
-    )
+    load.add_argument("scenario", nargs="?", help="scenario NAME or FILE (default: built-in)")
     load.add_argument(
         "--bitrate",
         type=int,

@@ -32,7 +32,7 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
         "scenario",
         nargs="?",
         type=Path,
-        help="scenario NAME or FILE (default: the default scenario)",
+        help="scenario NAME or FILE (default: built-in)",
     )
     tune.add_argument("--out", type=Path, help="Bode plot PNG (default: tune-NAME.png)")
     tune.set_defaults(handler=_tune)
