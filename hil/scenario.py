@@ -218,7 +218,7 @@ class Scenario:
 # a table's TOML key -> its field's name, where Python needs another name ("from")
 _ALIASES: dict[type, dict[str, str]] = {ConnectionSpec: {"from": "source", "to": "target"}}
 # keys whose absence means "draw from the seed": given, they must not be empty
-_NOT_EMPTY = {
+_NOT_EMPTY: dict[type, dict[str, str]] = {
     TaskSpec: {
         "targets": "must not be empty (leave it out to draw task.count targets from the seed)",
         "paths": "must not be empty (leave it out to draw task.count paths from the seed)",
@@ -339,8 +339,8 @@ def _build(cls: type, data: Any, file: str, key: str) -> Any:
         values["robot"] = _robot_section({}, file, "robot")
     for f in fields(cls):
         if f.name not in values and f.default is MISSING and f.default_factory is MISSING:
-            shown = display.get(f.name, f.name)
-            raise _fail(file, f"{key}.{shown}" if key else shown, "missing required key")
+            toml_name = display.get(f.name, f.name)
+            raise _fail(file, f"{key}.{toml_name}" if key else toml_name, "missing required key")
     return cls(**values)
 
 
