@@ -31,7 +31,7 @@ from typing import Any
 import can
 
 from controllers.canbus import BusSpec, open_bus
-from controllers.node import ControllerConfig, ControllerNode
+from controllers.node import ControllerConfig, ControllerNode, read_config
 from controllers.protocol import COUNTER_MODULO, SYNC_ID, FrameError, Protocol, Sync
 from hil.errors import HilError
 
@@ -147,11 +147,12 @@ def read_log(path: Path) -> list[can.Message]:
         raise ReplayError(str(exc)) from None
 
 
-def config_beside(log: Path) -> ControllerConfig:
-    """The controller configuration a run recorded beside its log (controller.json)."""
+def config_beside(log: Path) -> Any:
+    """The controller configuration a run recorded beside its log (controller.json), of
+    whichever robot kind its `robot` key names (a fish run's is not the arm's)."""
     path = log.parent / "controller.json"
     try:
-        return ControllerConfig.from_json(path.read_text())
+        return read_config(path.read_text())
     except FileNotFoundError:
         raise ReplayError(
             f"{path}: no controller.json beside the log; give --scenario to say which "
@@ -291,6 +292,12 @@ def replay(
 ) -> ReplayResult:
     """Replay `log` (any python-can format) against the controller `config` (default: the
     run's controller.json beside the log), in this process or as a separate program."""
+    if Path(log).suffix.lower() == ".csv":
+        raise ReplayError(
+            f"{log}: a .csv log cannot be replayed: python-can's CSV has no direction column, "
+            "so the controller's frames cannot be told from the plant's (record with --can-log "
+            "can.log, .asc, .blf or .trc)"
+        )
     protocol = Protocol()
     check_tolerances(protocol, tolerances or {})
     cycles = read_cycles(read_log(log), protocol, str(log))

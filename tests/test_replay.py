@@ -5,6 +5,8 @@ the first diverging cycle and signal; bad logs get one line."""
 from __future__ import annotations
 
 import json
+import re
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -123,6 +125,7 @@ def test_bad_options_are_one_line_before_the_replay_runs(
         ("--json", str(tmp_path / "no" / "r.json")): f"{tmp_path / 'no'}: no such folder",
         ("--tolerance-for", "nosuch=1"): "tolerance for 'nosuch': no such signal in",
         ("--tolerance-for", "DriveCommand1.nosuch=1"): "'DriveCommand1.nosuch': no such signal",
+        ("--tolerance-for", "kappa_est=nan"): "--tolerance-for 'kappa_est=nan': expected SIGNAL=",
     }
     for argv, reason in cases.items():
         assert main(["replay", str(recorded), *argv]) == 1, argv
@@ -132,6 +135,31 @@ def test_bad_options_are_one_line_before_the_replay_runs(
     # the signal and the message's signal are both names a tolerance may use
     assert hil.replay.check_tolerances(hil.replay.Protocol(), {"piston_setpoint": 1}) is None
     hil.replay.check_tolerances(hil.replay.Protocol(), {"DriveCommand1.piston_setpoint": 1})
+
+
+def test_a_csv_log_is_refused_at_once_naming_why(recorded: Path, tmp_path: Path) -> None:
+    """python-can's CSV has no direction: replaying one waited for the plant and blamed it."""
+    csv = tmp_path / "can.csv"
+    with can.Logger(str(csv)) as writer:  # type: ignore[attr-defined]
+        for message in can.LogReader(str(recorded)):
+            writer.on_message_received(message)
+    shutil.copy(recorded.parent / "controller.json", tmp_path / "controller.json")
+    with pytest.raises(ReplayError, match=r"can\.csv: a \.csv log cannot be replayed: .* no "):
+        replay(csv, timeout=0.5)
+
+
+def test_a_fish_run_replays_by_its_own_controller_json(tmp_path: Path) -> None:
+    """controller.json beside the log is read by its robot kind (it was read as the arm's)."""
+    from hil.scenario import resolve_scenario
+
+    text = resolve_scenario("fish-escape").read_text()
+    text = re.sub(r"(?m)^duration = .*$", "duration = 0.3", text)
+    path = tmp_path / "fish.toml"
+    path.write_text(text)
+    options = RunOptions(out=tmp_path / "run", inprocess=True, progress=False)
+    run_scenario(load_scenario(path), options)
+    result = replay(tmp_path / "run" / "can.log")
+    assert result.ok and result.cycles == 151, result.divergences[:3]
 
 
 def test_the_json_summary_is_written_after_the_report(recorded: Path, tmp_path: Path) -> None:

@@ -61,7 +61,7 @@ def _replay(args: argparse.Namespace) -> int:
             tolerances[name] = float(value)
         except ValueError:
             raise HilError(f"--tolerance-for {item!r}: expected SIGNAL=NUMBER") from None
-        if not sep or not name or tolerances[name] < 0:
+        if not sep or not name or not tolerances[name] >= 0:  # nan too
             raise HilError(f"--tolerance-for {item!r}: expected SIGNAL=NUMBER >= 0")
     if not args.tolerance >= 0:
         raise HilError(f"--tolerance must not be negative, got {args.tolerance}")
