@@ -420,6 +420,33 @@ def test_dump_bad_arguments_are_one_line(
     one_error_line(capsys)
 
 
+@pytest.mark.parametrize(
+    ("argv", "reason"),
+    [
+        (["dump", "--timeout", "-1"], "--timeout must be at least 0 and at most 86400 s"),
+        (["dump", "--timeout", "nan"], "--timeout must be at least 0"),
+        (["record", "{tmp}/x.log", "--timeout", "nan"], "--timeout must be at least 0"),
+        (["record", "{tmp}/x.log", "--timeout", "-1"], "got -1"),
+        (["record", "{tmp}/x.log", "--count", "0"], "--count must be positive, got 0"),
+        (["record", "{tmp}/x.log", "--count", "-1"], "--count must be positive, got -1"),
+        (["replay", "{log}", "--speed", "1e-300"], "--speed must be at least 1e-06"),
+        (["replay", "{log}", "--lockstep", "--direction", "T", "--timeout", "inf"], "got inf"),
+        (["replay", "{log}", "--lockstep", "--direction", "T", "--timeout", "0"], "above 0"),
+        (["load", "--bus", "loopback", "--seconds", "1e300"], "--seconds must be above 0"),
+    ],
+)
+def test_bus_tool_waits_and_counts_are_checked_before_the_bus_opens(
+    run_log: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], argv: list[str], reason: str
+) -> None:
+    """A negative, NaN or endless wait reached python-can as a traceback (or never ended), and
+    `record --count 0` stopped after one frame: each is one line, before any bus is opened
+    (none listens on the default hub here)."""
+    argv = [a.format(tmp=tmp_path, log=run_log) for a in argv]
+    assert main(["bus", *argv]) == 1
+    assert reason in one_error_line(capsys)
+    assert not (tmp_path / "x.log").exists()
+
+
 def test_dump_of_a_live_bus(spec: str, open_buses: list[can.BusABC]) -> None:
     listener = connect(spec, open_buses)
     sender = connect(spec, open_buses)

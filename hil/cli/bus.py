@@ -240,8 +240,7 @@ def _measured_load(args: argparse.Namespace) -> int:
     else:
         import time
 
-        if not args.seconds > 0:
-            raise HilError(f"--seconds must be positive, got {args.seconds}")
+        _check_wait("--seconds", args.seconds, positive=True)
         bus = open_spec(args.bus)
         try:
             end = time.monotonic() + args.seconds
@@ -283,12 +282,32 @@ def _frames_of(args: argparse.Namespace):  # noqa: ANN202 - (frames, bus or None
     return live_frames(bus, args.timeout), bus
 
 
+MAX_WAIT = 86_400.0  # [s] the longest wait a bus tool takes: a day
+MIN_SPEED = 1e-6  # the slowest replay: a millionth of real time (a wait must fit a sleep)
+
+
+def _check_wait(flag: str, value: float | None, positive: bool = False) -> None:
+    """HilError unless `value` (None: not given) is a number of seconds in [0, a day], or
+    (0, a day] if `positive`: a negative, NaN or endless wait reached python-can as a
+    traceback, or never ended."""
+    if value is None:
+        return
+    if not ((value > 0 if positive else value >= 0) and value <= MAX_WAIT):
+        low = "above 0" if positive else "at least 0"
+        raise HilError(f"{flag} must be {low} and at most {MAX_WAIT:g} s (a day), got {value:g}")
+
+
+def _check_count(value: int | None) -> None:
+    if value is not None and value <= 0:
+        raise HilError(f"--count must be positive, got {value}")
+
+
 def _dump(args: argparse.Namespace) -> int:
     from hil.bustools.dump import DumpCount, dump, print_count
     from hil.bustools.frames import FrameFilter, load_database
 
-    if args.count is not None and args.count <= 0:
-        raise HilError(f"--count must be positive, got {args.count}")
+    _check_count(args.count)
+    _check_wait("--timeout", args.timeout)
     database = load_database()
     selection = FrameFilter.parse(args.id or [], args.message or [], database)
     frames, bus = _frames_of(args)
@@ -309,6 +328,8 @@ def _record(args: argparse.Namespace) -> int:
     from hil.bustools.logs import check_format_available
     from hil.bustools.record import record
 
+    _check_count(args.count)
+    _check_wait("--timeout", args.timeout)
     check_format_available(args.file)
     if args.file.exists() and not args.overwrite:
         raise HilError(f"{args.file}: exists; pass --overwrite to replace it")
@@ -330,10 +351,11 @@ def _replay(args: argparse.Namespace) -> int:
     database = load_database()
     selection = FrameFilter.parse(args.id or [], args.message or [], database)
     messages = read_log(args.file)
-    if not args.lockstep and not args.speed > 0:
-        raise HilError(f"--speed must be positive, got {args.speed}")
+    if not args.lockstep and not args.speed >= MIN_SPEED:
+        raise HilError(f"--speed must be at least {MIN_SPEED:g} (inf: no waits), got {args.speed}")
     if args.lockstep:
         check_lockstep_direction(args.direction)
+        _check_wait("--timeout", args.timeout, positive=True)
     bus = open_spec(args.bus)
     try:
         if args.lockstep:
