@@ -176,7 +176,7 @@ def _probe_hub(spec: BusSpec, timeout: float) -> None:
     try:
         with socket.create_connection((spec.host, spec.port), timeout=timeout) as sock:
             sock.settimeout(timeout)
-            greeting = sock.recv(16)
+            greeting = sock.recv(80)
     except socket.gaierror as exc:
         raise BusOpenError(f"cannot open CAN bus {spec}: unknown host {spec.host!r}") from exc
     except ConnectionRefusedError as exc:
@@ -189,6 +189,9 @@ def _probe_hub(spec: BusSpec, timeout: float) -> None:
             f"cannot open CAN bus {spec}: {spec.host}:{spec.port} did not greet within "
             f"{timeout:g} s (not a socketcand hub?)"
         ) from exc
+    if greeting.startswith(b"< error "):  # the hub refused this client, and says why
+        why = greeting.decode("ascii", "replace").removeprefix("< error ").rstrip(" >")
+        raise BusOpenError(f"cannot open CAN bus {spec}: the hub refused the connection: {why}")
     if not greeting.startswith(b"< hi >"):
         raise BusOpenError(
             f"cannot open CAN bus {spec}: {spec.host}:{spec.port} is not a socketcand hub "
@@ -202,7 +205,7 @@ def connection_closed(bus: can.BusABC) -> bool:
     python-can's socketcand client does not notice a closed connection (its recv returns None
     at once, forever); callers ask this when a receive came back empty, to stop instead of
     spinning. It reads only public state: the hub's address from `channel_info` ("socketcand
-    on CHANNEL@HOST:PORT"), probed by a new connection that the hub either greets or refuses."""
+    on CHANNEL@HOST:PORT"), probed by a new connection that a live hub greets or refuses."""
     info = getattr(bus, "channel_info", "")
     if isinstance(info, str) and info.startswith("softhil binary on "):
         return bool(bus.closed)  # it knows: a closed connection is a receive of zero bytes
@@ -212,7 +215,9 @@ def connection_closed(bus: can.BusABC) -> bool:
     try:
         with socket.create_connection((host, int(port)), timeout=1.0) as sock:
             sock.settimeout(1.0)
-            return not sock.recv(6).startswith(b"< hi >")
+            # a hub that greets, or refuses (it is at its max_clients, this client among
+            # them), is there
+            return not sock.recv(8).startswith((b"< hi >", b"< error "))
     except (OSError, ValueError):
         return True
 

@@ -147,6 +147,29 @@ def test_total_buffer_is_bounded_with_many_stalled_clients() -> None:
 # ---------------------------------------------------------------------------- client cap
 
 
+def test_a_client_on_a_full_hub_is_not_taken_for_gone_and_a_newcomer_is_told_why(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """max_clients 1, held by a recorder: its hub-alive probe is refused, which meant 'the
+    hub is gone' (it recorded nothing and exited 0), and a second tool's probe refusal read as
+    'not a socketcand hub'; `hil bus send` to the full hub exits 1 saying so."""
+    from controllers.canbus import BusOpenError, BusSpec, connection_closed, open_bus
+    from hil.cli import main as hil_main
+
+    with LoopbackHub(max_clients=1, max_buffer_bytes=64 * 1024) as hub:
+        spec = BusSpec.parse(f"loopback:127.0.0.1:{hub.port}")
+        with open_bus(spec) as held:
+            assert not connection_closed(held)
+            with pytest.raises(BusOpenError, match=r"the hub refused the connection: too many "
+                               r"clients \(max_clients 1\)$"):  # fmt: skip
+                open_bus(spec)
+            assert hil_main(["bus", "send", f"loopback:127.0.0.1:{hub.port}", "080#05"]) == 1
+            err = capsys.readouterr().err.strip().splitlines()
+            assert len(err) == 1 and "the hub refused the connection: too many clients" in err[0]
+        hub.stop()
+        assert connection_closed(held)
+
+
 def test_connections_beyond_max_clients_are_refused_with_a_reason() -> None:
     with LoopbackHub(max_clients=2, max_buffer_bytes=2 * 64 * 1024) as hub:
         first, second = Raw(hub.port, "c"), Raw(hub.port)
