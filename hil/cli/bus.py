@@ -126,7 +126,10 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
         "replay",
         "transmit the frames of a log onto a bus, timed (--speed) or in lockstep by SYNC counter",
         "  hil bus replay can.log --speed 2\n"
-        "  hil bus replay runs/x/can.log --direction R --lockstep   controller side vs a plant\n",
+        "  hil bus replay runs/x/can.log --direction R --lockstep   the controller's frames,\n"
+        "      against a rig's plant (hil run brings its own controller)\n"
+        "  hil bus replay runs/x/can.log --direction T --lockstep   the plant's frames, against\n"
+        "      a controller started after it (hil controller)\n",
     )
     replay.add_argument("file", type=Path, help="log file (any python-can format)")
     replay.add_argument("--bus", default=DEFAULT_BUS, help=BUS_HELP)
