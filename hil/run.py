@@ -93,7 +93,7 @@ def run_scenario(scenario: Scenario, options: RunOptions) -> RunResult:
     recording = replace(
         recording,
         can_log=options.can_log or recording.can_log,
-        start=options.start or recording.start,
+        start=recording.start if options.start is None else options.start,  # "" is refused
         mf4=recording.mf4 if options.mf4 is None else options.mf4,
     )
     scenario = replace(scenario, recording=recording)

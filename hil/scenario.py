@@ -660,7 +660,14 @@ def log_start(s: Scenario) -> float:
         ) from None
     if instant.tzinfo is None:
         instant = instant.replace(tzinfo=dt.UTC)
-    return instant.timestamp()
+    start = instant.timestamp()
+    last = dt.datetime(9999, 12, 31, 23, 59, 59, tzinfo=dt.UTC).timestamp()
+    if start + s.duration > last:  # every frame's stamp must be a date the log formats write
+        raise ValueError(
+            f"{text!r}: the run would end after 9999-12-31T23:59:59Z, a year the log formats "
+            "(.blf, .asc) cannot write"
+        )
+    return start
 
 
 def _multiple(

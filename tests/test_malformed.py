@@ -160,6 +160,12 @@ CLI = [
         "--inprocess",
     ),  # noqa: E501
     ("bad-start", ["run", "--start", "garbage", "--out", "{tmp}/o"], "--start"),
+    ("empty-start", ["run", "--start", "", "--out", "{tmp}/o"], "--start: '' is not an ISO"),
+    (
+        "start-past-9999",
+        ["run", "--start", "9999-12-31T23:59:55Z", "--can-log", "can.blf", "--out", "{tmp}/o"],
+        "would end after 9999-12-31T23:59:59Z",
+    ),
     ("can-log-suffix", ["run", "--can-log", "x.txt", "--out", "{tmp}/o"], "--can-log"),
     ("can-log-folder", ["run", "--can-log", "../escape.log", "--out", "{tmp}/o"], "--can-log"),
     ("bus-load-bitrate", ["bus", "load", "--bitrate", "0"], "--bitrate"),
@@ -179,6 +185,7 @@ def test_bad_command_line_is_one_line(
     assert word in line
     assert (tmp_path / "file").read_text() == "the user's\n"
     assert not (tmp_path / "escape.log").exists()
+    assert not (tmp_path / "o").exists()  # refused before the results folder
 
 
 def good_config() -> dict:
