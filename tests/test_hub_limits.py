@@ -347,10 +347,10 @@ def test_unresolvable_host_is_one_line(
 
 
 def test_byte_sizes() -> None:
-    assert loopback._byte_size("1048576") == 1024 * 1024
-    assert loopback._byte_size("512K") == 512 * 1024
-    assert loopback._byte_size("64m") == 64 * 1024 * 1024
-    assert loopback._byte_size("1GiB") == 1024**3
+    assert loopback.parse_byte_size("1048576") == 1024 * 1024
+    assert loopback.parse_byte_size("512K") == 512 * 1024
+    assert loopback.parse_byte_size("64m") == 64 * 1024 * 1024
+    assert loopback.parse_byte_size("1GiB") == 1024**3
 
 
 def test_main_passes_the_limits_on(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -372,18 +372,25 @@ def test_main_passes_the_limits_on(monkeypatch: pytest.MonkeyPatch) -> None:
 @pytest.mark.parametrize(
     ("args", "expected"),
     [
-        (["--port", "70000"], "error: hub port must be in 0..65535"),
-        (["--port", "-1"], "error: hub port must be in 0..65535"),
-        (["--host", "0.0.0.0"], "error: refusing to bind the loopback CAN hub"),
-        (["--host", "a" * 64], "error: cannot resolve hub host"),  # fails before any DNS query
+        (["--port", "70000"], "hil: error: --port must be in 0..65535"),
+        (["--port", "-1"], "hil: error: --port must be in 0..65535"),
+        (["--host", "0.0.0.0"], "hil: error: refusing to bind the loopback CAN hub"),
+        (["--host", "a" * 64], "hil: error: cannot resolve --host"),  # before any DNS query
+        (["--max-clients", "0"], "hil: error: --max-clients must be at least 1, got 0"),
+        (
+            ["--max-clients", "1000", "--max-buffer", "1M"],
+            "hil: error: --max-buffer 1048576 leaves each of --max-clients 1000 clients less",
+        ),
     ],
 )
 def test_hil_bus_serve_errors_are_one_line(
     args: list[str], expected: str, capsys: pytest.CaptureFixture[str]
 ) -> None:
+    """In hil's words: the flags, not the hub's setting names, and exit 1 as every hil error
+    (the hub's own `python -m hil.bus.loopback` keeps its exit 2)."""
     from hil.cli import main as hil_main
 
-    assert hil_main(["bus", "serve", *args]) == 2
+    assert hil_main(["bus", "serve", *args]) == 1
     out, err = capsys.readouterr()
     assert out == ""
     assert err.startswith(expected)
@@ -402,6 +409,20 @@ def test_hil_bus_serve_address_in_use_is_one_line() -> None:
             text=True,
             timeout=60,
         )
-    assert result.returncode == 2
-    assert result.stderr.count("\n") == 1
+    assert result.returncode == 1
+    assert result.stderr.count("\n") == 1 and result.stderr.startswith("hil: error: ")
     assert f"127.0.0.1:{port}: address already in use" in result.stderr
+
+
+def test_hil_bus_serve_max_buffer_is_checked_as_hil_parses_it(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """A bad --max-buffer is hil's usage error, not the usage of python -m hil.bus.loopback
+    with its internal --exit-with-stdin."""
+    from hil.cli import main as hil_main
+
+    with pytest.raises(SystemExit) as done:
+        hil_main(["bus", "serve", "--max-buffer", "1X"])
+    err = capsys.readouterr().err
+    assert done.value.code == 2 and "usage: hil bus serve" in err
+    assert "not a byte size: '1X'" in err and "exit-with-stdin" not in err

@@ -1201,7 +1201,7 @@ class HubProcess:
 _SIZE_SUFFIXES = {"": 1, "K": 1024, "M": 1024**2, "G": 1024**3}
 
 
-def _byte_size(text: str) -> int:
+def parse_byte_size(text: str) -> int:
     """Parse ``--max-buffer``: a number of bytes with an optional K, M or G (binary) suffix."""
     match = re.fullmatch(r"\s*(\d+)\s*([KMG]?)(?:i?B)?\s*", text, re.IGNORECASE)
     if not match:
@@ -1243,7 +1243,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument(
         "--max-buffer",
-        type=_byte_size,
+        type=parse_byte_size,
         default=DEFAULT_MAX_BUFFER_BYTES,
         metavar="BYTES",
         help="outgoing bytes buffered for all clients together, e.g. 64M or 512K; each client "
@@ -1257,19 +1257,41 @@ def main(argv: list[str] | None = None) -> int:
         "takes it down with itself, even if the parent is killed)",
     )
     args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     try:
-        hub = LoopbackHub(
+        return serve(
             args.host,
             args.port,
             allow_remote=args.allow_remote,
             max_clients=args.max_clients,
             max_buffer_bytes=args.max_buffer,
+            exit_with_stdin=args.exit_with_stdin,
         )
-        hub.bind()
     except HilError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+
+
+def serve(
+    host: str,
+    port: int,
+    *,
+    allow_remote: bool = False,
+    max_clients: int = DEFAULT_MAX_CLIENTS,
+    max_buffer_bytes: int = DEFAULT_MAX_BUFFER_BYTES,
+    exit_with_stdin: bool = False,
+) -> int:
+    """Serve a hub in this process until SIGINT/SIGTERM (or, with `exit_with_stdin`, until
+    standard input closes); 0 on a clean shutdown. A bad setting or an address that cannot be
+    bound raises HilError (`HubSettingError` for a setting) before anything is served."""
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    hub = LoopbackHub(
+        host,
+        port,
+        allow_remote=allow_remote,
+        max_clients=max_clients,
+        max_buffer_bytes=max_buffer_bytes,
+    )
+    hub.bind()
 
     def on_signal(signum: int, frame: FrameType | None) -> None:
         hub.stop()
@@ -1277,7 +1299,7 @@ def main(argv: list[str] | None = None) -> int:
     previous: dict[int, Callable[[int, FrameType | None], object] | int | None] = {}
     for sig in (signal.SIGINT, signal.SIGTERM):
         previous[sig] = signal.signal(sig, on_signal)
-    if args.exit_with_stdin:
+    if exit_with_stdin:
 
         def watch_parent() -> None:
             # blocks in read() without the GIL; EOF: the parent closed the pipe or died
@@ -1288,9 +1310,9 @@ def main(argv: list[str] | None = None) -> int:
 
         threading.Thread(target=watch_parent, name="parent-watch", daemon=True).start()
     try:
-        host, port = hub.address
+        bound_host, bound_port = hub.address
         print(
-            f"softhil loopback CAN hub listening on {host}:{port} "
+            f"softhil loopback CAN hub listening on {bound_host}:{bound_port} "
             "(socketcand and softhil binary protocols)",
             flush=True,
         )

@@ -56,6 +56,7 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     )
     serve.add_argument(
         "--max-buffer",
+        type=loopback.parse_byte_size,
         default="64M",
         metavar="BYTES",
         help="outgoing bytes buffered for all clients together (e.g. 64M, 512K); a client that "
@@ -194,10 +195,30 @@ def _add_filters(parser: argparse.ArgumentParser) -> None:
     )
 
 
+# the hub's setting names, as `hil bus serve` spells them
+SERVE_FLAGS = (
+    ("max_buffer_bytes", "--max-buffer"),
+    ("max_clients", "--max-clients"),
+    ("allow_remote=True (CLI: --allow-remote)", "--allow-remote"),
+    ("hub port", "--port"),
+    ("hub host", "--host"),
+)
+
+
 def _serve(args: argparse.Namespace) -> int:
-    extra = ["--allow-remote"] if args.allow_remote else []
-    limits = ["--max-clients", str(args.max_clients), "--max-buffer", str(args.max_buffer)]
-    return loopback.main(["--host", args.host, "--port", str(args.port), *limits, *extra])
+    try:
+        return loopback.serve(
+            args.host,
+            args.port,
+            allow_remote=args.allow_remote,
+            max_clients=args.max_clients,
+            max_buffer_bytes=args.max_buffer,
+        )
+    except loopback.HubSettingError as exc:
+        text = str(exc)
+        for name, flag in SERVE_FLAGS:
+            text = text.replace(name, flag)
+        raise HilError(text) from None
 
 
 def _load(args: argparse.Namespace) -> int:
