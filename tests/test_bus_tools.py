@@ -411,13 +411,16 @@ def test_dump_raw_is_a_candump_log_and_count_limits(
         ["--id", "0x18F-0x180"],
         ["--message", "NoSuchMessage*"],
         ["--count", "0"],
+        ["--id", "-5"],
+        ["--id", "0x180-"],
     ],
 )
 def test_dump_bad_arguments_are_one_line(
     run_log: Path, args: list[str], capsys: pytest.CaptureFixture[str]
 ) -> None:
     assert main(["bus", "dump", "--log", str(run_log), *args]) == 1
-    one_error_line(capsys)
+    line = one_error_line(capsys)
+    assert "''" not in line  # the text named is the one given ('-5' was reported as '')
 
 
 @pytest.mark.parametrize(
@@ -429,6 +432,8 @@ def test_dump_bad_arguments_are_one_line(
         (["record", "{tmp}/x.log", "--timeout", "-1"], "got -1"),
         (["record", "{tmp}/x.log", "--count", "0"], "--count must be positive, got 0"),
         (["record", "{tmp}/x.log", "--count", "-1"], "--count must be positive, got -1"),
+        (["record", "", "--timeout", "1"], ".: is a folder; name the log file"),
+        (["record", "{tmp}", "--timeout", "1"], "is a folder; name the log file (e.g. "),
         (["replay", "{log}", "--speed", "1e-300"], "--speed must be at least 1e-06"),
         (["replay", "{log}", "--lockstep", "--direction", "T", "--timeout", "inf"], "got inf"),
         (["replay", "{log}", "--lockstep", "--direction", "T", "--timeout", "0"], "above 0"),

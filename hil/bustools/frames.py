@@ -45,6 +45,11 @@ class FrameFilter:
         for text in ids:
             for part in text.split(","):
                 low, dash, high = part.partition("-")
+                if dash and not (low.strip() and high.strip()):  # "-5", "5-": an open range
+                    raise HilError(
+                        f"--id {part!r}: a range names both ends (e.g. 0x180-0x1FF); a CAN id "
+                        "is not negative"
+                    )
                 if dash:
                     first, last = parse_id(low), parse_id(high)
                     if first > last:

@@ -354,6 +354,10 @@ def _record(args: argparse.Namespace) -> int:
 
     _check_count(args.count)
     _check_wait("--timeout", args.timeout)
+    if args.file.is_dir():  # '' is '.' by then
+        raise HilError(
+            f"{args.file}: is a folder; name the log file (e.g. {args.file / 'run.log'})"
+        )
     check_format_available(args.file)
     if args.file.exists() and not args.overwrite:
         raise HilError(f"{args.file}: exists; pass --overwrite to replace it")
