@@ -373,6 +373,27 @@ def _subparsers(parser):  # noqa: ANN001, ANN202 - argparse parsers
                 yield from _subparsers(sub)
 
 
+@pytest.mark.parametrize(
+    ("argv", "command", "leftover"),
+    [
+        (["scenarios", "foo"], "scenarios", "foo"),
+        (["bus", "dump", "--nosuch"], "bus dump", "--nosuch"),
+        (["run", "--duration", "1"], "run", "--duration"),  # 1 is taken for NAME
+    ],
+)
+def test_an_unknown_argument_is_shown_with_its_command_usage(
+    argv: list[str], command: str, leftover: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """argparse reports leftovers at the top level ('usage: hil [-h] ... COMMAND'), which does
+    not say what the command takes; its own usage does."""
+    with pytest.raises(SystemExit) as done:
+        main(argv)
+    err = capsys.readouterr().err
+    assert done.value.code == 2
+    assert err.startswith(f"usage: hil {command} "), err
+    assert f"hil {command}: error: unrecognized arguments: {leftover}" in err
+
+
 def test_every_help_states_each_default_once() -> None:
     """No '(default: [])' for a repeatable option, and no default both in the text and added
     by the formatter ('(default 0.5) (default: 0.5)' in `hil fmu check --help`)."""

@@ -96,7 +96,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args, extra = parser.parse_known_args(argv)
+    if extra:  # in the usage of the command they were given to, not hil's
+        (getattr(args, "command_parser", None) or parser).error(
+            f"unrecognized arguments: {' '.join(extra)}"
+        )
     handler: Callable[[argparse.Namespace], int] | None = getattr(args, "handler", None)
     if handler is None:
         parser.print_help()
@@ -136,10 +140,12 @@ def example_parser(
     commands: argparse._SubParsersAction, name: str, help_text: str, examples: str
 ) -> argparse.ArgumentParser:
     """A subcommand parser whose help ends with examples."""
-    return commands.add_parser(
+    parser = commands.add_parser(
         name,
         help=help_text,
         description=help_text,
         epilog="examples:\n" + examples,
         formatter_class=HelpFormatter,
     )
+    parser.set_defaults(command_parser=parser)  # the deepest command's, for its usage errors
+    return parser
