@@ -17,9 +17,11 @@ Specs:
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import logging
 import socket
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -174,9 +176,7 @@ def _probe_hub(spec: BusSpec, timeout: float) -> None:
     """Connect, and read the hub's greeting, within `timeout`: python-can's client would wait
     forever for a listener that never greets."""
     try:
-        with socket.create_connection((spec.host, spec.port), timeout=timeout) as sock:
-            sock.settimeout(timeout)
-            greeting = sock.recv(80)
+        greeting = _greeting(spec.host, spec.port, timeout)
     except socket.gaierror as exc:
         raise BusOpenError(f"cannot open CAN bus {spec}: unknown host {spec.host!r}") from exc
     except ConnectionRefusedError as exc:
@@ -199,6 +199,22 @@ def _probe_hub(spec: BusSpec, timeout: float) -> None:
         )
 
 
+def _greeting(host: str, port: int, timeout: float) -> bytes:
+    """Connect to a socketcand hub, read its greeting, and leave: half-close, then wait (up to
+    `timeout`) for the hub to close its side. Only then has the hub let go of the connection;
+    a plain close returned while the hub still counted it, and with `max_clients` reached the
+    client that connects next (python-can's, after open_bus's probe) was refused."""
+    with socket.create_connection((host, port), timeout=timeout) as sock:
+        sock.settimeout(timeout)
+        greeting = sock.recv(80)
+        with contextlib.suppress(OSError):  # a hub that closed at once, or is slow: go anyway
+            sock.shutdown(socket.SHUT_WR)
+            deadline = time.monotonic() + timeout
+            while sock.recv(4096) and time.monotonic() < deadline:
+                pass
+        return greeting
+
+
 def connection_closed(bus: can.BusABC) -> bool:
     """True if the loopback hub under a socketcand bus is gone.
 
@@ -213,11 +229,9 @@ def connection_closed(bus: can.BusABC) -> bool:
         return False
     host, _, port = info.rpartition("@")[2].rpartition(":")
     try:
-        with socket.create_connection((host, int(port)), timeout=1.0) as sock:
-            sock.settimeout(1.0)
-            # a hub that greets, or refuses (it is at its max_clients, this client among
-            # them), is there
-            return not sock.recv(8).startswith((b"< hi >", b"< error "))
+        # a hub that greets, or refuses (it is at its max_clients, this client among them),
+        # is there
+        return not _greeting(host, int(port), 1.0).startswith((b"< hi >", b"< error "))
     except (OSError, ValueError):
         return True
 

@@ -170,6 +170,54 @@ def test_a_client_on_a_full_hub_is_not_taken_for_gone_and_a_newcomer_is_told_why
         assert connection_closed(held)
 
 
+def test_a_probe_returns_only_once_the_hub_has_closed_its_side() -> None:
+    """A hub slow to read the probe's close (as one is under load) still holds the place when
+    a probe that only closed returns; the probe half-closes and waits for the hub's close."""
+    from controllers.canbus import BusSpec, _probe_hub
+
+    listener = socket.create_server(("127.0.0.1", 0))
+    hub_closed = threading.Event()
+
+    def slow_hub() -> None:
+        conn, _ = listener.accept()
+        conn.sendall(b"< hi >")
+        assert conn.recv(100) == b""  # the probe's close
+        threading.Event().wait(0.3)  # a hub busy elsewhere
+        hub_closed.set()
+        conn.close()
+
+    server = threading.Thread(target=slow_hub, daemon=True)
+    server.start()
+    try:
+        _probe_hub(BusSpec.parse(f"loopback:127.0.0.1:{listener.getsockname()[1]}"), 2.0)
+        assert hub_closed.is_set()
+    finally:
+        server.join(5)
+        listener.close()
+
+
+def test_a_probe_frees_its_place_before_it_returns() -> None:
+    """open_bus probes a loopback hub before python-can connects: the probe held the hub's one
+    place until the hub happened to read its close, so `hil bus record` on a `--max-clients 1`
+    hub was refused at random (seen on CI). Once the probe returns, its place is free, and
+    the hub-alive probe of connection_closed leaves it free as well."""
+    from controllers.canbus import BusSpec, _probe_hub, connection_closed
+
+    with LoopbackHub(max_clients=1, max_buffer_bytes=64 * 1024) as hub:
+        spec = BusSpec.parse(f"loopback:127.0.0.1:{hub.port}")
+        for _ in range(30):
+            _probe_hub(spec, 2.0)
+            newcomer = Raw(hub.port)
+            assert newcomer.read_msg() == b"< hi >"
+            newcomer.sock.shutdown(socket.SHUT_WR)  # and leave as the probe does
+            assert newcomer.sock.recv(100) == b""
+            newcomer.close()
+        with can.Bus(interface="socketcand", channel="c", host="127.0.0.1", port=hub.port) as bus:
+            for _ in range(5):
+                assert not connection_closed(bus)
+        assert hub.clients_refused == 5  # only connection_closed's probes, refused while full
+
+
 def test_connections_beyond_max_clients_are_refused_with_a_reason() -> None:
     with LoopbackHub(max_clients=2, max_buffer_bytes=2 * 64 * 1024) as hub:
         first, second = Raw(hub.port, "c"), Raw(hub.port)
