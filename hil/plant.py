@@ -95,13 +95,20 @@ class Plant:
         self._ahead_error: FmuError | None = None
 
     def run(
-        self, peer_alive: Callable[[], str | None], progress: Callable[[int], None] | None = None
+        self,
+        peer_alive: Callable[[], str | None],
+        progress: Callable[[int], None] | None = None,
+        startup_timeout: float | None = None,
     ) -> PlantStats:
         """Serve SYNC(0..cycles). `peer_alive` returns None while the controller lives, else why
-        it is gone; a silent bus is checked against it and against the controller timeout."""
+        it is gone; a silent bus is checked against it and against the controller timeout
+        (before the first SYNC: `startup_timeout` [s], by default STARTUP_TIMEOUT or the
+        controller timeout if longer)."""
         started = time.perf_counter()
         last_heard = time.monotonic()
         final = self.scenario.cycles
+        if startup_timeout is None:
+            startup_timeout = max(STARTUP_TIMEOUT, self.scenario.controller.timeout)
         try:
             while self.cycle < final:
                 try:
@@ -123,11 +130,16 @@ class Plant:
                             "the plant stopped"
                         )
                     # a controller program still starting (imports on a loaded machine) gets
-                    # STARTUP_TIMEOUT for its first SYNC; after that the scenario's timeout
+                    # startup_timeout for its first SYNC; after that the scenario's timeout
                     limit = self.scenario.controller.timeout
                     if self.cycle < 0:
-                        limit = max(limit, STARTUP_TIMEOUT)
+                        limit = startup_timeout
                     if time.monotonic() - last_heard > limit:
+                        if self.cycle < 0 and not self.stats.startup_time:
+                            raise ProtocolError(
+                                f"no SYNC(0) from the controller within {limit:g} s of the "
+                                "start; the plant stopped"
+                            )
                         raise ProtocolError(
                             f"no frame from the controller for {limit:g}"
                             f" s at t = {self.sim_time:.3f} s (after SYNC {self.cycle})"

@@ -18,7 +18,6 @@ import json
 import math
 import os
 import subprocess
-import sys
 import tempfile
 import threading
 import time
@@ -34,6 +33,14 @@ from controllers.canbus import BusSpec, open_bus
 from controllers.node import ControllerConfig, ControllerNode, read_config
 from controllers.protocol import COUNTER_MODULO, SYNC_ID, FrameError, Protocol, Sync
 from hil.errors import HilError
+from hil.program import (
+    SOFTHIL,
+    check_controller,
+    environment,
+    placeholder_values,
+    softhil_command,
+    user_command,
+)
 
 
 class ReplayError(HilError):
@@ -289,9 +296,12 @@ def replay(
     tolerance: float = 0.0,
     tolerances: Mapping[str, float] | None = None,
     timeout: float = 10.0,
+    controller: str = SOFTHIL,
 ) -> ReplayResult:
     """Replay `log` (any python-can format) against the controller `config` (default: the
-    run's controller.json beside the log), in this process or as a separate program."""
+    run's controller.json beside the log), in this process or as a separate program:
+    softhil's, or `controller`, a user's command line (`hil.program`; always a process)."""
+    check_controller(controller, external=False)
     if Path(log).suffix.lower() == ".csv":
         raise ReplayError(
             f"{log}: a .csv log cannot be replayed: python-can's CSV has no direction column, "
@@ -307,8 +317,8 @@ def replay(
             f"{log}: {len(cycles)} SYNC cycles recorded, but the controller runs "
             f"{config.cycles + 1} (a log from a different scenario?)"
         )
-    if process:
-        sent = _replay_process(cycles, config, timeout)
+    if process or controller != SOFTHIL:
+        sent = _replay_process(cycles, config, timeout, controller)
     else:
         sent = _replay_thread(cycles, config, timeout)
     return compare(cycles, sent, protocol, tolerance, tolerances)
@@ -349,7 +359,7 @@ def _replay_thread(
 
 
 def _replay_process(
-    cycles: Sequence[Cycle], config: ControllerConfig, timeout: float
+    cycles: Sequence[Cycle], config: ControllerConfig, timeout: float, controller: str = SOFTHIL
 ) -> list[list[can.Message]]:
     from hil.bus.loopback import LoopbackHub
 
@@ -360,21 +370,25 @@ def _replay_process(
         with tempfile.TemporaryDirectory(prefix="softhil-replay-") as folder:
             config_path = Path(folder) / "controller.json"
             config_path.write_text(config.to_json())
+            report = Path(folder) / "controller_report.json"  # read by nobody: a replay compares
+            values = placeholder_values(config_path, spec, report, False)
+            if controller == SOFTHIL:
+                command = softhil_command(config_path, spec, None, False)
+            else:
+                command = user_command(controller, values)
             log = (Path(folder) / "controller.log").open("wb")
-            process = subprocess.Popen(
-                [
-                    sys.executable,
-                    "-m",
-                    "controllers",
-                    "--config",
-                    str(config_path),
-                    "--bus",
-                    str(spec),
-                ],
-                stdout=log,
-                stderr=subprocess.STDOUT,
-                env={**os.environ, "PYTHONUNBUFFERED": "1"},
-            )
+            try:
+                process = subprocess.Popen(
+                    command,
+                    stdout=log,
+                    stderr=subprocess.STDOUT,
+                    env={**os.environ, "PYTHONUNBUFFERED": "1", **environment(values)},
+                )
+            except OSError as exc:
+                log.close()
+                raise ReplayError(
+                    f"--controller: cannot start {command[0]!r}: {exc.strerror or exc}"
+                ) from None
             plant = _ReplayPlant(cycles, bus, timeout)
             try:
 
@@ -408,13 +422,21 @@ def assert_replays(
     tolerance: float = 0.0,
     tolerances: Mapping[str, float] | None = None,
     process: bool = False,
+    controller: str = SOFTHIL,
 ) -> ReplayResult:
     """For pytest: replay a recorded run against a controller and fail on the first divergence.
 
     >>> from hil.replay import assert_replays
     >>> assert_replays("runs/default-1/can.log")          # doctest: +SKIP
     """
-    result = replay(Path(log), config, process=process, tolerance=tolerance, tolerances=tolerances)
+    result = replay(
+        Path(log),
+        config,
+        process=process,
+        tolerance=tolerance,
+        tolerances=tolerances,
+        controller=controller,
+    )
     if not result.ok:
         raise AssertionError(
             f"{log}: {len(result.divergences)} divergence(s); first: {result.divergences[0]}"

@@ -21,7 +21,6 @@ import os
 import re
 import signal
 import subprocess
-import sys
 import threading
 import uuid
 from collections.abc import Callable, Iterator
@@ -46,7 +45,16 @@ from hil.bus.hosted import HostedBus
 from hil.bus.loopback import HubProcess, LoopbackHub
 from hil.devices import HEARTBEAT_PERIOD
 from hil.errors import BusError, HilError, Terminated
-from hil.plant import Plant
+from hil.plant import STARTUP_TIMEOUT, Plant
+from hil.program import (
+    EXTERNAL,
+    SOFTHIL,
+    check_controller,
+    environment,
+    placeholder_values,
+    softhil_command,
+    user_command,
+)
 from hil.recording import CanLogger, SignalRecorder, require_asammdf
 from hil.results import RESULT_FILES, ResultsFolder, note, write_file
 from hil.robots import robot_kind
@@ -70,6 +78,10 @@ class RunOptions:
     # one draws the plots: `hil run` does, on a machine with a core to spare (not in batches,
     # whose trials already take the cores)
     parallel_report: bool = False
+    # the controller program (hil.program): "softhil" (ours), "external" (none: one started by
+    # hand on the run's bus), or a user's command line with placeholders
+    controller: str = SOFTHIL
+    wait: float = STARTUP_TIMEOUT  # [s] for the first SYNC of an external controller
 
 
 @dataclass(frozen=True)
@@ -109,6 +121,14 @@ def run_scenario(scenario: Scenario, options: RunOptions) -> RunResult:
     if options.animate is not None:  # before anything runs: a format this machine can write
         check_format(options.animate)
     bus_option(options)
+    check_controller(options.controller)
+    if options.inprocess and options.controller != SOFTHIL:
+        raise HilError(
+            "--inprocess runs softhil's controller in this process; --controller "
+            f"{options.controller} runs {'none' if options.controller == EXTERNAL else 'a program'}"
+        )
+    if not 0 < options.wait <= 86400:  # also NaN
+        raise HilError(f"--wait: {options.wait:g} s; give 0 < SECONDS <= 86400 (a day)")
     try:
         start = log_start(scenario)
     except ValueError as exc:
@@ -199,7 +219,8 @@ def _run(
                 report = asdict(node.report)
             else:
                 peer = _start_controller(config, controller_spec, options, folder, stack)
-                stats = plant.run(peer.gone, progress)
+                wait = options.wait if options.controller == EXTERNAL else None
+                stats = plant.run(peer.gone, progress, startup_timeout=wait)
                 report = peer.finish()
         except BaseException:
             peer.stop()
@@ -211,8 +232,15 @@ def _run(
     summary["bus"] = str(plant_spec)
     summary["hub"] = hub
     summary["controller_process"] = (
-        "this thread" if direct else "thread" if options.inprocess else "process"
+        "this thread"
+        if direct
+        else "thread"
+        if options.inprocess
+        else "external"
+        if options.controller == EXTERNAL
+        else "process"
     )
+    summary["controller_program"] = options.controller  # softhil, external or a command line
     summary["parameters"] = {name: dict(values) for name, values in rig.parameters.items()}
     with ExitStack() as post:
         estimation = None
@@ -425,6 +453,7 @@ class _Peer:
         self.error: BaseException | None = None
         self.report: Any = None
         self.log: Path | None = None
+        self.user = False  # a user's program (its report is optional and checked)
 
     def gone(self) -> str | None:
         if self.process is not None:
@@ -465,8 +494,16 @@ class _Peer:
             if code != 0:
                 raise HilError(f"the controller failed with code {code}{self._last_words()}")
             report_path = self.log.with_name("controller_report.json") if self.log else None
-            if report_path and report_path.is_file():
-                return dict(json.loads(report_path.read_text()))
+            if report_path and report_path.is_file() and report_path.stat().st_size:
+                try:
+                    report = json.loads(report_path.read_text(errors="replace"))
+                except ValueError as exc:
+                    report = exc
+                if isinstance(report, dict):
+                    return _checked_report(report, report_path) if self.user else report
+                if not self.user:
+                    raise HilError(f"{report_path}: not the controller's report: {report}")
+                note(f"{report_path}: not a JSON object ({report}); the summary leaves it out")
             return {}
         if self.thread is not None:
             self.thread.join(timeout=30)
@@ -476,6 +513,40 @@ class _Peer:
                 raise HilError(f"the controller failed: {self.error}")
             return asdict(self.report) if self.report is not None else {}
         return {}
+
+
+# the controller report's entries that the summary counts with, as ControllerReport has them
+REPORT_NUMBERS = (
+    "cycles",
+    "status_missed",
+    "stale_frames",
+    "unknown_frames",
+    "intrusions",
+    "overruns",
+    "max_lateness",
+    "mean_lateness",
+)
+
+
+def _checked_report(report: dict[str, Any], path: Path) -> dict[str, Any]:
+    """A user program's report, kept whole in the summary; the entries the summary counts with
+    (softhil's names) only if they are finite numbers, and `realtime` only with its figures."""
+    for key in REPORT_NUMBERS:
+        value = report.get(key)
+        if key in report and (
+            isinstance(value, bool)
+            or not isinstance(value, int | float)
+            or not math.isfinite(value)
+            or value < 0
+        ):
+            note(f"{path}: {key} = {value!r} is not a count or a time; the summary leaves it out")
+            del report[key]
+    if report.get("realtime") and not all(
+        k in report for k in ("overruns", "max_lateness", "mean_lateness")
+    ):
+        note(f"{path}: realtime without overruns, max_lateness and mean_lateness; left out")
+        del report["realtime"]
+    return report
 
 
 def _clock(config: ControllerConfig, options: RunOptions) -> LockstepClock | RealtimeClock:
@@ -506,27 +577,37 @@ def _start_controller(
         peer.thread.start()
         return peer
     out = folder.out
+    config_path, report = out / "controller.json", out / "controller_report.json"
+    values = placeholder_values(config_path, spec, report, options.realtime)
+    if options.controller == EXTERNAL:
+        note(
+            f"waiting {options.wait:g} s for a controller to send SYNC(0) on {spec} "
+            f"({values['interface']} {values['host']}:{values['port']}, channel "
+            f"{values['channel']}); softhil's: hil controller --config {config_path} --bus {spec}"
+            if values["port"]
+            else f"waiting {options.wait:g} s for a controller to send SYNC(0) on {spec}; "
+            f"softhil's: hil controller --config {config_path} --bus {spec}"
+        )
+        return peer  # alive until the run ends or the bus falls silent
     peer.log = folder.claim("controller.log")
     folder.claim("controller_report.json")
-    command = [
-        sys.executable,
-        "-m",
-        "controllers",
-        "--config",
-        str(out / "controller.json"),
-        "--bus",
-        str(spec),
-        "--report",
-        str(out / "controller_report.json"),
-    ]
-    if options.realtime:
-        command.append("--realtime")
+    peer.user = options.controller != SOFTHIL
+    if peer.user:
+        command = user_command(options.controller, values)
+    else:
+        command = softhil_command(config_path, spec, report, options.realtime)
     log = stack.enter_context(peer.log.open("wb"))
     # the controller's matrices are at most 2N x 2N (N segments): BLAS threads would only spin
     # against the plant and the hub on the cores they share (6 segments: RTF 0.63 -> 0.80 on a
     # loaded 2-core machine); a user's own setting wins
     env = {"OPENBLAS_NUM_THREADS": "1", **os.environ, "PYTHONUNBUFFERED": "1"}
-    peer.process = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, env=env)
+    env.update(environment(values))
+    try:
+        peer.process = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, env=env)
+    except OSError as exc:  # not found, not executable
+        raise HilError(
+            f"--controller: cannot start {command[0]!r}: {exc.strerror or exc}"
+        ) from None
     stack.callback(peer.stop)
     write_file(folder.claim("controller.pid"), f"{peer.process.pid}\n")
     return peer

@@ -16,9 +16,10 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
         "run the controller node: SYNC producer and curvature control over CAN",
         "  hil controller --config runs/default-1/controller.json --bus loopback:29536\n"
         "  hil controller --config controller.json --bus socketcan:vcan0 --realtime\n"
-        "  (against a recorded plant: hil bus serve, then hil bus replay runs/default-1/can.log\n"
-        "   --direction T --lockstep --timeout 10 --bus loopback:127.0.0.1:29536, then this;\n"
-        "   hil run starts its own controller, so it is not the plant for this one)\n",
+        "  (against the simulated rig: hil run --controller external prints this command line\n"
+        "   with its bus, then waits for it; against a recorded plant: hil bus serve, then\n"
+        "   hil bus replay runs/default-1/can.log --direction T --lockstep --timeout 10\n"
+        "   --bus loopback:127.0.0.1:29536, then this)\n",
     )
     add_arguments(parser)
     parser.set_defaults(handler=run)

@@ -19,7 +19,10 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
         "  hil replay runs/default-1/can.log                 the run's own controller.json\n"
         "  hil replay runs/default-1/can.blf --process       controller as a separate program\n"
         "  hil replay runs/default-1/can.log --scenario changed.toml   a changed controller\n"
-        "  hil replay can.log --tolerance 1e-3 --tolerance-for kappa_est=0.01\n",
+        "  hil replay can.log --tolerance 1e-3 --tolerance-for kappa_est=0.01\n"
+        "  hil replay runs/mine/can.log --controller 'python my_ctrl.py --config {config} "
+        "--bus {bus}'\n"
+        "                                                    your controller program\n",
     )
     parser.add_argument("log", type=Path, help="CAN log of a run (any format python-can reads)")
     parser.add_argument(
@@ -44,6 +47,13 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--process", action="store_true", help="run the controller as a separate program"
     )
+    parser.add_argument(
+        "--controller",
+        default="softhil",
+        metavar="softhil|COMMAND",
+        help="the controller program, as hil run --controller takes it: softhil's own, or your "
+        "command line with {config} {bus} ... (a separate program: implies --process)",
+    )
     parser.add_argument("--json", type=Path, help="write the comparison's summary as JSON")
     parser.set_defaults(handler=_replay)
 
@@ -65,6 +75,9 @@ def _replay(args: argparse.Namespace) -> int:
             raise HilError(f"--tolerance-for {item!r}: expected SIGNAL=NUMBER >= 0")
     if not args.tolerance >= 0:
         raise HilError(f"--tolerance must not be negative, got {args.tolerance}")
+    from hil.program import check_controller
+
+    check_controller(args.controller, external=False)
     json_out = _json_path(args.json) if args.json else None
     config = None
     if args.scenario is not None:
@@ -74,6 +87,7 @@ def _replay(args: argparse.Namespace) -> int:
         args.log,
         config,
         process=args.process,
+        controller=args.controller,
         tolerance=args.tolerance,
         tolerances=tolerances,
     )

@@ -27,7 +27,11 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
         "  hil run --inprocess                      controller in this process, virtual bus\n"
         "  hil run --realtime                       SYNC paced by the wall clock\n"
         "  hil run --bus loopback:127.0.0.1:29536   join a hub started by `hil bus serve`\n"
-        "  hil run planar-pipe-1 --animate          also arm.gif: the run seen from above\n",
+        "  hil run planar-pipe-1 --animate          also arm.gif: the run seen from above\n"
+        "  hil run --controller 'python my_ctrl.py --config {config} --bus {bus}'\n"
+        "                                           your controller program against the rig\n"
+        "  hil run --controller external --bus loopback:127.0.0.1:29536\n"
+        "                                           no program: wait for one started by hand\n",
     )
     parser.add_argument(
         "scenario",
@@ -52,6 +56,22 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
         "--inprocess",
         action="store_true",
         help="run the controller in this process over the virtual bus",
+    )
+    parser.add_argument(
+        "--controller",
+        default="softhil",
+        metavar="softhil|external|COMMAND",
+        help="the controller program: softhil's own; none (external: one you start on the "
+        "run's bus, which sends SYNC(0) within --wait); or your command line, split as a shell "
+        "would, with {config} {report} {bus} {interface} {channel} {host} {port} {realtime} "
+        "replaced (also as SOFTHIL_CONFIG, ... in its environment; README: Your controller)",
+    )
+    parser.add_argument(
+        "--wait",
+        type=float,
+        default=60.0,
+        metavar="SECONDS",
+        help="with --controller external: how long the run waits for SYNC(0)",
     )
     parser.add_argument("--realtime", action="store_true", help="pace SYNC on the wall clock")
     parser.add_argument("--seed", type=int, help="override the scenario's seed")
@@ -109,6 +129,8 @@ def _run(args: argparse.Namespace) -> int:
             overwrite=args.overwrite,
             animate=args.animate,
             parallel_report=(os.cpu_count() or 1) > 1,
+            controller=args.controller,
+            wait=args.wait,
         ),
     )
     s = result.summary

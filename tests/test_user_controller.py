@@ -1,0 +1,245 @@
+"""Your own controller against the rig: `hil run --controller COMMAND|external` and
+`hil replay --controller COMMAND`.
+
+The rig must take any program that speaks the DBC on the bus: softhil's own controller given
+as a command line gives the very bytes of a default run; the example controller
+(`examples/piston_sine.py`: python-can, cantools and the DBC, nothing from softhil) drives
+all six drives of the planar arm; a controller started by hand on the run's bus (`external`)
+gives the very bytes too; its recorded runs replay against it as regression tests.
+"""
+
+from __future__ import annotations
+
+import json
+import shlex
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hil.cli import main as hil_main
+from hil.run import RunOptions, run_scenario
+from hil.scenario import SCENARIO_FOLDER, load_scenario
+from tests.test_closed_loop import shortened
+
+ROOT = Path(__file__).resolve().parents[1]
+EXAMPLE = ROOT / "examples" / "piston_sine.py"
+PYTHON = shlex.quote(sys.executable)
+SOFTHIL_AS_COMMAND = (
+    f"{PYTHON} -m controllers --config {{config}} --bus {{bus}} --report {{report}}"
+)
+EXAMPLE_COMMAND = (
+    f"{PYTHON} {shlex.quote(str(EXAMPLE))} --config {{config}} --interface {{interface}} "
+    "--channel {channel} --host {host} --port {port}"
+)
+
+
+def _run(path: Path, out: Path, **options: object) -> dict:
+    result = run_scenario(load_scenario(path), RunOptions(out=out, progress=False, **options))
+    return result.summary
+
+
+@pytest.fixture(scope="module")
+def default_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    """A 1 s default run with softhil's controller started the usual way: (scenario, folder)."""
+    tmp = tmp_path_factory.mktemp("default")
+    path = shortened(tmp, 1.0)
+    _run(path, tmp / "run")
+    return path, tmp / "run"
+
+
+def _same_run(a: Path, b: Path) -> None:
+    for name in ("can.log", "signals.csv"):
+        assert (a / name).read_bytes() == (b / name).read_bytes(), name
+
+
+def test_softhil_s_controller_given_as_a_command_gives_the_same_bytes(
+    default_run: tuple[Path, Path], tmp_path: Path
+) -> None:
+    path, reference = default_run
+    summary = _run(path, tmp_path / "run", controller=SOFTHIL_AS_COMMAND)
+    _same_run(reference, tmp_path / "run")
+    assert summary["controller_program"] == SOFTHIL_AS_COMMAND
+    assert summary["controller_process"] == "process"
+    assert summary["controller"]["cycles"] == 100  # its report, read as softhil's is
+    expected = json.loads((reference / "summary.json").read_text())
+    assert summary["controller"] == expected["controller"]
+    assert expected["controller_program"] == "softhil"
+
+
+def test_a_controller_started_by_hand_on_the_run_s_bus_gives_the_same_bytes(
+    default_run: tuple[Path, Path], tmp_path: Path
+) -> None:
+    """`hil run --controller external` starts none and says where to connect: the user starts
+    softhil's controller by hand from that line, as a user would."""
+    path, reference = default_run
+    out = tmp_path / "run"
+    run = subprocess.Popen(
+        [sys.executable, "-m", "hil", "run", str(path), "--out", str(out), "--no-progress"]
+        + ["--controller", "external", "--wait", "60"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=ROOT,
+    )
+    try:
+        assert run.stderr is not None
+        line = run.stderr.readline()
+        assert line.startswith("hil: note: waiting 60 s for a controller to send SYNC(0) on ")
+        command = line.rpartition("softhil's: ")[2].split()
+        assert command[:3] == ["hil", "controller", "--config"]
+        controller = subprocess.run(
+            [sys.executable, "-m", "hil", *command[1:]], cwd=ROOT, timeout=120, check=False
+        )
+        assert controller.returncode == 0
+        assert run.wait(timeout=120) == 0, run.stderr.read()
+    finally:
+        run.kill()
+        run.wait()
+    _same_run(reference, out)
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["controller_process"] == summary["controller_program"] == "external"
+    assert summary["controller"] == {}  # a program started by hand reports nothing to the run
+
+
+def test_an_external_controller_that_never_comes_fails_the_run_in_one_line_after_wait(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path = shortened(tmp_path, 0.2)
+    out = tmp_path / "run"
+    argv = ["run", str(path), "--out", str(out), "--no-progress", "--controller", "external"]
+    assert hil_main([*argv, "--wait", "0.3"]) == 1
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert lines[0].startswith("hil: note: waiting 0.3 s for a controller")
+    assert lines[1:] == [
+        "hil: error: no SYNC(0) from the controller within 0.3 s of the start; the plant stopped"
+    ]
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["status"] == "failed" and "no SYNC(0)" in summary["error"]
+    assert (out / "controller.json").is_file() and not (out / "controller.log").exists()
+
+
+def test_your_own_python_can_controller_drives_the_six_drives_and_replays(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The example speaks only python-can (socketcand to the run's hub), cantools and the DBC.
+    Its commands reach every drive: each setpoint is its sine, to the DBC's 2 um resolution,
+    and each piston follows it. Its recorded run replays against it with no divergence, and a
+    changed amplitude diverges at the first command."""
+    text = (SCENARIO_FOLDER / "planar-point-to-point.toml").read_text()
+    path = tmp_path / "p.toml"
+    path.write_text(text.replace("duration = 40.0", "duration = 0.6"))
+    out = tmp_path / "run"
+    summary = _run(path, out, controller=EXAMPLE_COMMAND)
+    assert summary["status"] == "completed" and summary["frames"]["emcy"] == 0
+    assert summary["controller_process"] == "process" and summary["controller"] == {}
+    config = json.loads((out / "controller.json").read_text())
+    signals = np.genfromtxt(out / "signals.csv", delimiter=",", names=True)
+    t = signals["time"]
+    for i in range(6):
+        low, high = config["x_min"][i], config["x_max"][i]
+        # the setpoint latched at SYNC c was computed for t = c T: the sine, from the second SYNC
+        sine = (low + high) / 2 + 0.4 * (high - low) / 2 * np.sin(2 * np.pi * t[1:])
+        np.testing.assert_allclose(signals[f"x_ref_{i + 1}"][1:], sine, atol=1.01e-6)
+        lag = np.abs(signals[f"x_{i + 1}"] - signals[f"x_ref_{i + 1}"])[t > 0.2]
+        assert lag.max() < 0.25 * (high - low) / 2, i  # the drive follows it
+    log = str(out / "can.log")
+    assert hil_main(["replay", log, "--controller", EXAMPLE_COMMAND]) == 0
+    assert "61 cycles, 360 controller frames compared, 0 divergence(s)" in capsys.readouterr().out
+    changed = EXAMPLE_COMMAND + " --amplitude 0.41"
+    assert hil_main(["replay", log, "--controller", changed]) == 1
+    shown = capsys.readouterr().out
+    assert "first divergence: cycle 0 (t = 0.000 s): DriveCommand1.piston_setpoint" in shown
+
+
+def test_the_program_gets_the_placeholders_in_its_environment_and_its_report_is_checked(
+    default_run: tuple[Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A user's program sees SOFTHIL_CONFIG, SOFTHIL_BUS, ... (here it starts softhil's
+    controller from them); a report it writes is kept, but an entry the summary counts with
+    must be a number."""
+    path, reference = default_run
+    out = tmp_path / "run"
+    script = (
+        'env | grep ^SOFTHIL_ | sort > "$SOFTHIL_CONFIG.env" && '
+        f'{PYTHON} -m controllers --config "$SOFTHIL_CONFIG" --bus "$SOFTHIL_BUS" && '
+        """echo '{{"cycles": "many", "intrusions": -1, "mine": 7}}' > "$SOFTHIL_REPORT\""""
+    )
+    summary = _run(path, out, controller=f"sh -c {shlex.quote(script)}")
+    _same_run(reference, out)
+    env = dict(line.split("=", 1) for line in (out / "controller.json.env").read_text().split())
+    assert env["SOFTHIL_CONFIG"] == str(out / "controller.json")
+    assert env["SOFTHIL_REPORT"] == str(out / "controller_report.json")
+    assert env["SOFTHIL_BUS"] == summary["bus"]
+    assert env["SOFTHIL_INTERFACE"] == "socketcand" and env["SOFTHIL_CHANNEL"] == "softhil"
+    assert env["SOFTHIL_HOST"] == "127.0.0.1" and f":{env['SOFTHIL_PORT']}," in summary["bus"]
+    assert env["SOFTHIL_REALTIME"] == "0"
+    assert summary["controller"] == {"mine": 7}
+    assert summary["intrusions"] == {"count": 0, "first": None}
+    err = capsys.readouterr().err
+    assert "cycles = 'many' is not a count or a time" in err
+    assert "intrusions = -1 is not a count or a time" in err
+
+
+def test_a_user_program_that_fails_is_named_with_its_last_words(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path = shortened(tmp_path, 0.2)
+    out = tmp_path / "run"
+    program = f"{PYTHON} -c \"print('no rig for me'); raise SystemExit(3)\""
+    argv = ["run", str(path), "--out", str(out), "--no-progress", "--controller", program]
+    assert hil_main(argv) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("hil: error: the controller exited with code 3 "
+                                               "(no rig for me)")  # fmt: skip
+    assert json.loads((out / "summary.json").read_text())["status"] == "failed"
+    assert (out / "controller.log").read_text() == "no rig for me\n"
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["--controller", ""], "--controller: an empty command"),
+        (["--controller", "x {nope}"], "--controller: unknown placeholder {nope} in 'x {nope}'"),
+        (["--controller", "x {"], "--controller: '{' in 'x {': Single '{'"),
+        (["--controller", "x 'a"], '--controller: cannot split "x \'a": No closing quotation'),
+        (["--controller", "/no/such/ctl"], "--controller: cannot start '/no/such/ctl': no such"),
+        (["--controller", "no-such-ctl-x"], "cannot start 'no-such-ctl-x': not found on PATH"),
+        (["--controller", "{tmp}/plain.txt"], "plain.txt': not an executable file"),
+        (["--controller", "external", "--inprocess"], "--inprocess runs softhil's controller"),
+        (["--controller", "true", "--inprocess"], "--controller true runs a program"),
+        (["--controller", "external", "--wait", "0"], "--wait: 0 s; give 0 < SECONDS <= 86400"),
+        (["--controller", "external", "--wait", "nan"], "--wait: nan s; give 0 < SECONDS"),
+    ],
+)
+def test_a_controller_that_cannot_run_is_one_line_before_the_results_folder(
+    argv: list[str], message: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "run"
+    (tmp_path / "plain.txt").write_text("not a program\n")
+    argv = [arg.replace("{tmp}", str(tmp_path)) for arg in argv]
+    assert hil_main(["run", "--out", str(out), "--no-progress", *argv]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("hil: error: ") and message in err[0], err
+    assert not out.exists()
+
+
+def test_replay_takes_a_command_not_external(
+    default_run: tuple[Path, Path], capsys: pytest.CaptureFixture[str]
+) -> None:
+    log = str(default_run[1] / "can.log")
+    assert hil_main(["replay", log, "--controller", "external"]) == 1
+    assert "--controller external: a replay starts its controller" in capsys.readouterr().err
+    assert hil_main(["replay", log, "--controller", "/no/such/ctl"]) == 1
+    assert "cannot start '/no/such/ctl': no such file" in capsys.readouterr().err
+    assert hil_main(["replay", log, "--controller", SOFTHIL_AS_COMMAND]) == 0
+    assert "101 cycles, 200 controller frames compared, 0 divergence(s)" in capsys.readouterr().out
+
+
+def test_the_example_controller_is_its_own_program() -> None:
+    """It must not lean on softhil: a user copies it as the start of their own."""
+    source = EXAMPLE.read_text()
+    assert "import hil" not in source and "from hil" not in source
+    assert "import controllers" not in source and "from controllers" not in source
