@@ -7,7 +7,10 @@ Installed with softhil as a pytest plugin, it gives the fixture `softhil_replay`
         softhil_replay("tests/runs/step-response/can.log")
 
 It replays the log's plant frames to the controller of the run's controller.json (or the
-configuration you pass) and fails on the first diverging cycle, message and signal.
+configuration you pass) and fails on the first diverging cycle, message and signal. Your own
+controller program replays the same way, by its command line (`hil.program`):
+
+    softhil_replay("tests/runs/mine/can.log", controller="python my_ctrl.py --bus {bus}")
 """
 
 from __future__ import annotations

@@ -165,7 +165,8 @@ def test_the_program_gets_the_placeholders_in_its_environment_and_its_report_is_
     script = (
         'env | grep ^SOFTHIL_ | sort > "$SOFTHIL_CONFIG.env" && '
         f'{PYTHON} -m controllers --config "$SOFTHIL_CONFIG" --bus "$SOFTHIL_BUS" && '
-        """echo '{{"cycles": "many", "intrusions": -1, "mine": 7}}' > "$SOFTHIL_REPORT\""""
+        """echo '{{"cycles": "many", "intrusions": -1, "overruns": true, """
+        """"realtime": true, "mine": 7}}' > "$SOFTHIL_REPORT\""""
     )
     summary = _run(path, out, controller=f"sh -c {shlex.quote(script)}")
     _same_run(reference, out)
@@ -181,6 +182,8 @@ def test_the_program_gets_the_placeholders_in_its_environment_and_its_report_is_
     err = capsys.readouterr().err
     assert "cycles = 'many' is not a count or a time" in err
     assert "intrusions = -1 is not a count or a time" in err
+    assert "overruns = True is not a count or a time" in err
+    assert "realtime without overruns, max_lateness and mean_lateness; left out" in err
 
 
 def test_a_user_program_that_fails_is_named_with_its_last_words(
