@@ -24,7 +24,10 @@ Before all that, the transport alone: the round trip of one frame from this proc
 hub (a child process) to an echoing peer process and back, for socketcand's ASCII and for the
 binary records, in microseconds (median of --repeat batches). For 6 segments in-process the
 closed loop also runs with `[controller] estimator` = raw and kf besides the default ukf, so the
-estimator's share of the loop shows.
+estimator's share of the loop shows; and row "hil run --controller examples/piston_sine.py"
+runs, across processes, a controller that only sends SYNC and commands a sine (no estimator, no
+control law; python-can's socketcand client), so the plant's own side shows: the ceiling the
+separate-process target meets with a controller that costs nothing.
 
 Last, the per-SYNC budget by layer: the 6-segment closed loop in-process, once plain and once
 instrumented, its wall time per SYNC split into layers (`BUDGET_LAYERS`): the FMUs in C (the
@@ -53,6 +56,7 @@ import ctypes
 import functools
 import json
 import os
+import shlex
 import statistics
 import subprocess
 import sys
@@ -76,6 +80,10 @@ from hil.scenario import Scenario, load_scenario
 
 PURE_LOOP = Path(__file__).with_name("pure_loop.c")
 ROOT = Path(__file__).resolve().parents[1]
+EXAMPLE_CONTROLLER = (
+    f"{shlex.quote(sys.executable)} {shlex.quote(str(ROOT / 'examples' / 'piston_sine.py'))} "
+    "--config {config} --interface {interface} --channel {channel} --host {host} --port {port}"
+)
 TRANSPORTS = {"socketcand": "loopback", "binary": "softhil"}  # name: bus spec kind
 ECHO = """
 import sys
@@ -213,6 +221,7 @@ def full_run(
     kernel: bool,
     hub: str = "plant",
     busy_poll: str | None = None,
+    controller: str = "softhil",
 ) -> float:
     settings = {"SOFTHIL_KERNEL": "1" if kernel else "0", "SOFTHIL_HUB": hub}
     if busy_poll is not None:
@@ -220,7 +229,8 @@ def full_run(
     # the environment as it was afterwards, a user's own settings included
     with mock.patch.dict(os.environ, settings), tempfile.TemporaryDirectory() as out:
         result = run_scenario(
-            scenario, RunOptions(out=Path(out), inprocess=inprocess, progress=False)
+            scenario,
+            RunOptions(out=Path(out), inprocess=inprocess, progress=False, controller=controller),
         )
         return float(result.summary["wall_time"])
 
@@ -628,16 +638,22 @@ def main() -> int:
             variants += [(False, "process", True, None, None), (False, "thread", True, None, None)]
             # the estimator's share: the same loop with the cheaper estimators
             variants += [(True, "plant", True, e, None) for e in ("raw", "kf")] if n == 6 else []
+            # the plant's side alone across processes: a controller that only commands a sine
+            # (examples/piston_sine.py: no estimator, python-can's socketcand client)
+            variants += [(False, "plant", True, "piston_sine", None)]
             for inprocess, hub, kernel, estimator, busy_poll in variants:
                 name = "hil run --inprocess" if inprocess else "hil run (separate process)"
                 name += "" if kernel else " SOFTHIL_KERNEL=0"
                 name += "" if hub == "plant" or inprocess else f", hub {hub}"
                 name += f", estimator {estimator}" if estimator else ""
                 name += ", no busy poll" if busy_poll == "0" else ""
-                run = arm
-                if estimator:
+                run, program = arm, "softhil"
+                if estimator == "piston_sine":
+                    name = "hil run --controller examples/piston_sine.py"
+                    program = EXAMPLE_CONTROLLER
+                elif estimator:
                     run = replace(arm, controller=replace(arm.controller, estimator=estimator))
-                case = functools.partial(full_run, run, inprocess, kernel, hub, busy_poll)
+                case = functools.partial(full_run, run, inprocess, kernel, hub, busy_poll, program)
                 wall = median(args.repeat, case)
                 ratio = wall / (base * round(duration / h))
                 closed[f"{name} / {n}"] = {
