@@ -287,6 +287,9 @@ def test_every_example_command_plans(
         lambda plan, *a, **k: planned.append(plan) or {"failed_trials": []},
     )
     monkeypatch.setattr(hil.cli.batch, "_print", lambda *a: None)
+    # the package's built-ins, even after a test of this module put `builtins` in their place
+    # (a module fixture: in file order, as `pytest -n0` runs, it is still in place here)
+    monkeypatch.setattr("hil.scenario.SCENARIO_FOLDER", DEFAULT_SCENARIO.parent)
     monkeypatch.chdir(tmp_path)
     (tmp_path / "my.toml").write_text(DEFAULT_SCENARIO.read_text())
     argv = shlex.split(command.replace("HOST", "127.0.0.1"))[1:]
