@@ -38,6 +38,7 @@ from pathlib import Path
 from typing import Any
 
 from hil.errors import HilError, ScenarioError, Terminated
+from hil.program import SOFTHIL, check_controller
 from hil.results import ResultsFolder, note, write_file
 from hil.run import RunOptions, run_scenario
 from hil.scenario import Scenario, load_scenario
@@ -80,6 +81,9 @@ class TrialSpec:
     folder: str  # absolute path of the trial's run folder
     name: str  # the folder's name relative to the batch folder
     scenario_text: str  # the scenario.toml the trial runs, with its seed and overrides
+    # the controller program (hil.program): softhil's, in the trial's own process, or a user's
+    # command line, a process of its own beside it
+    controller: str = SOFTHIL
 
 
 @dataclass(frozen=True)
@@ -232,12 +236,14 @@ def make_plan(
     trials: int,
     seed: int | None = None,
     overrides: Sequence[Override] = (),
+    controller: str = SOFTHIL,
 ) -> Plan:
     """Every trial of a batch (no overrides) or sweep, checked before anything runs: each value
     of each --set option, then each grid point, loads as a scenario, or a one-line error names
     the option."""
     if trials < 1:
         raise HilError(f"--trials: must be at least 1, got {trials}")
+    check_controller(controller, external=False, what="a batch")
     keys = [o.key for o in overrides]
     for key in keys:
         if keys.count(key) > 1:
@@ -276,6 +282,7 @@ def make_plan(
                     folder=str((out / name).absolute()),
                     name=name,
                     scenario_text=_trial_text(data, point, trial_seed, index, kind, source),
+                    controller=controller,
                 )
             )
     return Plan(
@@ -366,7 +373,13 @@ def run_trial(spec: TrialSpec) -> dict[str, Any]:
             write_file(path, spec.scenario_text)
             scenario = load_scenario(path)
             # overwrite: the folder holds only this trial's input (or a retried attempt's files)
-            options = RunOptions(out=folder, inprocess=True, progress=False, overwrite=True)
+            options = RunOptions(
+                out=folder,
+                inprocess=spec.controller == SOFTHIL,
+                progress=False,
+                overwrite=True,
+                controller=spec.controller,
+            )
             run_scenario(scenario, options)
             summary = json.loads((folder / "summary.json").read_text(encoding="utf-8"))
         success = summary.get("success")

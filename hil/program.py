@@ -95,13 +95,16 @@ def user_command(
     return command
 
 
-def check_controller(template: str, option: str = "--controller", external: bool = True) -> None:
-    """Refuse a `--controller` that cannot be run, before anything is written."""
+def check_controller(
+    template: str, option: str = "--controller", external: bool = True, what: str = "a replay"
+) -> None:
+    """Refuse a `--controller` that cannot be run, before anything is written (`external` only
+    where it is allowed; `what` names the command that starts its controller)."""
     if template in (SOFTHIL, EXTERNAL) and (external or template == SOFTHIL):
         return
     if template == EXTERNAL:
         raise HilError(
-            f"{option} external: a replay starts its controller; give its command line instead"
+            f"{option} external: {what} starts its controller; give its command line instead"
         )
     example = placeholder_values(Path("controller.json"), BusSpec("softhil", "c"), None, False)
     program = user_command(template, example, option)[0]

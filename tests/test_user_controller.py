@@ -246,3 +246,31 @@ def test_the_example_controller_is_its_own_program() -> None:
     source = EXAMPLE.read_text()
     assert "import hil" not in source and "from hil" not in source
     assert "import controllers" not in source and "from controllers" not in source
+
+
+def test_a_batch_of_your_controller_gives_the_bytes_of_softhil_s_in_process_batch(
+    default_run: tuple[Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`hil batch --controller COMMAND`: each trial runs the program beside it, across
+    processes; softhil's controller as that program writes every trial's CAN log and signals
+    as the in-process batch does, and batch.json records the command."""
+    path = default_run[0]
+    base = ["batch", str(path), "--trials", "2", "--workers", "1", "--no-progress"]
+    assert hil_main([*base, "--out", str(tmp_path / "a")]) == 0
+    assert hil_main([*base, "--out", str(tmp_path / "b"), "--controller", SOFTHIL_AS_COMMAND]) == 0
+    for trial in ("trial-000", "trial-001"):
+        _same_run(tmp_path / "a" / trial, tmp_path / "b" / trial)
+        summary = json.loads((tmp_path / "b" / trial / "summary.json").read_text())
+        assert summary["controller_process"] == "process"
+        assert summary["controller_program"] == SOFTHIL_AS_COMMAND
+    batch = json.loads((tmp_path / "b" / "batch.json").read_text())
+    assert batch["command"].endswith(f"--controller {shlex.quote(SOFTHIL_AS_COMMAND)}")
+    assert "--controller" not in json.loads((tmp_path / "a" / "batch.json").read_text())["command"]
+    capsys.readouterr()
+    assert hil_main([*base, "--out", str(tmp_path / "c"), "--controller", "external"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [
+        "hil: error: --controller external: a batch starts its controller; give its command "
+        "line instead"
+    ]
+    assert not (tmp_path / "c").exists()

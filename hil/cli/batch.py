@@ -110,6 +110,14 @@ def _common(parser: argparse.ArgumentParser, trials: int) -> None:
         metavar="ADDRESS",
         help="run on this dask.distributed scheduler (tcp://HOST:8786) instead of locally",
     )
+    parser.add_argument(
+        "--controller",
+        default="softhil",
+        metavar="softhil|COMMAND",
+        help="the controller program, as hil run --controller takes it: softhil's own (in each "
+        "trial's process), or your command line with {config} {bus} ... (a process beside "
+        "each trial; on a dask cluster, where every worker finds it)",
+    )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -137,6 +145,7 @@ def _execute(args: argparse.Namespace, kind: str, overrides: list[Override]) -> 
         trials=args.trials,
         seed=args.seed,
         overrides=overrides,
+        controller=args.controller,
     )
     content = run_plan(
         plan,
@@ -163,6 +172,8 @@ def _command(args: argparse.Namespace, kind: str) -> str:
         words += ["--seed", str(args.seed)]
     for option in getattr(args, "sets", None) or []:
         words += ["--set", option]
+    if args.controller != "softhil":
+        words += ["--controller", args.controller]
     return shlex.join(words)
 
 
