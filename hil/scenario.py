@@ -30,6 +30,9 @@ from hil.vision import CameraEffects, check_effects
 
 SCENARIO_FOLDER = Path(str(files("hil") / "scenarios"))  # the built-in scenarios
 DEFAULT_SCENARIO = SCENARIO_FOLDER / "default.toml"
+# [bit/s] classical CAN (ISO 11898-1) runs at most 1 Mbit/s; softhil's frames are classical, so
+# the bus load and frame times are computed at one bitrate
+MAX_BITRATE = 1_000_000
 DEFAULT_LOG_START = "2015-06-01T00:00:00Z"  # the thesis's year; see RecordingSpec
 _NAME = re.compile(r"[A-Za-z0-9_.-]+")
 
@@ -450,8 +453,12 @@ def _check(s: Scenario) -> None:
         )
     if s.bus.kind not in BUS_KINDS:
         raise _fail(file, "bus.kind", f"must be one of {', '.join(BUS_KINDS)}")
-    if s.bus.bitrate <= 0:
-        raise _fail(file, "bus.bitrate", "must be positive")
+    if not 0 < s.bus.bitrate <= MAX_BITRATE:
+        raise _fail(
+            file,
+            "bus.bitrate",
+            f"must be 1..{MAX_BITRATE} bit/s (classical CAN), got {s.bus.bitrate}",
+        )
     if not 0 <= s.bus.port < 65536:
         raise _fail(file, "bus.port", f"must be 0..65535, got {s.bus.port}")
     if s.controller.policy not in POLICIES:

@@ -71,6 +71,7 @@ SCENARIOS = [
     ),  # noqa: E501
     ("camera-noise", edit(("noise = 0.0", "noise = 1.0")), "camera.noise"),
     ("any-host", edit(("bitrate = 1000000", 'bitrate = 1000000\nhost = "0.0.0.0"')), "bus.host"),
+    ("above-classical-can", edit(("bitrate = 1000000", "bitrate = 2000000")), "bus.bitrate"),
     (
         "unknown-host",
         edit(("bitrate = 1000000", 'bitrate = 1000000\nhost = "no-such-host.invalid"')),
@@ -169,6 +170,8 @@ CLI = [
     ("can-log-suffix", ["run", "--can-log", "x.txt", "--out", "{tmp}/o"], "--can-log"),
     ("can-log-folder", ["run", "--can-log", "../escape.log", "--out", "{tmp}/o"], "--can-log"),
     ("bus-load-bitrate", ["bus", "load", "--bitrate", "0"], "--bitrate"),
+    ("bus-load-fast", ["bus", "load", "--bitrate", "100000000000"], "--bitrate: 100000000000 "),
+    ("bus-load-log-fast", ["bus", "load", "--log", "x.log", "--bitrate", "1000001"], "at most"),
     ("out-is-a-file", ["run", "--out", "{tmp}/file"], "not a folder"),
 ]
 

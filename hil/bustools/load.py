@@ -61,12 +61,22 @@ class LoadReport:
         return out
 
 
+def check_bitrate(bitrate: int) -> None:
+    """Refuse a --bitrate that no classical CAN bus runs at."""
+    from hil.scenario import MAX_BITRATE
+
+    if not 0 < bitrate <= MAX_BITRATE:
+        raise HilError(
+            f"--bitrate: {bitrate} bit/s; classical CAN runs at 1..{MAX_BITRATE} bit/s (at most "
+            "1 Mbit/s, ISO 11898-1)"
+        )
+
+
 def measure(
     frames: Iterable[can.Message], database: Database, bitrate: int, span: float | None = None
 ) -> LoadReport:
     """Per-message frames and bits; `span` None takes it from the first and last timestamp."""
-    if bitrate <= 0:
-        raise HilError(f"--bitrate must be positive, got {bitrate}")
+    check_bitrate(bitrate)
     counts: dict[tuple[int, bool], list[int]] = {}
     names: dict[tuple[int, bool], str] = {}
     first = last = None

@@ -227,12 +227,13 @@ def _load(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
     from controllers.protocol import Protocol
+    from hil.bustools.load import check_bitrate
     from hil.scenario import load_scenario, resolve_scenario
     from hil.summary import BUS_LOAD_WARNING, bus_load_of
 
     scenario = load_scenario(resolve_scenario(args.scenario) if args.scenario else None)
-    if args.bitrate is not None and args.bitrate <= 0:
-        raise HilError(f"--bitrate must be positive, got {args.bitrate}")
+    if args.bitrate is not None:
+        check_bitrate(args.bitrate)
     if args.bitrate:
         scenario = replace(scenario, bus=replace(scenario.bus, bitrate=args.bitrate))
     load = bus_load_of(scenario, Protocol())
@@ -250,7 +251,7 @@ def _load(args: argparse.Namespace) -> int:
 def _measured_load(args: argparse.Namespace) -> int:
     from hil.bustools.dump import live_frames
     from hil.bustools.frames import load_database, open_spec
-    from hil.bustools.load import measure
+    from hil.bustools.load import check_bitrate, measure
     from hil.bustools.logs import iter_log
 
     if args.scenario is not None:
@@ -258,6 +259,7 @@ def _measured_load(args: argparse.Namespace) -> int:
     if args.log is not None and args.bus is not None:
         raise HilError("give --log or --bus, not both")
     bitrate = 1_000_000 if args.bitrate is None else args.bitrate
+    check_bitrate(bitrate)
     database = load_database()
     if args.log is not None:
         report = measure(iter_log(args.log), database, bitrate)
