@@ -372,6 +372,13 @@ def test_dump_decodes_a_run_log_with_units_and_counts_unknown_ids(
     assert captured.err.strip() == (
         f"{len(lines)} frames, {len(lines) - 2} decoded, 2 unknown (0x123 x1, 0x18FF1234 x1)"
     )
+    assert main(["bus", "dump", "--log", str(run_log), "--raw"]) == 0
+    captured = capsys.readouterr()  # nothing is decoded: the count says what the DBC knows
+    assert "SYNC" not in captured.out and len(captured.out.splitlines()) == len(lines)
+    assert captured.err.strip() == (
+        f"{len(lines)} frames, {len(lines) - 2} known to the DBC, 2 unknown (0x123 x1, "
+        "0x18FF1234 x1)"
+    )
 
 
 def dumped_ids(capsys: pytest.CaptureFixture[str], run_log: Path, *args: str) -> set[int]:

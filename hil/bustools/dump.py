@@ -48,9 +48,11 @@ class DumpCount:
     shown: int = 0
     decoded: int = 0
     unknown: Counter[int] = field(default_factory=Counter)
+    raw: bool = False  # shown undecoded (--raw): `decoded` counts the ids the DBC knows
 
     def line(self) -> str:
-        text = f"{self.shown} frames, {self.decoded} decoded"
+        known = "known to the DBC" if self.raw else "decoded"
+        text = f"{self.shown} frames, {self.decoded} {known}"
         if self.unknown:
             ids = ", ".join(f"0x{i:03X} x{n}" for i, n in sorted(self.unknown.items()))
             text += f", {sum(self.unknown.values())} unknown ({ids})"

@@ -337,7 +337,7 @@ def _dump(args: argparse.Namespace) -> int:
     database = load_database()
     selection = FrameFilter.parse(args.id or [], args.message or [], database)
     frames, bus = _frames_of(args)
-    tally = DumpCount()
+    tally = DumpCount(raw=args.raw)
     try:
         dump(frames, database, selection, args.raw, args.count, sys.stdout, tally)
     except KeyboardInterrupt:
