@@ -157,8 +157,9 @@ def open_bus(spec: BusSpec, timeout: float = 2.0) -> can.BusABC:
     except OSError as exc:
         if exc.errno == errno.EAFNOSUPPORT:
             raise BusOpenError(
-                f"cannot open CAN bus {spec}: this kernel has no SocketCAN (AF_CAN); leave out "
-                "--bus and hil run serves its own loopback bus"
+                f"cannot open CAN bus {spec}: this kernel has no SocketCAN (AF_CAN); use a "
+                "loopback hub (hil bus serve, then --bus loopback:HOST:PORT; hil run without "
+                "--bus serves its own)"
             ) from exc
         if exc.errno in (errno.ENODEV, errno.ENXIO):
             raise BusOpenError(

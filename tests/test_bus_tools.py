@@ -897,6 +897,20 @@ def test_bus_up_without_socketcan_exits_2_with_the_hub_hint(
         assert len(err) == 1 and "no SocketCAN" in err[0] and "hil bus serve" in err[0]
 
 
+def test_a_socketcan_bus_without_socketcan_points_every_tool_to_the_hub(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    """The hint fits the tool it is given to: `hil bus dump --bus socketcan:vcan0` is not told
+    to leave out --bus so that hil run serves its own bus."""
+    if socketcan_available():
+        pytest.skip("this kernel has SocketCAN")
+    for argv in (["dump", "--timeout", "0.1"], ["record", str(tmp_path / "x.log")]):
+        assert main(["bus", *argv, "--bus", "socketcan:vcan0"]) == 1
+        line = one_error_line(capsys)
+        assert "this kernel has no SocketCAN (AF_CAN)" in line, line
+        assert "hil bus serve" in line and "--bus loopback:" in line, line
+
+
 def test_each_seen_echo_satisfies_one_wait_only() -> None:
     # After 256 cycles the counter repeats: a stale echo must not acknowledge a later cycle.
     protocol = Protocol()
