@@ -241,6 +241,7 @@ def _run(
         else "process"
     )
     summary["controller_program"] = options.controller  # softhil, external or a command line
+    summary["warnings"].extend(peer.warnings)
     summary["parameters"] = {name: dict(values) for name, values in rig.parameters.items()}
     with ExitStack() as post:
         estimation = None
@@ -454,6 +455,7 @@ class _Peer:
         self.report: Any = None
         self.log: Path | None = None
         self.user = False  # a user's program (its report is optional and checked)
+        self.warnings: list[str] = []  # for summary.json
 
     def gone(self) -> str | None:
         if self.process is not None:
@@ -486,9 +488,24 @@ class _Peer:
             self.log.with_name("controller.pid").unlink(missing_ok=True)
 
     def finish(self) -> dict[str, Any]:
-        """Wait for a controller that has done its last cycle; its report."""
+        """Wait for a controller that has done its last cycle; its report. softhil's must
+        exit within FINISH_TIMEOUT; a user's program that has not exited USER_LINGER seconds
+        after the final SYNC (one that serves until it is stopped) is stopped, with a warning."""
         if self.process is not None:
-            code = self.process.wait(timeout=30)
+            try:
+                code = self.process.wait(timeout=USER_LINGER if self.user else FINISH_TIMEOUT)
+            except subprocess.TimeoutExpired:
+                self.stop()
+                if not self.user:
+                    raise HilError(
+                        f"the controller did not exit within {FINISH_TIMEOUT:g} s of the final "
+                        f"SYNC; stopped it{self._last_words()}"
+                    ) from None
+                self.warnings.append(
+                    f"the controller program had not exited {USER_LINGER:g} s after the final "
+                    "SYNC; the run stopped it (SIGTERM)"
+                )
+                code = 0
             if self.log is not None:
                 self.log.with_name("controller.pid").unlink(missing_ok=True)
             if code != 0:
@@ -547,6 +564,10 @@ def _checked_report(report: dict[str, Any], path: Path) -> dict[str, Any]:
         note(f"{path}: realtime without overruns, max_lateness and mean_lateness; left out")
         del report["realtime"]
     return report
+
+
+FINISH_TIMEOUT = 30.0  # [s] softhil's controller has after the final SYNC to exit
+USER_LINGER = 5.0  # [s] a user's program has, before the run stops it
 
 
 def _clock(config: ControllerConfig, options: RunOptions) -> LockstepClock | RealtimeClock:

@@ -274,3 +274,25 @@ def test_a_batch_of_your_controller_gives_the_bytes_of_softhil_s_in_process_batc
         "line instead"
     ]
     assert not (tmp_path / "c").exists()
+
+
+def test_a_program_that_serves_on_after_the_final_sync_is_stopped_with_a_warning(
+    default_run: tuple[Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A controller that listens until it is stopped (as rig programs do) does not hang the
+    run or fail it: it is stopped USER_LINGER s after the final SYNC, and the summary says so.
+    (The run waited 30 s, then died of subprocess.TimeoutExpired with a traceback.)"""
+    path, reference = default_run
+    out = tmp_path / "run"
+    program = f"{PYTHON} -m controllers --config {{config}} --bus {{bus}}; exec sleep 600"
+    argv = ["run", str(path), "--out", str(out), "--no-progress"]
+    assert hil_main([*argv, "--controller", f"sh -c {shlex.quote(program)}"]) == 0
+    warning = (
+        "the controller program had not exited 5 s after the final SYNC; the run stopped it "
+        "(SIGTERM)"
+    )
+    assert f"warning: {warning}" in capsys.readouterr().err
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["status"] == "completed" and summary["warnings"] == [warning]
+    _same_run(reference, out)
+    assert not (out / "controller.pid").exists()
