@@ -492,17 +492,18 @@ class _Peer:
         exit within FINISH_TIMEOUT; a user's program that has not exited USER_LINGER seconds
         after the final SYNC (one that serves until it is stopped) is stopped, with a warning."""
         if self.process is not None:
+            timeout = USER_LINGER if self.user else FINISH_TIMEOUT
             try:
-                code = self.process.wait(timeout=USER_LINGER if self.user else FINISH_TIMEOUT)
+                code = self.process.wait(timeout=timeout)
             except subprocess.TimeoutExpired:
                 self.stop()
                 if not self.user:
                     raise HilError(
-                        f"the controller did not exit within {FINISH_TIMEOUT:g} s of the final "
+                        f"the controller did not exit within {timeout:g} s of the final "
                         f"SYNC; stopped it{self._last_words()}"
                     ) from None
                 self.warnings.append(
-                    f"the controller program had not exited {USER_LINGER:g} s after the final "
+                    f"the controller program had not exited {timeout:g} s after the final "
                     "SYNC; the run stopped it (SIGTERM)"
                 )
                 code = 0

@@ -172,6 +172,11 @@ CLI = [
     ("bus-load-bitrate", ["bus", "load", "--bitrate", "0"], "--bitrate"),
     ("bus-load-fast", ["bus", "load", "--bitrate", "100000000000"], "--bitrate: 100000000000 "),
     ("bus-load-log-fast", ["bus", "load", "--log", "x.log", "--bitrate", "1000001"], "at most"),
+    (
+        "bus-load-live-fast",  # before it listens for --seconds, or finds nothing listening
+        ["bus", "load", "--bus", "loopback:127.0.0.1:9", "--bitrate", "2000000", "--seconds", "9"],
+        "--bitrate: 2000000 bit/s",
+    ),
     ("out-is-a-file", ["run", "--out", "{tmp}/file"], "not a folder"),
 ]
 
