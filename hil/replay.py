@@ -33,14 +33,7 @@ from controllers.canbus import BusSpec, open_bus
 from controllers.node import ControllerConfig, ControllerNode, read_config
 from controllers.protocol import COUNTER_MODULO, SYNC_ID, FrameError, Protocol, Sync
 from hil.errors import HilError
-from hil.program import (
-    SOFTHIL,
-    check_controller,
-    environment,
-    placeholder_values,
-    softhil_command,
-    user_command,
-)
+from hil.program import SOFTHIL, USER_LINGER, check_controller, start
 
 
 class ReplayError(HilError):
@@ -371,24 +364,12 @@ def _replay_process(
             config_path = Path(folder) / "controller.json"
             config_path.write_text(config.to_json())
             report = Path(folder) / "controller_report.json"  # read by nobody: a replay compares
-            values = placeholder_values(config_path, spec, report, False)
-            if controller == SOFTHIL:
-                command = softhil_command(config_path, spec, None, False)
-            else:
-                command = user_command(controller, values)
             log = (Path(folder) / "controller.log").open("wb")
             try:
-                process = subprocess.Popen(
-                    command,
-                    stdout=log,
-                    stderr=subprocess.STDOUT,
-                    env={**os.environ, "PYTHONUNBUFFERED": "1", **environment(values)},
-                )
-            except OSError as exc:
+                process = start(controller, config_path, spec, report, False, log)
+            except HilError as exc:
                 log.close()
-                raise ReplayError(
-                    f"--controller: cannot start {command[0]!r}: {exc.strerror or exc}"
-                ) from None
+                raise ReplayError(str(exc)) from None
             plant = _ReplayPlant(cycles, bus, timeout)
             try:
 
@@ -397,7 +378,15 @@ def _replay_process(
                     return None if code is None else f"the controller exited with code {code}"
 
                 plant.run(alive)
-                code = process.wait(timeout=timeout)
+                try:
+                    code = process.wait(timeout=timeout if controller == SOFTHIL else USER_LINGER)
+                except subprocess.TimeoutExpired:
+                    if controller == SOFTHIL:
+                        raise ReplayError(
+                            f"the replayed controller did not exit within {timeout:g} s of the "
+                            "final SYNC"
+                        ) from None
+                    code = 0  # a program that serves until stopped: its frames are all in
             finally:
                 if process.poll() is None:
                     process.kill()

@@ -49,11 +49,10 @@ from hil.plant import STARTUP_TIMEOUT, Plant
 from hil.program import (
     EXTERNAL,
     SOFTHIL,
+    USER_LINGER,
     check_controller,
-    environment,
     placeholder_values,
-    softhil_command,
-    user_command,
+    start,
 )
 from hil.recording import CanLogger, SignalRecorder, require_asammdf
 from hil.results import RESULT_FILES, ResultsFolder, note, write_file
@@ -568,7 +567,6 @@ def _checked_report(report: dict[str, Any], path: Path) -> dict[str, Any]:
 
 
 FINISH_TIMEOUT = 30.0  # [s] softhil's controller has after the final SYNC to exit
-USER_LINGER = 5.0  # [s] a user's program has, before the run stops it
 
 
 def _clock(config: ControllerConfig, options: RunOptions) -> LockstepClock | RealtimeClock:
@@ -614,22 +612,8 @@ def _start_controller(
     peer.log = folder.claim("controller.log")
     folder.claim("controller_report.json")
     peer.user = options.controller != SOFTHIL
-    if peer.user:
-        command = user_command(options.controller, values)
-    else:
-        command = softhil_command(config_path, spec, report, options.realtime)
     log = stack.enter_context(peer.log.open("wb"))
-    # the controller's matrices are at most 2N x 2N (N segments): BLAS threads would only spin
-    # against the plant and the hub on the cores they share (6 segments: RTF 0.63 -> 0.80 on a
-    # loaded 2-core machine); a user's own setting wins
-    env = {"OPENBLAS_NUM_THREADS": "1", **os.environ, "PYTHONUNBUFFERED": "1"}
-    env.update(environment(values))
-    try:
-        peer.process = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, env=env)
-    except OSError as exc:  # not found, not executable
-        raise HilError(
-            f"--controller: cannot start {command[0]!r}: {exc.strerror or exc}"
-        ) from None
+    peer.process = start(options.controller, config_path, spec, report, options.realtime, log)
     stack.callback(peer.stop)
     write_file(folder.claim("controller.pid"), f"{peer.process.pid}\n")
     return peer

@@ -296,3 +296,7 @@ def test_a_program_that_serves_on_after_the_final_sync_is_stopped_with_a_warning
     assert summary["status"] == "completed" and summary["warnings"] == [warning]
     _same_run(reference, out)
     assert not (out / "controller.pid").exists()
+    # and it replays: its frames are all in when it lingers (replay waited, then TimeoutExpired)
+    replay = ["replay", str(out / "can.log"), "--controller", f"sh -c {shlex.quote(program)}"]
+    assert hil_main(replay) == 0
+    assert "101 cycles, 200 controller frames compared, 0 divergence(s)" in capsys.readouterr().out
