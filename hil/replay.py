@@ -165,10 +165,19 @@ def config_beside(log: Path) -> Any:
 class _ReplayPlant:
     """Answers the controller's SYNCs with the recorded plant frames; collects its answers."""
 
-    def __init__(self, cycles: Sequence[Cycle], bus: can.BusABC, timeout: float) -> None:
+    def __init__(
+        self,
+        cycles: Sequence[Cycle],
+        bus: can.BusABC,
+        timeout: float,
+        linger: float | None = None,
+    ) -> None:
         self.cycles = cycles
         self.bus = bus
         self.timeout = timeout
+        # after the final SYNC: how long a controller that is still there may stay silent
+        # before the replay ends (frames it sends until then are compared)
+        self.linger = timeout if linger is None else min(linger, timeout)
         self.sent: list[list[can.Message]] = [[] for _ in cycles]
 
     def run(self, alive: Any) -> None:
@@ -183,9 +192,10 @@ class _ReplayPlant:
                     if current >= final:
                         return
                     raise ReplayError(f"{gone} at cycle {current}")
-                if time.monotonic() - last_heard > self.timeout:
-                    if current >= final:
-                        return
+                silent = time.monotonic() - last_heard
+                if current >= final and silent > self.linger:
+                    return
+                if silent > self.timeout:
                     raise ReplayError(
                         f"the controller sent nothing for {self.timeout:g} s at cycle {current}"
                     )
@@ -370,7 +380,8 @@ def _replay_process(
             except HilError as exc:
                 log.close()
                 raise ReplayError(str(exc)) from None
-            plant = _ReplayPlant(cycles, bus, timeout)
+            user = controller != SOFTHIL
+            plant = _ReplayPlant(cycles, bus, timeout, USER_LINGER if user else None)
             try:
 
                 def alive() -> str | None:
@@ -379,14 +390,16 @@ def _replay_process(
 
                 plant.run(alive)
                 try:
-                    code = process.wait(timeout=timeout if controller == SOFTHIL else USER_LINGER)
+                    # a user's program silent for USER_LINGER s after the final SYNC and still
+                    # there serves until it is stopped: its frames are all in
+                    code = process.wait(timeout=0.0 if user else timeout)
                 except subprocess.TimeoutExpired:
-                    if controller == SOFTHIL:
+                    if not user:
                         raise ReplayError(
                             f"the replayed controller did not exit within {timeout:g} s of the "
                             "final SYNC"
                         ) from None
-                    code = 0  # a program that serves until stopped: its frames are all in
+                    code = 0
             finally:
                 if process.poll() is None:
                     process.kill()
