@@ -170,6 +170,20 @@ def test_a_client_on_a_full_hub_is_not_taken_for_gone_and_a_newcomer_is_told_why
         assert connection_closed(held)
 
 
+def test_an_idle_tool_on_a_full_hub_probes_it_once_a_second(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """A tool on a quiet socketcand bus asks whether the hub is still there; on a full hub each
+    probe is refused and logged. It asked on every empty receive (5 times a second)."""
+    from hil.cli import main as hil_main
+
+    with LoopbackHub(max_clients=1, max_buffer_bytes=64 * 1024) as hub:
+        bus = f"loopback:127.0.0.1:{hub.port}"
+        assert hil_main(["bus", "dump", "--bus", bus, "--timeout", "2.5"]) == 0
+        assert 1 <= hub.clients_refused <= 3, hub.clients_refused
+    assert capsys.readouterr().err.strip() == "0 frames, 0 decoded"
+
+
 def test_a_probe_returns_only_once_the_hub_has_closed_its_side() -> None:
     """A hub slow to read the probe's close (as one is under load) still holds the place when
     a probe that only closed returns; the probe half-closes and waits for the hub's close."""

@@ -89,11 +89,14 @@ def dump(
     return tally
 
 
+PROBE_INTERVAL = 1.0  # [s] between two probes of a quiet bus's hub
+
+
 def live_frames(bus: can.BusABC, idle_timeout: float | None) -> Iterable[can.Message]:
     """Frames from a bus until `idle_timeout` seconds pass without one (None: forever)."""
     from controllers.canbus import connection_closed
 
-    last = time.monotonic()
+    last = probed = time.monotonic()
     while True:
         msg = bus.recv(0.2 if idle_timeout is None else min(0.2, idle_timeout))
         now = time.monotonic()
@@ -101,8 +104,12 @@ def live_frames(bus: can.BusABC, idle_timeout: float | None) -> Iterable[can.Mes
             last = now
             yield msg
             continue
-        if connection_closed(bus):
-            return
+        # is the hub still there? At most once a second: each probe is a connection to the
+        # hub, which a full hub refuses and logs
+        if now - probed >= PROBE_INTERVAL:
+            probed = now
+            if connection_closed(bus):
+                return
         if idle_timeout is not None and now - last >= idle_timeout:
             return
 
