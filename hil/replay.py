@@ -14,6 +14,7 @@ the first diverging cycle, message and signal.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
@@ -33,7 +34,7 @@ from controllers.canbus import BusSpec, open_bus
 from controllers.node import ControllerConfig, ControllerNode, read_config
 from controllers.protocol import COUNTER_MODULO, SYNC_ID, FrameError, Protocol, Sync
 from hil.errors import HilError
-from hil.program import SOFTHIL, USER_LINGER, check_controller, start
+from hil.program import SOFTHIL, USER_LINGER, check_controller, last_words, start, stop
 
 
 class ReplayError(HilError):
@@ -370,23 +371,32 @@ def _replay_process(
     try:
         spec = BusSpec("loopback", "softhil", "127.0.0.1", hub.port)
         bus = open_bus(spec)
-        with tempfile.TemporaryDirectory(prefix="softhil-replay-") as folder:
+        with contextlib.ExitStack() as stack:
+            stack.callback(bus.shutdown)
+            folder = stack.enter_context(tempfile.TemporaryDirectory(prefix="softhil-replay-"))
             config_path = Path(folder) / "controller.json"
             config_path.write_text(config.to_json())
             report = Path(folder) / "controller_report.json"  # read by nobody: a replay compares
-            log = (Path(folder) / "controller.log").open("wb")
+            log_path = Path(folder) / "controller.log"
+            log = stack.enter_context(log_path.open("wb"))
             try:
                 process = start(controller, config_path, spec, report, False, log)
             except HilError as exc:
-                log.close()
                 raise ReplayError(str(exc)) from None
             user = controller != SOFTHIL
+
+            def said() -> str:
+                words = last_words(log_path)
+                return f" ({words})" if words else ""
+
             plant = _ReplayPlant(cycles, bus, timeout, USER_LINGER if user else None)
             try:
 
                 def alive() -> str | None:
                     code = process.poll()
-                    return None if code is None else f"the controller exited with code {code}"
+                    if code is None:
+                        return None
+                    return f"the controller exited with code {code}{said()}"
 
                 plant.run(alive)
                 try:
@@ -401,17 +411,9 @@ def _replay_process(
                         ) from None
                     code = 0
             finally:
-                if process.poll() is None:
-                    process.kill()
-                    process.wait()
-                log.close()
-                bus.shutdown()
+                stop(process)  # with its process group: a shell's children go with it
             if code != 0:
-                words = (Path(folder) / "controller.log").read_text(errors="replace").strip()
-                raise ReplayError(
-                    f"the replayed controller exited with code {code}"
-                    + (f" ({words.splitlines()[-1]})" if words else "")
-                )
+                raise ReplayError(f"the replayed controller exited with code {code}{said()}")
             return plant.sent
     finally:
         hub.stop()

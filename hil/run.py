@@ -19,7 +19,7 @@ import math
 import multiprocessing
 import os
 import re
-import signal
+import shlex
 import subprocess
 import threading
 import uuid
@@ -51,9 +51,12 @@ from hil.program import (
     SOFTHIL,
     USER_LINGER,
     check_controller,
+    group_alive,
+    last_words,
     placeholder_values,
     start,
 )
+from hil.program import stop as stop_program
 from hil.recording import CanLogger, SignalRecorder, require_asammdf
 from hil.results import RESULT_FILES, ResultsFolder, note, write_file
 from hil.robots import robot_kind
@@ -80,7 +83,9 @@ class RunOptions:
     # the controller program (hil.program): "softhil" (ours), "external" (none: one started by
     # hand on the run's bus), or a user's command line with placeholders
     controller: str = SOFTHIL
-    wait: float = STARTUP_TIMEOUT  # [s] for the first SYNC of an external controller
+    # [s] for the controller's first SYNC (None: STARTUP_TIMEOUT, or the scenario's controller
+    # timeout if longer)
+    wait: float | None = None
 
 
 @dataclass(frozen=True)
@@ -126,7 +131,7 @@ def run_scenario(scenario: Scenario, options: RunOptions) -> RunResult:
             "--inprocess runs softhil's controller in this process; --controller "
             f"{options.controller} runs {'none' if options.controller == EXTERNAL else 'a program'}"
         )
-    if not 0 < options.wait <= 86400:  # also NaN
+    if options.wait is not None and not 0 < options.wait <= 86400:  # also NaN
         raise HilError(f"--wait: {options.wait:g} s; give 0 < SECONDS <= 86400 (a day)")
     try:
         start = log_start(scenario)
@@ -218,8 +223,7 @@ def _run(
                 report = asdict(node.report)
             else:
                 peer = _start_controller(config, controller_spec, options, folder, stack)
-                wait = options.wait if options.controller == EXTERNAL else None
-                stats = plant.run(peer.gone, progress, startup_timeout=wait)
+                stats = plant.run(peer.gone, progress, startup_timeout=options.wait)
                 report = peer.finish()
         except BaseException:
             peer.stop()
@@ -269,7 +273,15 @@ def _run(
             summary["estimation"] = scores if error is None else {"error": error}
             if error is not None:  # a log with intruders' frames: report it, keep the run
                 summary["warnings"].append(f"no estimation report: {error}")
-    failure = realtime_failure(scenario, summary["controller"])
+    summary["realtime"] = options.realtime
+    # the pace is checked by the controller's own figures (the one that paces the SYNCs): on a
+    # run that was not real-time, a report's figures are not a failure
+    failure = realtime_failure(scenario, summary["controller"]) if options.realtime else None
+    if options.realtime and not summary["controller"].get("realtime"):
+        summary["warnings"].append(
+            "--realtime: the controller reported no SYNC lateness (report keys realtime, "
+            "overruns, max_lateness, mean_lateness), so the real-time pace is not verified"
+        )
     if failure is not None:
         summary["warnings"].append(failure)
         raise HilError(failure)
@@ -469,22 +481,17 @@ class _Peer:
         return None
 
     def _last_words(self) -> str:
-        if self.log is None or not self.log.is_file():
-            return ""
-        lines = self.log.read_text(errors="replace").strip().splitlines()
-        return f" ({lines[-1]})" if lines else ""
+        words = last_words(self.log)
+        return f" ({words})" if words else ""
 
-    def stop(self) -> None:
-        if self.process is not None and self.process.poll() is None:
-            self.process.terminate()
-            self.process.send_signal(signal.SIGCONT)  # a stopped (frozen) process takes TERM
-            try:
-                self.process.wait(timeout=5)
-            except subprocess.TimeoutExpired:
-                self.process.kill()
-                self.process.wait()
-        if self.process is not None and self.log is not None:
-            self.log.with_name("controller.pid").unlink(missing_ok=True)
+    def stop(self) -> str | None:
+        """Stop the program and its process group (see hil.program.stop); how it ended."""
+        how = None
+        if self.process is not None:
+            how = stop_program(self.process)
+            if self.log is not None:
+                self.log.with_name("controller.pid").unlink(missing_ok=True)
+        return how
 
     def finish(self) -> dict[str, Any]:
         """Wait for a controller that has done its last cycle; its report. softhil's must
@@ -495,26 +502,39 @@ class _Peer:
             try:
                 code = self.process.wait(timeout=timeout)
             except subprocess.TimeoutExpired:
-                self.stop()
+                how = self.stop()
                 if not self.user:
                     raise HilError(
                         f"the controller did not exit within {timeout:g} s of the final "
                         f"SYNC; stopped it{self._last_words()}"
                     ) from None
+                ended = "SIGTERM" if how == "SIGTERM" else "SIGTERM, then SIGKILL"
                 self.warnings.append(
                     f"the controller program had not exited {timeout:g} s after the final "
-                    "SYNC; the run stopped it (SIGTERM)"
+                    f"SYNC; the run stopped it ({ended})"
                 )
                 code = 0
+            else:
+                if group_alive(self.process):  # its own process is gone, children it left not
+                    self.stop()
+                    self.warnings.append(
+                        "the controller program left processes running after it exited; the "
+                        "run stopped them"
+                    )
             if self.log is not None:
                 self.log.with_name("controller.pid").unlink(missing_ok=True)
             if code != 0:
                 raise HilError(f"the controller failed with code {code}{self._last_words()}")
             report_path = self.log.with_name("controller_report.json") if self.log else None
             if report_path and report_path.is_file() and report_path.stat().st_size:
+                size = report_path.stat().st_size
                 try:
+                    if self.user and size > MAX_REPORT_BYTES:
+                        raise ValueError(f"{size} bytes, more than {MAX_REPORT_BYTES}")
                     report = json.loads(report_path.read_text(errors="replace"))
-                except ValueError as exc:
+                    if self.user and _depth(report) > MAX_REPORT_DEPTH:
+                        raise ValueError(f"nested deeper than {MAX_REPORT_DEPTH} levels")
+                except (ValueError, RecursionError) as exc:
                     report = exc
                 if isinstance(report, dict):
                     return _checked_report(report, report_path) if self.user else report
@@ -530,6 +550,23 @@ class _Peer:
                 raise HilError(f"the controller failed: {self.error}")
             return asdict(self.report) if self.report is not None else {}
         return {}
+
+
+MAX_REPORT_BYTES = 1 << 20  # a user program's report in summary.json: at most 1 MiB
+MAX_REPORT_DEPTH = 32  # and at most this deep (json and the summary's writer recurse)
+
+
+def _depth(value: Any) -> int:
+    """How deep JSON `value` nests (a scalar: 0), without recursion."""
+    deepest, stack = 0, [(value, 0)]
+    while stack:
+        item, level = stack.pop()
+        if isinstance(item, dict | list):
+            deepest = max(deepest, level + 1)
+            stack.extend(
+                (v, level + 1) for v in (item.values() if isinstance(item, dict) else item)
+            )
+    return deepest
 
 
 # the controller report's entries that the summary counts with, as ControllerReport has them
@@ -596,17 +633,21 @@ def _start_controller(
         peer.thread = threading.Thread(target=work, name="controller", daemon=True)
         peer.thread.start()
         return peer
-    out = folder.out
+    out = folder.out.absolute()  # a program may change its working folder
     config_path, report = out / "controller.json", out / "controller_report.json"
     values = placeholder_values(config_path, spec, report, options.realtime)
     if options.controller == EXTERNAL:
-        note(
-            f"waiting {options.wait:g} s for a controller to send SYNC(0) on {spec} "
-            f"({values['interface']} {values['host']}:{values['port']}, channel "
-            f"{values['channel']}); softhil's: hil controller --config {config_path} --bus {spec}"
+        wait = STARTUP_TIMEOUT if options.wait is None else options.wait
+        where = (
+            f" ({values['interface']} {values['host']}:{values['port']}, channel "
+            f"{values['channel']})"
             if values["port"]
-            else f"waiting {options.wait:g} s for a controller to send SYNC(0) on {spec}; "
-            f"softhil's: hil controller --config {config_path} --bus {spec}"
+            else ""
+        )
+        line = ["hil", "controller", "--config", str(config_path), "--bus", str(spec)]
+        note(
+            f"waiting {wait:g} s for a controller to send SYNC(0) on {spec}{where}; softhil's: "
+            + shlex.join(line + (["--realtime"] if options.realtime else []))
         )
         return peer  # alive until the run ends or the bus falls silent
     peer.log = folder.claim("controller.log")

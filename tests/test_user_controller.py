@@ -11,6 +11,7 @@ gives the very bytes too; its recorded runs replay against it as regression test
 from __future__ import annotations
 
 import json
+import os
 import shlex
 import subprocess
 import sys
@@ -75,21 +76,22 @@ def test_a_controller_started_by_hand_on_the_run_s_bus_gives_the_same_bytes(
     """`hil run --controller external` starts none and says where to connect: the user starts
     softhil's controller by hand from that line, as a user would."""
     path, reference = default_run
-    out = tmp_path / "run"
+    out = tmp_path / "run dir"  # given relative, with a space: the line must still work
     run = subprocess.Popen(
-        [sys.executable, "-m", "hil", "run", str(path), "--out", str(out), "--no-progress"]
+        [sys.executable, "-m", "hil", "run", str(path), "--out", "run dir", "--no-progress"]
         + ["--controller", "external", "--wait", "60"],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
-        cwd=ROOT,
+        cwd=tmp_path,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
     )
     try:
         assert run.stderr is not None
         line = run.stderr.readline()
         assert line.startswith("hil: note: waiting 60 s for a controller to send SYNC(0) on ")
-        command = line.rpartition("softhil's: ")[2].split()
-        assert command[:3] == ["hil", "controller", "--config"]
+        command = shlex.split(line.rpartition("softhil's: ")[2])
+        assert command[:4] == ["hil", "controller", "--config", str(out / "controller.json")]
         controller = subprocess.run(
             [sys.executable, "-m", "hil", *command[1:]], cwd=ROOT, timeout=120, check=False
         )
@@ -206,11 +208,18 @@ def test_a_user_program_that_fails_is_named_with_its_last_words(
     [
         (["--controller", ""], "--controller: an empty command"),
         (["--controller", "x {nope}"], "--controller: unknown placeholder {nope} in 'x {nope}'"),
-        (["--controller", "x {"], "--controller: '{' in 'x {': Single '{'"),
+        (["--controller", "x {"], "--controller: a stray '{' in 'x {'"),
         (["--controller", "x 'a"], '--controller: cannot split "x \'a": No closing quotation'),
         (["--controller", "/no/such/ctl"], "--controller: cannot start '/no/such/ctl': no such"),
         (["--controller", "no-such-ctl-x"], "cannot start 'no-such-ctl-x': not found on PATH"),
         (["--controller", "{tmp}/plain.txt"], "plain.txt': not an executable file"),
+        (["--controller", "plain.txt"], "not found on PATH (the file here is ./plain.txt)"),
+        (["--controller", "~/ctl.py"], "no shell runs the command, so ~ and $VARIABLES are not"),
+        (["--controller", "$HOME/ctl.py"], "'$HOME/ctl.py': no shell runs the command"),
+        (["--controller", "x {config[x]}"], "a stray '{' in 'x {config[x]}'"),
+        (["--controller", "x {config!r}"], "a stray '{' in 'x {config!r}'"),
+        (["--controller", "x {config.upper}"], "a stray '{'"),
+        (["--controller", "x }"], "a stray '}' in 'x }'"),
         (["--controller", "external", "--inprocess"], "--inprocess runs softhil's controller"),
         (["--controller", "true", "--inprocess"], "--controller true runs a program"),
         (["--controller", "external", "--wait", "0"], "--wait: 0 s; give 0 < SECONDS <= 86400"),
@@ -218,10 +227,15 @@ def test_a_user_program_that_fails_is_named_with_its_last_words(
     ],
 )
 def test_a_controller_that_cannot_run_is_one_line_before_the_results_folder(
-    argv: list[str], message: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    argv: list[str],
+    message: str,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     out = tmp_path / "run"
     (tmp_path / "plain.txt").write_text("not a program\n")
+    monkeypatch.chdir(tmp_path)
     argv = [arg.replace("{tmp}", str(tmp_path)) for arg in argv]
     assert hil_main(["run", "--out", str(out), "--no-progress", *argv]) == 1
     err = capsys.readouterr().err.strip().splitlines()
@@ -300,3 +314,153 @@ def test_a_program_that_serves_on_after_the_final_sync_is_stopped_with_a_warning
     replay = ["replay", str(out / "can.log"), "--controller", f"sh -c {shlex.quote(program)}"]
     assert hil_main(replay) == 0
     assert "101 cycles, 200 controller frames compared, 0 divergence(s)" in capsys.readouterr().out
+
+
+def _gone(pid: int) -> bool:
+    """The process has ended (a zombie whose parent has not reaped it counts as ended)."""
+    try:
+        status = Path(f"/proc/{pid}/status").read_text()
+    except FileNotFoundError:
+        return True
+    return "\nState:\tZ" in status
+
+
+def test_a_program_s_children_end_with_it_in_run_and_replay(
+    default_run: tuple[Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A program is a process group of its own: a shell's background job does not outlive the
+    run (it was left running, adopted by init), and the summary says it had to be stopped."""
+    path, reference = default_run
+    out = tmp_path / "run"
+    program = (
+        'sleep 300 & echo $! > "$SOFTHIL_CONFIG.job"; '
+        f"exec {PYTHON} -m controllers --config {{config}} --bus {{bus}}"
+    )
+    argv = ["run", str(path), "--out", str(out), "--no-progress"]
+    assert hil_main([*argv, "--controller", f"sh -c {shlex.quote(program)}"]) == 0
+    job = int((out / "controller.json.job").read_text())
+    assert _gone(job)
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["warnings"] == [
+        "the controller program left processes running after it exited; the run stopped them"
+    ]
+    _same_run(reference, out)
+    replay = ["replay", str(out / "can.log"), "--controller", f"sh -c {shlex.quote(program)}"]
+    assert hil_main(replay) == 0
+    assert _gone(int((out / "controller.json.job").read_text()))  # hil replay's own config...
+    capsys.readouterr()
+
+
+def test_a_program_that_ignores_sigterm_is_killed_and_the_warning_says_so(
+    default_run: tuple[Path, Path], tmp_path: Path
+) -> None:
+    path = default_run[0]
+    out = tmp_path / "run"
+    program = f"trap '' TERM; {PYTHON} -m controllers --config {{config}} --bus {{bus}}; sleep 600"
+    argv = ["run", str(path), "--out", str(out), "--no-progress"]
+    assert hil_main([*argv, "--controller", f"sh -c {shlex.quote(program)}"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["warnings"] == [
+        "the controller program had not exited 5 s after the final SYNC; the run stopped it "
+        "(SIGTERM, then SIGKILL)"
+    ]
+
+
+def test_a_program_may_change_folder_its_paths_are_absolute(
+    default_run: tuple[Path, Path], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    path, reference = default_run
+    monkeypatch.chdir(tmp_path)
+    program = f"cd / && exec {PYTHON} -m controllers --config {{config}} --bus {{bus}}"
+    argv = ["run", str(path), "--out", "run", "--no-progress"]  # a relative results folder
+    monkeypatch.setenv("PYTHONPATH", str(ROOT))  # `cd /` leaves the checkout's packages behind
+    assert hil_main([*argv, "--controller", f"sh -c {shlex.quote(program)}"]) == 0
+    _same_run(reference, tmp_path / "run")
+
+
+@pytest.mark.parametrize(
+    ("report", "why"),
+    [
+        ('{"a":' * 600 + "1" + "}" * 600, "nested deeper than 32 levels"),
+        ("[" * 100000, "maximum recursion depth exceeded"),
+        ('{"x": "' + "y" * (1 << 20) + '"}', f"{(1 << 20) + 9} bytes, more than 1048576"),
+    ],
+    ids=["deep", "deeper", "big"],
+)
+def test_a_report_too_deep_or_too_big_is_left_out_and_the_run_completes(
+    report: str,
+    why: str,
+    default_run: tuple[Path, Path],
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """A user's report goes into summary.json; one nested 600 deep lost the summary to a
+    RecursionError, one 100 000 deep failed the run with a traceback."""
+    path = default_run[0]
+    (tmp_path / "report.json").write_text(report)
+    out = tmp_path / "run"
+    program = (
+        f"{PYTHON} -m controllers --config {{config}} --bus {{bus}} && "
+        f"cp {shlex.quote(str(tmp_path / 'report.json'))} {{report}}"
+    )
+    argv = ["run", str(path), "--out", str(out), "--no-progress"]
+    assert hil_main([*argv, "--controller", f"sh -c {shlex.quote(program)}"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["status"] == "completed" and summary["controller"] == {}
+    err = capsys.readouterr().err
+    assert "controller_report.json: not a JSON object (" in err and why in err, err
+
+
+def test_realtime_with_a_program_that_reports_no_pace_is_said_unverified(
+    default_run: tuple[Path, Path], tmp_path: Path
+) -> None:
+    """--realtime with a program: softhil cannot tell whether it kept the pace unless its
+    report says; and on a run that was not real-time, a report's lateness is no failure."""
+    path = default_run[0]
+    program = f"{PYTHON} -m controllers --config {{config}} --bus {{bus}} --realtime"
+    summary = _run(path, tmp_path / "rt", controller=program, realtime=True)
+    assert summary["realtime"] is True and summary["controller"] == {}
+    assert summary["warnings"] == [
+        "--realtime: the controller reported no SYNC lateness (report keys realtime, overruns, "
+        "max_lateness, mean_lateness), so the real-time pace is not verified"
+    ]
+    late = (
+        '{"realtime": true, "cycles": 100, "overruns": 90, "max_lateness": 1.0, '
+        '"mean_lateness": 0.5}'
+    )
+    program = (
+        f"{PYTHON} -m controllers --config {{config}} --bus {{bus}} && "
+        f"echo {shlex.quote(late.replace('{', '{{').replace('}', '}}'))} > {{report}}"
+    )
+    summary = _run(path, tmp_path / "plain", controller=f"sh -c {shlex.quote(program)}")
+    assert summary["realtime"] is False and summary["controller"]["overruns"] == 90
+    assert summary["status"] == "completed" and summary["warnings"] == []
+
+
+def test_wait_bounds_a_program_s_start_too(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path = shortened(tmp_path, 0.2)
+    program = f"sleep 3; exec {PYTHON} -m controllers --config {{config}} --bus {{bus}}"
+    argv = ["run", str(path), "--out", str(tmp_path / "run"), "--no-progress", "--wait", "0.5"]
+    assert hil_main([*argv, "--controller", f"sh -c {shlex.quote(program)}"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [
+        "hil: error: no SYNC(0) from the controller within 0.5 s of the start; the plant stopped"
+    ]
+
+
+def test_replay_names_a_program_s_last_words_and_leaks_nothing_when_it_cannot_start(
+    default_run: tuple[Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    log = str(default_run[1] / "can.log")
+    crash = f"{PYTHON} -c \"raise SystemExit('boom in the middle')\""
+    assert hil_main(["replay", log, "--controller", crash]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["hil: error: the controller exited with code 1 (boom in the middle) at cycle -1"]
+    garbage = tmp_path / "garbage"
+    garbage.write_bytes(b"\x00\x01\x02 not a program")
+    garbage.chmod(0o755)
+    assert hil_main(["replay", log, "--controller", str(garbage)]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "cannot start" in err[0] and "Exec format error" in err[0], err

@@ -69,9 +69,10 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--wait",
         type=float,
-        default=60.0,
         metavar="SECONDS",
-        help="with --controller external: how long the run waits for SYNC(0)",
+        help="how long the run waits for the controller's first SYNC (default: 60, or the "
+        "scenario's controller.timeout if longer); with --controller external, time to start "
+        "yours",
     )
     parser.add_argument("--realtime", action="store_true", help="pace SYNC on the wall clock")
     parser.add_argument("--seed", type=int, help="override the scenario's seed")
