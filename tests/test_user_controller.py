@@ -464,3 +464,19 @@ def test_replay_names_a_program_s_last_words_and_leaks_nothing_when_it_cannot_st
     assert hil_main(["replay", log, "--controller", str(garbage)]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "cannot start" in err[0] and "Exec format error" in err[0], err
+
+
+def test_last_words_skip_python_can_s_shutdown_warning_and_control_characters(
+    tmp_path: Path,
+) -> None:
+    from hil.program import last_words
+
+    log = tmp_path / "controller.log"
+    log.write_text(
+        "Traceback ...\nRuntimeError: boom\x1b[2J\n\n"
+        "SocketCanDaemonBus was not properly shut down\n"
+    )
+    assert last_words(log) == "RuntimeError: boom[2J"
+    log.write_text("x" * 500 + "\n")
+    assert last_words(log) == "x" * 197 + "..."
+    assert last_words(tmp_path / "missing.log") == ""
