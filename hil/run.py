@@ -234,15 +234,12 @@ def _run(
     summary.update(summarise(scenario, out / "signals.csv", stats, can_log, report, protocol))
     summary["bus"] = str(plant_spec)
     summary["hub"] = hub
-    summary["controller_process"] = (
-        "this thread"
-        if direct
-        else "thread"
-        if options.inprocess
-        else "external"
-        if options.controller == EXTERNAL
-        else "process"
-    )
+    if direct:
+        summary["controller_process"] = "this thread"
+    elif options.inprocess:
+        summary["controller_process"] = "thread"
+    else:
+        summary["controller_process"] = "external" if options.controller == EXTERNAL else "process"
     summary["controller_program"] = options.controller  # softhil, external or a command line
     summary["warnings"].extend(peer.warnings)
     summary["parameters"] = {name: dict(values) for name, values in rig.parameters.items()}

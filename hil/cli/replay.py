@@ -75,9 +75,6 @@ def _replay(args: argparse.Namespace) -> int:
             raise HilError(f"--tolerance-for {item!r}: expected SIGNAL=NUMBER >= 0")
     if not args.tolerance >= 0:
         raise HilError(f"--tolerance must not be negative, got {args.tolerance}")
-    from hil.program import check_controller
-
-    check_controller(args.controller, external=False)
     json_out = _json_path(args.json) if args.json else None
     config = None
     if args.scenario is not None:
