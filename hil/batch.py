@@ -364,6 +364,7 @@ def run_trial(spec: TrialSpec) -> dict[str, Any]:
         "error": None,
         "metrics": {},
         "success": None,
+        "warnings": [],
     }
     try:
         with _RUN_LOCK:
@@ -387,6 +388,7 @@ def run_trial(spec: TrialSpec) -> dict[str, Any]:
             status="completed",
             metrics=metrics(summary),
             success=success if isinstance(success, bool) else None,
+            warnings=[w for w in summary.get("warnings") or [] if isinstance(w, str)],
         )
     except Exception as exc:  # every failure of a trial is its result, not the batch's end
         outcome["error"] = _one_line(exc)
@@ -603,6 +605,7 @@ def _aggregates(outcomes: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
         },
         "completed": len(completed),
         "failed": len(outcomes) - len(completed),
+        "warned": sum(bool(o.get("warnings")) for o in completed),
     }
     if any(o["success"] is not None for o in completed):
         # a trial that failed to run did not succeed at its task either
@@ -626,6 +629,8 @@ def report(plan: Plan, outcomes: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
             entry["error"] = outcome["error"]
         if outcome["success"] is not None:
             entry["success"] = outcome["success"]
+        if outcome.get("warnings"):
+            entry["warnings"] = list(outcome["warnings"])
         trials.append(entry)
     content: dict[str, Any] = {
         "command": plan.command,
@@ -639,6 +644,16 @@ def report(plan: Plan, outcomes: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
             {"index": t["index"], "seed": t["seed"], "folder": t["folder"], "error": t["error"]}
             for t in trials
             if t["status"] != "completed"
+        ],
+        "warned_trials": [
+            {
+                "index": t["index"],
+                "seed": t["seed"],
+                "folder": t["folder"],
+                "warnings": t["warnings"],
+            }
+            for t in trials
+            if "warnings" in t
         ],
     }
     if plan.kind == "sweep":

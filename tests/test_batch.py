@@ -338,6 +338,64 @@ def test_sweep_grid_folders_and_a_failing_value(
     assert "[safety.max_pressure=60000 controller.estimator=ukf]" in stdout
 
 
+def test_trial_warnings_reach_batch_json_and_the_terminal(
+    builtins: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A trial that completes with warnings is not a silent success: batch.json keeps each
+    trial's warnings (here a bus too slow for its traffic on one, and the short scenario's step
+    that cannot settle in 0.25 s on both) and lists them in `warned_trials`; the terminal names
+    each trial's first warning."""
+    out = tmp_path / "warned"
+    code, _, err = hil(capsys, "sweep", "short", "--set", "bus.bitrate=1000000,50000",
+                       "--out", out, "--no-progress")  # fmt: skip
+    assert code == 0, err
+    report = load(out / "batch.json")
+    for trial in report["trials"]:
+        summary = load(out / trial["folder"] / "summary.json")
+        assert trial["status"] == "completed" and trial["warnings"] == summary["warnings"]
+    fast, slow = report["trials"]
+    assert not any("bus load" in w for w in fast["warnings"])
+    assert len(slow["warnings"]) == 2 and slow["warnings"][0].startswith("bus load 161 %")
+    assert report["warned_trials"] == [
+        {"index": t["index"], "seed": 1, "folder": t["folder"], "warnings": t["warnings"]}
+        for t in (fast, slow)
+    ]
+    assert [p["warned"] for p in report["points"]] == [1, 1] and report["warned"] == 2
+    assert err == [
+        "  warning: trial 0 (seed 1): a step never settled within its hold (settling_time is null)",
+        f"  warning: trial 1 (seed 1): {slow['warnings'][0]} (and 1 more)",
+    ]
+
+
+def test_a_trial_without_warnings_has_none_in_batch_json(builtins: Path, tmp_path: Path) -> None:
+    plan = batch.make_plan(
+        builtins / "short.toml", kind="batch", command="c", out=tmp_path / "p", trials=3
+    )
+    done = {"status": "completed", "error": None, "metrics": {"e": 1.0}, "success": None}
+    outcomes = [{**done, "warnings": []}, {**done, "warnings": ["w"]}, dict(done)]
+    report = batch.report(plan, outcomes)
+    assert ["warnings" in t for t in report["trials"]] == [False, True, False]
+    assert report["warned"] == 1 and [t["index"] for t in report["warned_trials"]] == [1]
+
+
+def test_the_terminal_names_five_warned_trials_and_counts_the_rest(
+    builtins: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from hil.cli.batch import WARNED_SHOWN, _print
+
+    plan = batch.make_plan(
+        builtins / "short.toml", kind="batch", command="c", out=tmp_path / "p", trials=8
+    )
+    done = {"status": "completed", "error": None, "metrics": {"e": 1.0}, "success": None}
+    outcomes = [{**done, "warnings": [f"w{i}"] if i != 2 else []} for i in range(8)]
+    _print(plan, batch.report(plan, outcomes))
+    err = capsys.readouterr().err.splitlines()
+    assert WARNED_SHOWN == 5 and err == [
+        *(f"  warning: trial {i} (seed {i + 1}): w{i}" for i in (0, 1, 3, 4, 5)),
+        "  warning: 2 more trials with warnings: warned_trials in batch.json",
+    ]
+
+
 @pytest.mark.parametrize(
     ("option", "reason"),
     [

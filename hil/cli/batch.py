@@ -14,6 +14,7 @@ from hil.batch import Execution, Override, Plan, make_plan, parse_set, run_plan
 from hil.errors import HilError
 from hil.scenario import resolve_scenario
 
+WARNED_SHOWN = 5  # trials with warnings named on the terminal; batch.json lists them all
 BATCH_EXAMPLES = (
     "  hil batch                                   10 seeds of the default scenario\n"
     "  hil batch planar-point-to-point --trials 50 --out runs/p2p\n"
@@ -30,8 +31,8 @@ COMMON = (
     "Trials run in-process on --workers local processes, or on the workers of a Dask scheduler "
     "(`dask scheduler`; `dask worker ADDRESS --nthreads 1` on every machine, with softhil "
     "installed and DIR on a shared filesystem); the results are identical. DIR gets batch.json "
-    "(per-trial metrics, mean, std, min, max, success rate), timing.json (wall times), "
-    "batch.png and one run folder per trial."
+    "(per-trial metrics and warnings, mean, std, min, max, success rate), timing.json (wall "
+    "times), batch.png and one run folder per trial."
 )
 
 
@@ -193,6 +194,20 @@ def _print(plan: Plan, content: Mapping[str, Any]) -> None:
     for trial in content["failed_trials"]:
         print(
             f"  failed: trial {trial['index']} (seed {trial['seed']}): {trial['error']}",
+            file=sys.stderr,
+        )
+    warned = content["warned_trials"]
+    for trial in warned[:WARNED_SHOWN]:
+        more = len(trial["warnings"]) - 1
+        print(
+            f"  warning: trial {trial['index']} (seed {trial['seed']}): {trial['warnings'][0]}"
+            + (f" (and {more} more)" if more else ""),
+            file=sys.stderr,
+        )
+    if len(warned) > WARNED_SHOWN:
+        print(
+            f"  warning: {len(warned) - WARNED_SHOWN} more trials with warnings: "
+            "warned_trials in batch.json",
             file=sys.stderr,
         )
     print(f"  results in {plan.out}/ (batch.json, batch.png, timing.json, trial-*/)")
