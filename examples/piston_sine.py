@@ -36,6 +36,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--port", type=int, default=29536)
     parser.add_argument("--dbc", type=Path, default=DBC)
     parser.add_argument("--amplitude", type=float, default=0.4, help="of the half stroke")
+    parser.add_argument("--offset", type=float, default=0.0, help="of the half stroke")
     parser.add_argument("--frequency", type=float, default=1.0, help="[Hz]")
     parser.add_argument("--timeout", type=float, default=5.0, help="[s] per cycle")
     args = parser.parse_args(argv)
@@ -77,7 +78,8 @@ def main(argv: list[str] | None = None) -> int:
             t = (cycle + 1) * period  # the commands act from the next SYNC
             for i, message in enumerate(command):
                 middle, half = (x_min[i] + x_max[i]) / 2, (x_max[i] - x_min[i]) / 2
-                x = middle + args.amplitude * half * math.sin(2 * math.pi * args.frequency * t)
+                wave = args.offset + args.amplitude * math.sin(2 * math.pi * args.frequency * t)
+                x = middle + wave * half
                 data = message.encode({"piston_setpoint": x, "enable": 1, "counter": counter})
                 bus.send(can.Message(arbitration_id=message.frame_id, data=data,
                                      is_extended_id=False))  # fmt: skip

@@ -44,6 +44,7 @@ EMERGENCY, HEARTBEAT, MEASUREMENT, STATUS = 0, 1, 2, 3
 
 HEARTBEAT_PERIOD = 1.0  # [s] between heartbeats of every node
 
+FAULT_REF_CLAMPED = 2  # the DriveCylinder's own bits: 1 end stop, 2 setpoint clamped, 4 stall
 FAULT_OVER_PRESSURE = 16  # plant-side fault bits, above the DriveCylinder's own 1, 2, 4
 FAULT_COMMAND_TIMEOUT = 32
 
@@ -85,7 +86,8 @@ class DriveNode:
     Safety: a command missing for more than `timeout_ticks` holds the piston where it is (EMCY
     0xFF02); a gauge pressure beyond `max_pressure` on either side holds it too (EMCY 0xFF01),
     allowing only moves back towards the sealing position `x_seal`, until both sides fall below
-    90 % of the limit."""
+    90 % of the limit. A setpoint outside the stroke is the servo's to clamp (its fault bit 2);
+    the drive counts the SYNCs after such a period (`clamped`, the first in `first_clamped`)."""
 
     node: int
     x_start: float
@@ -104,6 +106,8 @@ class DriveNode:
     missed: int = 0
     stale: int = 0
     emcy_sent: int = 0
+    clamped: int = 0  # SYNCs after a period whose setpoint the servo clamped to the stroke
+    first_clamped: tuple[float, float] | None = None  # (SYNC time [s], setpoint [m])
     servo_fault: int = 0
     decimation: int = 1  # ticks between master steps: its outputs change only at SYNC
     setpoint: float = field(init=False)
@@ -154,6 +158,10 @@ class DriveNode:
         """Apply the commands of the last period at this SYNC, from the inputs at this SYNC."""
         x, p_a, p_b = inputs["x"], inputs["p_a"], inputs["p_b"]
         self.servo_fault = int(inputs["servo_fault"])
+        if self.servo_fault & FAULT_REF_CLAMPED:  # the setpoint of the period now ending
+            self.clamped += 1
+            if self.first_clamped is None:
+                self.first_clamped = (sync.time, self.setpoint)
         sent: list[tuple[int, Frame]] = []
         expected = (sync.cycle - 1) % COUNTER_MODULO
         if self.pending is not None and self.pending.counter == expected:

@@ -57,6 +57,8 @@ class PlantStats:
     commands_stale: int = 0
     unknown_frames: int = 0
     emcy_sent: int = 0
+    setpoints_clamped: int = 0  # SYNCs at which a drive's servo had clamped its setpoint
+    first_clamped: str = ""
     intrusions: int = 0  # frames that another node sent in a legitimate sender's name
     first_intrusion: str = ""
     wall_time: float = 0.0  # from the first SYNC to the last: the loop itself
@@ -332,6 +334,14 @@ class Plant:
         stats.commands_missed = sum(getattr(n, "missed", 0) for n in self.nodes)
         stats.commands_stale = sum(getattr(n, "stale", 0) for n in self.nodes)
         stats.emcy_sent = sum(getattr(n, "emcy_sent", 0) for n in self.nodes)
+        stats.setpoints_clamped = sum(getattr(n, "clamped", 0) for n in self.nodes)
+        if stats.setpoints_clamped and not stats.first_clamped:
+            node = min(  # the earliest; at one SYNC, the first node
+                (n for n in self.nodes if getattr(n, "first_clamped", None)),
+                key=lambda n: n.first_clamped[0],
+            )
+            at, setpoint = node.first_clamped
+            stats.first_clamped = f"{node.name} at t = {at:.3f} s, setpoint {setpoint:.6g} m"
 
     def _strict(self, sent: list[tuple[int, Frame]]) -> None:
         """Under the strict policy a missed or stale command, or an EMCY, ends the run."""

@@ -142,6 +142,12 @@ def summarise(
             f"{stats.emcy_sent} EMCY frame(s): a drive held its piston "
             "(over-pressure or command timeout), see the CAN log"
         )
+    if stats.setpoints_clamped:
+        warnings.append(
+            f"{stats.setpoints_clamped} SYNC(s) after a period whose drive setpoint lay outside "
+            f"the stroke, clamped by the servo (DriveStatus fault bit 2); first: "
+            f"{stats.first_clamped}"
+        )
     missed = stats.commands_missed + int(controller_report.get("status_missed", 0))
     stale = stats.commands_stale + int(controller_report.get("stale_frames", 0))
     if missed or stale:

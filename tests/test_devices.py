@@ -32,6 +32,7 @@ from hil.devices import (
     EMERGENCY,
     FAULT_COMMAND_TIMEOUT,
     FAULT_OVER_PRESSURE,
+    FAULT_REF_CLAMPED,
     HEARTBEAT,
     MEASUREMENT,
     STATUS,
@@ -121,6 +122,20 @@ def test_servo_fault_bits_and_firmware_bits_combine() -> None:
     status = status_of(d.act(sync(2), inputs(p_a=LIMIT + 1.0, servo_fault=2)))
     assert status.fault == 2 | FAULT_OVER_PRESSURE
     assert d.get_outputs()["fault"] == float(2 | FAULT_OVER_PRESSURE)
+
+
+def test_syncs_after_a_period_with_the_setpoint_clamped_are_counted_with_the_first() -> None:
+    """The servo's bit 2 at a SYNC says the last period's setpoint lay outside the stroke: the
+    drive counts such SYNCs and keeps the first, with the setpoint it had given the servo."""
+    d = drive(timeout_ticks=1000)
+    d.receive(command(0.07, 0))
+    d.act(sync(1), inputs())  # latched: the servo gets 0.07 from SYNC 1 on
+    assert d.clamped == 0 and d.first_clamped is None
+    d.act(sync(2), inputs(servo_fault=FAULT_REF_CLAMPED | 1))
+    d.act(sync(3), inputs(servo_fault=1))  # the end stop alone is not a clamped setpoint
+    d.act(sync(4), inputs(servo_fault=FAULT_REF_CLAMPED))
+    assert d.clamped == 2 and d.first_clamped == (sync(2).time, 0.07)
+    assert FAULT_REF_CLAMPED == 2
 
 
 def test_heartbeat_only_at_heartbeat_syncs_in_its_phase() -> None:

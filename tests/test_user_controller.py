@@ -156,6 +156,30 @@ def test_your_own_python_can_controller_drives_the_six_drives_and_replays(
     assert "first divergence: cycle 0 (t = 0.000 s): DriveCommand1.piston_setpoint" in shown
 
 
+def test_setpoints_outside_the_stroke_are_clamped_and_the_summary_says_so(
+    tmp_path: Path,
+) -> None:
+    """A controller that commands beyond the stroke (in the DBC's range, past the piston's end)
+    is not refused: the servo clamps, sets its fault bit 2 in DriveStatus, and the run's summary
+    counts the SYNCs after such periods and names the first, with the setpoint."""
+    out = tmp_path / "run"
+    path = shortened(tmp_path, 0.3)
+    summary = _run(path, out, controller=EXAMPLE_COMMAND + " --amplitude 0 --offset 1.6")
+    assert summary["status"] == "completed"
+    signals = np.genfromtxt(out / "signals.csv", delimiter=",", names=True)
+    assert signals["x_ref_1"][2:] == pytest.approx(0.065, abs=1e-6)  # 0.025 + 1.6 * 0.025
+    assert int(signals["fault_1"][-1]) & 2  # the servo's clamped bit, as DriveStatus carries it
+    # commands latched at SYNC 1 act over 1..2: SYNCs 2..30 follow a clamped period
+    assert summary["plant"]["setpoints_clamped"] == 29
+    assert summary["plant"]["first_clamped"] == "drive1 at t = 0.020 s, setpoint 0.065 m"
+    (warning,) = [w for w in summary["warnings"] if "outside the stroke" in w]
+    assert warning.startswith("29 SYNC(s) after a period whose drive setpoint lay outside")
+    assert warning.endswith("first: drive1 at t = 0.020 s, setpoint 0.065 m")
+    within = _run(path, tmp_path / "within", controller=EXAMPLE_COMMAND + " --offset 0.5")
+    assert within["plant"]["setpoints_clamped"] == 0 and within["plant"]["first_clamped"] == ""
+    assert not [w for w in within["warnings"] if "outside the stroke" in w]
+
+
 def test_the_program_gets_the_placeholders_in_its_environment_and_its_report_is_checked(
     default_run: tuple[Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
