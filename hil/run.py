@@ -22,6 +22,7 @@ import re
 import shlex
 import subprocess
 import threading
+import time
 import uuid
 from collections.abc import Callable, Iterator
 from contextlib import ExitStack
@@ -37,7 +38,7 @@ from controllers.node import (
     LockstepClock,
     RealtimeClock,
 )
-from controllers.protocol import Protocol
+from controllers.protocol import SYNC_ID, Protocol
 from hil.animation import check_format
 from hil.bus.binary import busy_poll_seconds
 from hil.bus.direct import direct_pair
@@ -223,6 +224,9 @@ def _run(
                 report = asdict(node.report)
             else:
                 peer = _start_controller(config, controller_spec, options, folder, stack)
+                if isinstance(plant_bus, HostedBus):  # who sends the SYNCs: see _Peer.gone
+                    peer.hub = plant_bus
+                    plant_bus.watch(SYNC_ID)
                 stats = plant.run(peer.gone, progress, startup_timeout=options.wait)
                 report = peer.finish()
         except BaseException:
@@ -464,18 +468,33 @@ class _Peer:
         self.log: Path | None = None
         self.user = False  # a user's program (its report is optional and checked)
         self.warnings: list[str] = []  # for summary.json
+        self.hub: HostedBus | None = None  # the hub the plant hosts, watching the SYNC sender
+        self._closed_since: float | None = None
 
     def gone(self) -> str | None:
+        """Why the controller is gone, or None: its process exited, its thread stopped, or
+        (with the hub the plant hosts, for a controller started by hand too) the connection
+        that sent the SYNCs has been closed for CLOSED_GRACE without another sending them."""
         if self.process is not None:
             code = self.process.poll()
-            if code is None:
-                return None
-            return f"the controller exited with code {code}{self._last_words()}"
+            if code is not None:
+                return f"the controller exited with code {code}{self._last_words()}"
         if self.thread is not None and not self.thread.is_alive():
             return (
                 f"the controller stopped: {self.error}" if self.error else "the controller stopped"
             )
-        return None
+        where = self.hub.sender_gone() if self.hub is not None else None
+        if where is None:
+            self._closed_since = None
+            return None
+        now = time.monotonic()
+        if self._closed_since is None:
+            self._closed_since = now
+        if now - self._closed_since < CLOSED_GRACE:
+            return None  # a program that exits is named by its exit code; one may reconnect
+        return (
+            f"the controller's connection to the run's hub ({where}, which sent the SYNCs) closed"
+        )
 
     def _last_words(self) -> str:
         words = last_words(self.log)
@@ -601,6 +620,9 @@ def _checked_report(report: dict[str, Any], path: Path) -> dict[str, Any]:
 
 
 FINISH_TIMEOUT = 30.0  # [s] softhil's controller has after the final SYNC to exit
+# [s] the connection that sent the SYNCs may stay closed before the controller is taken for
+# gone: a program's exit shows first (with its code), a controller that reconnects resumes
+CLOSED_GRACE = 1.0
 
 
 def _clock(config: ControllerConfig, options: RunOptions) -> LockstepClock | RealtimeClock:

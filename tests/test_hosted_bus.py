@@ -124,3 +124,38 @@ def test_receive_times_out_and_shutdown_ends_the_bus_for_everyone(hosted: Hosted
             socket.create_connection(("127.0.0.1", port), timeout=1.0).close()
     finally:
         client.shutdown()
+
+
+def test_the_sender_of_a_watched_id_is_known_until_its_connection_closes(
+    hosted: HostedBus,
+) -> None:
+    """`watch(id)` remembers which connection last sent that id; `sender_gone` names where it
+    was connected from once it has closed (how a run notices a controller started by hand
+    leaving), and a newcomer sending the id takes its place."""
+    first, other = connect(hosted, binary_client, ascii_client)
+    newcomer = None
+    try:
+        hosted.watch(0x080)
+        assert hosted.sender_gone() is None  # nothing sent yet
+        other.send(can.Message(arbitration_id=0x081, is_extended_id=False, data=b"\x01"))
+        first.send(can.Message(arbitration_id=0x080, is_extended_id=False, data=b"\x00"))
+        assert key(hosted.recv(TIMEOUT))[0] == 0x081 and key(hosted.recv(TIMEOUT))[0] == 0x080
+        other.shutdown()  # not the sender of 0x080
+        for _ in range(50):
+            hosted.recv(0.01)
+        assert hosted.hub.clients == 1 and hosted.sender_gone() is None
+        host, port = first._sock.getsockname()  # where the hub saw it connect from
+        first.shutdown()
+        for _ in range(50):
+            hosted.recv(0.01)
+            if hosted.sender_gone():
+                break
+        assert hosted.sender_gone() == f"{host}:{port}"
+        (newcomer,) = connect(hosted, binary_client)
+        newcomer.send(can.Message(arbitration_id=0x080, is_extended_id=False, data=b"\x01"))
+        assert key(hosted.recv(TIMEOUT))[0] == 0x080
+        assert hosted.sender_gone() is None
+    finally:
+        for client in (first, other, newcomer):
+            if client is not None:
+                client.shutdown()

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shlex
 import subprocess
 import sys
@@ -121,6 +122,91 @@ def test_an_external_controller_that_never_comes_fails_the_run_in_one_line_after
     summary = json.loads((out / "summary.json").read_text())
     assert summary["status"] == "failed" and "no SYNC(0)" in summary["error"]
     assert (out / "controller.json").is_file() and not (out / "controller.log").exists()
+
+
+def test_a_hand_started_controller_that_leaves_mid_run_is_noticed_by_its_closed_connection(
+    tmp_path: Path,
+) -> None:
+    """The run cannot watch a program it did not start, but it hosts the hub the program
+    connected to: when the connection that sent the SYNCs closes before the final one, the
+    run fails in one line naming it, not with a silent bus after the controller timeout. Here
+    the example controller is given a copy of the run's config with 5 cycles: it sends SYNC
+    0..5 and exits cleanly."""
+    path = shortened(tmp_path, 1.0, ("crossover = 1.0", "crossover = 1.0\ntimeout = 30.0"))
+    out = tmp_path / "run"
+    run = subprocess.Popen(
+        [sys.executable, "-m", "hil", "run", str(path), "--out", str(out), "--no-progress"]
+        + ["--controller", "external", "--wait", "60"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+    )
+    try:
+        assert run.stderr is not None
+        line = run.stderr.readline()
+        port = line.partition("(socketcand 127.0.0.1:")[2].partition(",")[0]
+        assert port.isdigit(), line
+        config = json.loads((out / "controller.json").read_text())
+        (tmp_path / "five.json").write_text(json.dumps({**config, "cycles": 5}))
+        controller = subprocess.run(
+            [
+                sys.executable,
+                str(EXAMPLE),
+                "--config",
+                str(tmp_path / "five.json"),
+                "--port",
+                port,
+            ],  # fmt: skip
+            timeout=120,
+            check=False,
+        )
+        assert controller.returncode == 0
+        assert run.wait(timeout=120) == 1
+        error = run.stderr.read().strip().splitlines()
+    finally:
+        run.kill()
+        run.wait()
+    assert len(error) == 1 and re.fullmatch(
+        r"hil: error: the controller's connection to the run's hub \(127\.0\.0\.1:\d+, which "
+        r"sent the SYNCs\) closed at t = 0\.050 s \(after SYNC 5\); the plant stopped",
+        error[0],
+    ), error
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["status"] == "failed" and "which sent the SYNCs) closed" in summary["error"]
+
+
+def test_a_closed_sync_connection_is_taken_for_gone_only_after_the_grace(monkeypatch) -> None:
+    """A program's exit is named first (by its code); a connection closed for less than
+    CLOSED_GRACE, or replaced by one that sends the SYNCs again, is not the controller gone."""
+    from hil import run
+
+    now = [100.0]
+    monkeypatch.setattr(run.time, "monotonic", lambda: now[0])
+
+    class Hub:
+        where: str | None = None
+
+        def sender_gone(self) -> str | None:
+            return self.where
+
+    peer = run._Peer()
+    peer.hub = Hub()  # type: ignore[assignment]
+    assert peer.gone() is None
+    peer.hub.where = "127.0.0.1:5"
+    assert peer.gone() is None  # just closed
+    now[0] += run.CLOSED_GRACE * 0.99
+    assert peer.gone() is None
+    peer.hub.where = None  # another connection sent a SYNC: the grace starts again
+    assert peer.gone() is None
+    peer.hub.where = "127.0.0.1:6"
+    now[0] += run.CLOSED_GRACE * 0.99
+    assert peer.gone() is None
+    now[0] += run.CLOSED_GRACE
+    assert peer.gone() == (
+        "the controller's connection to the run's hub (127.0.0.1:6, which sent the SYNCs) closed"
+    )
+    assert 0.5 <= run.CLOSED_GRACE <= 2.0
 
 
 def test_your_own_python_can_controller_drives_the_six_drives_and_replays(

@@ -62,6 +62,16 @@ class HostedBus(can.BusABC):
     def port(self) -> int:
         return self.hub.port
 
+    def watch(self, can_id: int) -> None:
+        """Remember which connection sends frames of `can_id` (see `sender_gone`)."""
+        self._member.watch_id = can_id
+
+    def sender_gone(self) -> str | None:
+        """Where the last connection that sent a watched frame was connected from, if that
+        connection has closed; None while it is open or before any such frame."""
+        sender = self._member.watched
+        return sender.addr if sender is not None and sender.closed else None
+
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         self.send_batch([msg])
 

@@ -305,9 +305,21 @@ class _Client:
 class _Local:
     """The hub's own member of a channel, for a hub hosted in its owner's thread
     (`LoopbackHub.host`): frames forwarded to it wait in `inbox` as (id, extended, data,
-    hub time [s]) until the owner takes them; nothing is written to a socket."""
+    hub time [s]) until the owner takes them; nothing is written to a socket. With `watch_id`
+    set, `watched` is the client that last sent it a frame of that id (its `closed` and `addr`
+    say whether and where it is connected)."""
 
-    __slots__ = ("addr", "binary", "channel", "closed", "inbox", "local", "rawmode")
+    __slots__ = (
+        "addr",
+        "binary",
+        "channel",
+        "closed",
+        "inbox",
+        "local",
+        "rawmode",
+        "watch_id",
+        "watched",
+    )
 
     def __init__(self, channel: bytes) -> None:
         self.addr = "host"
@@ -315,6 +327,8 @@ class _Local:
         self.inbox: collections.deque[tuple[int, bool, bytes, float]] = collections.deque()
         self.binary = self.rawmode = self.local = True
         self.closed = False
+        self.watch_id: int | None = None
+        self.watched: _Client | None = None
 
 
 class LoopbackHub:
@@ -919,6 +933,8 @@ class LoopbackHub:
                 continue
             if other.local:
                 other.inbox.append((can_id, extended, data, now / 1e9))  # type: ignore[attr-defined]
+                if can_id == other.watch_id:  # type: ignore[attr-defined]
+                    other.watched = client  # type: ignore[attr-defined]
                 continue
             if other.binary:
                 if record is None:
