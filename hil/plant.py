@@ -117,20 +117,15 @@ class Plant:
                     message = self.bus.recv(timeout=0.1)
                 except (can.CanError, OSError) as exc:
                     raise BusError(
-                        f"the bus failed at t = {self.sim_time:.3f} s (after SYNC {self.cycle}): "
+                        f"the bus failed {self._when()}: "
                         f"{failure_text(exc)}; is the loopback hub gone?"
                     ) from None
                 if message is None:
                     if connection_closed(self.bus):
-                        raise BusError(
-                            f"the loopback hub closed the bus at t = {self.sim_time:.3f} s"
-                        )
+                        raise BusError(f"the loopback hub closed the bus {self._when()}")
                     gone = peer_alive()
                     if gone is not None:
-                        raise ProtocolError(
-                            f"{gone} at t = {self.sim_time:.3f} s (after SYNC {self.cycle}); "
-                            "the plant stopped"
-                        )
+                        raise ProtocolError(f"{gone}; the plant stopped {self._when()}")
                     # a controller program still starting (imports on a loaded machine) gets
                     # startup_timeout for its first SYNC; after that the scenario's timeout
                     limit = self.scenario.controller.timeout
@@ -143,8 +138,7 @@ class Plant:
                                 "start; the plant stopped"
                             )
                         raise ProtocolError(
-                            f"no frame from the controller for {limit:g}"
-                            f" s at t = {self.sim_time:.3f} s (after SYNC {self.cycle})"
+                            f"no frame from the controller for {limit:g} s {self._when()}"
                         )
                     continue
                 last_heard = time.monotonic()
@@ -161,6 +155,12 @@ class Plant:
             self.signals.end_row()
             self.can_log.flush(force=True)
         return self.stats
+
+    def _when(self) -> str:
+        """Where the run is, for a message: before SYNC 0, or the time and the last SYNC."""
+        if self.cycle < 0:
+            return "before SYNC 0"
+        return f"at t = {self.sim_time:.3f} s (after SYNC {self.cycle} of {self.scenario.cycles})"
 
     def run_driven(
         self, driver: Callable[[], object], progress: Callable[[int], None] | None = None

@@ -181,6 +181,12 @@ class _ReplayPlant:
         self.linger = timeout if linger is None else min(linger, timeout)
         self.sent: list[list[can.Message]] = [[] for _ in cycles]
 
+    def _when(self, current: int) -> str:
+        """Where the replay is, for a message: before SYNC 0, or the last cycle served."""
+        if current < 0:
+            return "before SYNC 0"
+        return f"at cycle {current} of {len(self.cycles) - 1}"
+
     def run(self, alive: Any) -> None:
         current = -1
         last_heard = time.monotonic()
@@ -192,13 +198,13 @@ class _ReplayPlant:
                 if gone is not None:
                     if current >= final:
                         return
-                    raise ReplayError(f"{gone} at cycle {current}")
+                    raise ReplayError(f"{gone} {self._when(current)}")
                 silent = time.monotonic() - last_heard
                 if current >= final and silent > self.linger:
                     return
                 if silent > self.timeout:
                     raise ReplayError(
-                        f"the controller sent nothing for {self.timeout:g} s at cycle {current}"
+                        f"the controller sent nothing for {self.timeout:g} s {self._when(current)}"
                     )
                 continue
             last_heard = time.monotonic()

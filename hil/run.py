@@ -477,8 +477,9 @@ class _Peer:
         that sent the SYNCs has been closed for CLOSED_GRACE without another sending them."""
         if self.process is not None:
             code = self.process.poll()
-            if code is not None:
-                return f"the controller exited with code {code}{self._last_words()}"
+            if code is not None:  # a success that comes early is not one: say so
+                early = " before the run's final SYNC" if code == 0 else ""
+                return f"the controller exited with code {code}{early}{self._last_words()}"
         if self.thread is not None and not self.thread.is_alive():
             return (
                 f"the controller stopped: {self.error}" if self.error else "the controller stopped"

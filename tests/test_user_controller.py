@@ -169,7 +169,7 @@ def test_a_hand_started_controller_that_leaves_mid_run_is_noticed_by_its_closed_
         run.wait()
     assert len(error) == 1 and re.fullmatch(
         r"hil: error: the controller's connection to the run's hub \(127\.0\.0\.1:\d+, which "
-        r"sent the SYNCs\) closed at t = 0\.050 s \(after SYNC 5\); the plant stopped",
+        r"sent the SYNCs\) closed; the plant stopped at t = 0\.050 s \(after SYNC 5 of 100\)",
         error[0],
     ), error
     summary = json.loads((out / "summary.json").read_text())
@@ -207,6 +207,38 @@ def test_a_closed_sync_connection_is_taken_for_gone_only_after_the_grace(monkeyp
         "the controller's connection to the run's hub (127.0.0.1:6, which sent the SYNCs) closed"
     )
     assert 0.5 <= run.CLOSED_GRACE <= 2.0
+
+
+def test_a_program_that_exits_early_is_told_where_the_run_was(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Exit code 0 before the final SYNC is said to be early; the place is "before SYNC 0"
+    for a program that never sent one (not "after SYNC -1"), else the time and the last SYNC
+    of all. The example with a 5-cycle copy of the config ends after SYNC 5 of 30."""
+    path = shortened(tmp_path, 0.3)
+    argv = ["run", str(path), "--no-progress", "--controller"]
+    out = tmp_path / "at-once"
+    assert hil_main([*argv, f"{PYTHON} -c pass", "--out", str(out)]) == 1
+    assert capsys.readouterr().err.strip().splitlines()[-1] == (
+        "hil: error: the controller exited with code 0 before the run's final SYNC; the plant "
+        "stopped before SYNC 0"
+    )
+    five = tmp_path / "five.json"
+    script = tmp_path / "five.sh"
+    script.write_text(
+        "#!/bin/sh\n"
+        f"{PYTHON} -c \"import json, sys; c = json.load(open(sys.argv[1])); c['cycles'] = 5; "
+        f'json.dump(c, open(sys.argv[2], \'w\'))" "$1" {five} || exit 9\n'
+        f'shift\nexec "$@"\n'
+    )
+    script.chmod(0o755)
+    example = EXAMPLE_COMMAND.replace("{config}", shlex.quote(str(five)))
+    out = tmp_path / "early"
+    assert hil_main([*argv, f"{script} {{config}} {example}", "--out", str(out)]) == 1
+    assert capsys.readouterr().err.strip().splitlines()[-1] == (
+        "hil: error: the controller exited with code 0 before the run's final SYNC; the plant "
+        "stopped at t = 0.050 s (after SYNC 5 of 30)"
+    )
 
 
 def test_your_own_python_can_controller_drives_the_six_drives_and_replays(
@@ -567,7 +599,9 @@ def test_replay_names_a_program_s_last_words_and_leaks_nothing_when_it_cannot_st
     crash = f"{PYTHON} -c \"raise SystemExit('boom in the middle')\""
     assert hil_main(["replay", log, "--controller", crash]) == 1
     err = capsys.readouterr().err.strip().splitlines()
-    assert err == ["hil: error: the controller exited with code 1 (boom in the middle) at cycle -1"]
+    assert err == [
+        "hil: error: the controller exited with code 1 (boom in the middle) before SYNC 0"
+    ]
     garbage = tmp_path / "garbage"
     garbage.write_bytes(b"\x00\x01\x02 not a program")
     garbage.chmod(0o755)
