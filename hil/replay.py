@@ -198,7 +198,7 @@ class _ReplayPlant:
                 if gone is not None:
                     if current >= final:
                         return
-                    raise ReplayError(f"{gone} {self._when(current)}")
+                    raise ReplayError(f"{gone}; the replay stopped {self._when(current)}")
                 silent = time.monotonic() - last_heard
                 if current >= final and silent > self.linger:
                     return
@@ -402,7 +402,8 @@ def _replay_process(
                     code = process.poll()
                     if code is None:
                         return None
-                    return f"the controller exited with code {code}{said()}"
+                    early = " before the log's final SYNC" if code == 0 else ""
+                    return f"the controller exited with code {code}{early}{said()}"
 
                 plant.run(alive)
                 try:

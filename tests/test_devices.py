@@ -131,11 +131,27 @@ def test_syncs_after_a_period_with_the_setpoint_clamped_are_counted_with_the_fir
     d.receive(command(0.07, 0))
     d.act(sync(1), inputs())  # latched: the servo gets 0.07 from SYNC 1 on
     assert d.clamped == 0 and d.first_clamped is None
-    d.act(sync(2), inputs(servo_fault=FAULT_REF_CLAMPED | 1))
+    d.act(sync(2), inputs(servo_fault=FAULT_REF_CLAMPED))
     d.act(sync(3), inputs(servo_fault=1))  # the end stop alone is not a clamped setpoint
-    d.act(sync(4), inputs(servo_fault=FAULT_REF_CLAMPED))
+    d.act(sync(4), inputs(servo_fault=FAULT_REF_CLAMPED | 4))
+    d.act(sync(5), inputs(servo_fault=1 | 4))  # nor the stall
     assert d.clamped == 2 and d.first_clamped == (sync(2).time, 0.07)
     assert FAULT_REF_CLAMPED == 2
+
+
+def test_the_plant_sums_clamped_syncs_over_its_drives_and_names_the_earliest() -> None:
+    from types import SimpleNamespace
+
+    from hil.plant import Plant, PlantStats
+
+    drives = [DriveNode(n, X_SEAL, X_SEAL, LIMIT, 1000) for n in (1, 2, 3)]
+    drives[0].clamped, drives[0].first_clamped = 3, (0.05, 0.07)
+    drives[1].clamped, drives[1].first_clamped = 2, (0.03, -0.01)
+    drives[2].clamped, drives[2].first_clamped = 1, (0.03, 0.09)  # at the same SYNC: drive 2
+    plant = SimpleNamespace(stats=PlantStats(), nodes=[object(), *drives])
+    Plant._count(plant)  # type: ignore[arg-type]
+    assert plant.stats.setpoints_clamped == 6
+    assert plant.stats.first_clamped == "drive2 at t = 0.030 s, setpoint -0.01 m"
 
 
 def test_heartbeat_only_at_heartbeat_syncs_in_its_phase() -> None:

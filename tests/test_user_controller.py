@@ -209,35 +209,45 @@ def test_a_closed_sync_connection_is_taken_for_gone_only_after_the_grace(monkeyp
     assert 0.5 <= run.CLOSED_GRACE <= 2.0
 
 
+def _ending_after(tmp_path: Path, cycles: int) -> str:
+    """The example controller as a command given a copy of the config with `cycles` cycles:
+    it sends SYNC 0..cycles and exits with code 0."""
+    short = tmp_path / f"cycles-{cycles}.json"
+    script = tmp_path / f"cycles-{cycles}.sh"
+    script.write_text(
+        "#!/bin/sh\n"
+        f'{PYTHON} -c "import json, sys; c = json.load(open(sys.argv[1])); '
+        f"c['cycles'] = {cycles}; json.dump(c, open(sys.argv[2], 'w'))\" \"$1\" {short} || exit 9\n"
+        'shift\nexec "$@"\n'
+    )
+    script.chmod(0o755)
+    return f"{script} {{config}} " + EXAMPLE_COMMAND.replace("{config}", shlex.quote(str(short)))
+
+
 def test_a_program_that_exits_early_is_told_where_the_run_was(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    default_run: tuple[Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     """Exit code 0 before the final SYNC is said to be early; the place is "before SYNC 0"
     for a program that never sent one (not "after SYNC -1"), else the time and the last SYNC
-    of all. The example with a 5-cycle copy of the config ends after SYNC 5 of 30."""
+    of all; a replay says the cycle of all the same way."""
     path = shortened(tmp_path, 0.3)
     argv = ["run", str(path), "--no-progress", "--controller"]
-    out = tmp_path / "at-once"
-    assert hil_main([*argv, f"{PYTHON} -c pass", "--out", str(out)]) == 1
+    early = "hil: error: the controller exited with code 0 before the run's final SYNC; the plant"
+    for k, (program, where) in enumerate(
+        [
+            (f"{PYTHON} -c pass", "stopped before SYNC 0"),
+            (_ending_after(tmp_path, 0), "stopped at t = 0.000 s (after SYNC 0 of 30)"),
+            (_ending_after(tmp_path, 5), "stopped at t = 0.050 s (after SYNC 5 of 30)"),
+        ]
+    ):
+        out = tmp_path / f"run-{k}"
+        assert hil_main([*argv, program, "--out", str(out)]) == 1
+        assert capsys.readouterr().err.strip().splitlines()[-1] == f"{early} {where}"
+    log = str(default_run[1] / "can.log")
+    assert hil_main(["replay", log, "--controller", _ending_after(tmp_path, 5)]) == 1
     assert capsys.readouterr().err.strip().splitlines()[-1] == (
-        "hil: error: the controller exited with code 0 before the run's final SYNC; the plant "
-        "stopped before SYNC 0"
-    )
-    five = tmp_path / "five.json"
-    script = tmp_path / "five.sh"
-    script.write_text(
-        "#!/bin/sh\n"
-        f"{PYTHON} -c \"import json, sys; c = json.load(open(sys.argv[1])); c['cycles'] = 5; "
-        f'json.dump(c, open(sys.argv[2], \'w\'))" "$1" {five} || exit 9\n'
-        f'shift\nexec "$@"\n'
-    )
-    script.chmod(0o755)
-    example = EXAMPLE_COMMAND.replace("{config}", shlex.quote(str(five)))
-    out = tmp_path / "early"
-    assert hil_main([*argv, f"{script} {{config}} {example}", "--out", str(out)]) == 1
-    assert capsys.readouterr().err.strip().splitlines()[-1] == (
-        "hil: error: the controller exited with code 0 before the run's final SYNC; the plant "
-        "stopped at t = 0.050 s (after SYNC 5 of 30)"
+        "hil: error: the controller exited with code 0 before the log's final SYNC; the replay "
+        "stopped at cycle 5 of 100"
     )
 
 
@@ -600,7 +610,8 @@ def test_replay_names_a_program_s_last_words_and_leaks_nothing_when_it_cannot_st
     assert hil_main(["replay", log, "--controller", crash]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert err == [
-        "hil: error: the controller exited with code 1 (boom in the middle) before SYNC 0"
+        "hil: error: the controller exited with code 1 (boom in the middle); the replay stopped "
+        "before SYNC 0"
     ]
     garbage = tmp_path / "garbage"
     garbage.write_bytes(b"\x00\x01\x02 not a program")
