@@ -336,12 +336,11 @@ class Plant:
         stats.emcy_sent = sum(getattr(n, "emcy_sent", 0) for n in self.nodes)
         stats.setpoints_clamped = sum(getattr(n, "clamped", 0) for n in self.nodes)
         if stats.setpoints_clamped and not stats.first_clamped:
-            node = min(  # the earliest; at one SYNC, the first node
-                (n for n in self.nodes if getattr(n, "first_clamped", None)),
-                key=lambda n: n.first_clamped[0],
-            )
-            at, setpoint = node.first_clamped
-            stats.first_clamped = f"{node.name} at t = {at:.3f} s, setpoint {setpoint:.6g} m"
+            firsts = [
+                (first, n.name) for n in self.nodes if (first := getattr(n, "first_clamped", None))
+            ]  # the earliest; at one SYNC, the first node
+            (at, setpoint), name = min(firsts, key=lambda pair: pair[0][0])
+            stats.first_clamped = f"{name} at t = {at:.3f} s, setpoint {setpoint:.6g} m"
 
     def _strict(self, sent: list[tuple[int, Frame]]) -> None:
         """Under the strict policy a missed or stale command, or an EMCY, ends the run."""
