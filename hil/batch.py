@@ -24,6 +24,7 @@ import math
 import multiprocessing
 import os
 import re
+import signal
 import socket
 import statistics
 import sys
@@ -496,11 +497,18 @@ def _run_local(
 ) -> None:
     if workers < 1:
         raise HilError(f"--workers: must be at least 1, got {workers}")
-    pool = ProcessPoolExecutor(max_workers=min(workers, len(specs)), mp_context=_context())
+    context = _context()
+    stopping = context.Event()  # set at an interrupt: a trial queued to a worker never starts
+    pool = ProcessPoolExecutor(
+        max_workers=min(workers, len(specs)),
+        mp_context=context,
+        initializer=_worker_start,
+        initargs=(stopping,),
+    )
     futures: dict[Future[dict[str, Any]], TrialSpec] = {}
     reported: set[Future[dict[str, Any]]] = set()
     try:
-        futures = {pool.submit(run_trial, spec): spec for spec in specs}
+        futures = {pool.submit(_worker_trial, spec): spec for spec in specs}
         for future in as_completed(futures):
             spec = futures[future]
             try:
@@ -510,18 +518,76 @@ def _run_local(
             reported.add(future)
             done(spec, outcome)
     except BaseException:
-        # an interrupt: the trials not started are dropped, those running finish (a worker
-        # cannot be stopped between two FMU steps) and are reported with the rest
-        pool.shutdown(wait=True, cancel_futures=True)
-        for future, spec in futures.items():
-            if future not in reported and future.done() and not future.cancelled():
-                try:
-                    outcome = future.result()
-                except BaseException:  # noqa: BLE001 - interrupted or died: not finished
-                    continue
-                done(spec, outcome)
+        # an interrupt: the trials not started are dropped, those running finish (or stop at
+        # a second interrupt, see _stop_pool) and those that finished are reported
+        stopping.set()
+        try:
+            _stop_pool(pool)
+        finally:
+            for future, spec in futures.items():
+                if future not in reported and future.done() and not future.cancelled():
+                    try:
+                        outcome = future.result()
+                    except BaseException:  # noqa: BLE001 - stopped or died: not finished
+                        continue
+                    done(spec, outcome)
         raise
     pool.shutdown(wait=True)
+
+
+_STOPPING: Any = None  # in a worker: the batch's event, set once it is interrupted
+
+
+class _NotStartedError(Exception):
+    """A trial queued to a worker when the batch was interrupted: never started."""
+
+
+def _worker_trial(spec: TrialSpec) -> dict[str, Any]:
+    if _STOPPING is not None and _STOPPING.is_set():
+        raise _NotStartedError(spec.index)
+    return run_trial(spec)
+
+
+def _worker_start(stopping: Any) -> None:
+    """A worker's start: the batch's stop event, and its signals. A terminal's Ctrl-C reaches
+    every process of the job, and the batch, not each worker, decides what it means (see
+    _stop_pool); SIGTERM from the batch ends the running trial as a terminated `hil run` (files
+    closed, summary.json says so), and a second one the worker."""
+    global _STOPPING
+    _STOPPING = stopping
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+    def terminate(signum: int, frame: object) -> None:
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)  # once: a second one ends the worker
+        raise Terminated
+
+    signal.signal(signal.SIGTERM, terminate)
+
+
+def _stop_pool(pool: ProcessPoolExecutor) -> None:
+    """After the batch's interrupt: drop the trials not started and wait for the running ones
+    to finish. A second interrupt (Ctrl-C) while they run stops them: each worker gets
+    SIGTERM, and its trial ends as a terminated run, keeping what it recorded; a third kills
+    the workers."""
+    try:
+        pool.shutdown(wait=True, cancel_futures=True)
+        return
+    except BaseException:  # noqa: BLE001 - the second interrupt: the first one is re-raised
+        note("stopping the running trials (their folders keep what they recorded)")
+        _signal_workers(pool, signal.SIGTERM)
+    try:
+        pool.shutdown(wait=True)
+    except BaseException:  # noqa: BLE001 - the third
+        _signal_workers(pool, signal.SIGKILL)
+        with contextlib.suppress(BaseException):
+            pool.shutdown(wait=True)
+
+
+def _signal_workers(pool: ProcessPoolExecutor, signum: int) -> None:
+    for process in list((getattr(pool, "_processes", None) or {}).values()):
+        with contextlib.suppress(ProcessLookupError, ValueError, AttributeError):
+            if process.pid is not None:
+                os.kill(process.pid, signum)
 
 
 def connect(address: str) -> Any:

@@ -8,13 +8,16 @@ gives the same batch.json as the local one.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
 import re
+import signal
 import statistics
 import subprocess
 import sys
+import time
 import tomllib
 from collections.abc import Iterator
 from pathlib import Path
@@ -228,6 +231,95 @@ def test_trials_running_when_the_batch_is_stopped_are_kept(
     assert code == 130 and content["stopped"] == "interrupted"
     assert [t["status"] for t in content["trials"][:2]] == ["completed", "completed"]
     assert content["completed"] >= 2
+
+
+def _batch_in_its_own_group(tmp_path: Path) -> tuple[subprocess.Popen[str], Path]:
+    """`hil batch` of 3 trials on one worker, in a process group of its own as a shell's job
+    is, once its first trial is recording (a 60 s trial: seconds of work)."""
+    scenario = tmp_path / "long.toml"
+    scenario.write_text(SHORT.replace("duration = 0.3", "duration = 60.0"))
+    out = tmp_path / "batch"
+    run = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "hil",
+            "batch",
+            str(scenario),
+            "--trials",
+            "3",
+            "--workers",
+            "1",
+            "--out",
+            str(out),
+            "--no-progress",
+        ],  # fmt: skip
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
+    signals = out / "trial-000" / "signals.csv"
+    for _ in range(600):
+        if signals.is_file() and signals.stat().st_size > 4096 or run.poll() is not None:
+            break
+        time.sleep(0.1)
+    assert run.poll() is None, run.communicate()
+    return run, out
+
+
+def _group_left(group: int) -> list[int]:
+    """Processes still in process group `group` (zombies aside)."""
+    left = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        with contextlib.suppress(OSError):
+            fields = stat.read_text().rpartition(")")[2].split()
+            if int(fields[2]) == group and fields[0] != "Z":
+                left.append(int(stat.parent.name))
+    return left
+
+
+def test_ctrl_c_at_a_terminal_lets_the_running_trial_finish(tmp_path: Path) -> None:
+    """A terminal's Ctrl-C reaches every process of the job: the workers ignore it, so the
+    running trial completes and is reported, as the README says; the others never start."""
+    run, out = _batch_in_its_own_group(tmp_path)
+    try:
+        os.killpg(run.pid, signal.SIGINT)
+        _, err = run.communicate(timeout=120)
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(run.pid, signal.SIGKILL)
+    assert run.returncode == 130, err
+    content = load(out / "batch.json")
+    assert content["stopped"] == "interrupted"
+    assert [t["status"] for t in content["trials"]] == ["completed", "interrupted", "interrupted"]
+    assert load(out / "trial-000" / "summary.json")["status"] == "completed"
+    assert _group_left(run.pid) == []
+
+
+def test_a_second_ctrl_c_stops_the_running_trial_and_keeps_what_it_recorded(
+    tmp_path: Path,
+) -> None:
+    """The second Ctrl-C, while the batch waits for its running trial, stops that trial as a
+    terminated run (its folder keeps its signals, can.log and a summary saying so); batch.json
+    is written and the batch exits 130 with no process of its job left behind."""
+    run, out = _batch_in_its_own_group(tmp_path)
+    try:
+        os.killpg(run.pid, signal.SIGINT)
+        time.sleep(0.5)
+        os.killpg(run.pid, signal.SIGINT)
+        _, err = run.communicate(timeout=120)
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(run.pid, signal.SIGKILL)
+    assert run.returncode == 130, err
+    content = load(out / "batch.json")
+    assert content["stopped"] == "interrupted" and content["completed"] == 0
+    summary = load(out / "trial-000" / "summary.json")
+    assert summary["status"] == "terminated", summary
+    assert (out / "trial-000" / "can.log").stat().st_size > 0
+    assert "stopping the running trials" in err
+    assert _group_left(run.pid) == []
 
 
 def test_an_unreachable_scheduler_is_one_line(
