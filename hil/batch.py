@@ -16,6 +16,7 @@ batch run twice, or locally and on a Dask cluster, writes the same bytes.
 from __future__ import annotations
 
 import contextlib
+import datetime
 import hashlib
 import io
 import itertools
@@ -33,7 +34,7 @@ import threading
 import time
 import tomllib
 from collections.abc import Callable, Iterable, Mapping, Sequence
-from concurrent.futures import Future, ProcessPoolExecutor, as_completed
+from concurrent.futures import Future, ProcessPoolExecutor, as_completed, wait
 from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
@@ -55,6 +56,8 @@ WALL_CLOCK_WORDS = ("wall", "real_time", "startup", "lateness", "overrun")
 INPUT_KEYS = frozenset({"seed", "duration", "bitrate", "log_start"})
 OUTPUT_FILES = ("batch.json", "timing.json", "batch.png")
 # a bare word on the command line (kf, ukf, frame) is taken as a string: the shell eats quotes
+MAX_TRIALS = 10_000  # in one batch or sweep: each is a folder of results and a worker's run
+CHECK_NOTE_POINTS = 50  # a grid larger than this says that it is being checked
 _BARE_WORD = re.compile(r"[A-Za-z_][A-Za-z0-9_-]*")
 _BARE_KEY = re.compile(r"[A-Za-z0-9_-]+")
 # pyplot (the run's plots) is not thread-safe: one trial at a time per worker process, so that a
@@ -121,14 +124,16 @@ def parse_set(option: str) -> Override:
     if parts[0] not in SECTIONS:
         parts = ["robot", *parts]
     values = _values(option, text)
-    if len(set(map(_canonical, values))) != len(values):
+    if len(set(map(_same, values))) != len(values):
         raise HilError(f"--set {option}: a value is repeated")
     return Override(option, ".".join(parts), tuple(values))
 
 
 def _values(option: str, text: str) -> list[Any]:
     try:
-        return list(tomllib.loads(f"v = [{text}]")["v"])
+        values = list(tomllib.loads(f"v = [{text}]")["v"])
+        if not any(_dated(v) for v in values):
+            return values
     except tomllib.TOMLDecodeError:
         pass
     values = []
@@ -137,7 +142,10 @@ def _values(option: str, text: str) -> list[Any]:
             values.append(item)
             continue
         try:
-            values.append(tomllib.loads(f"v = {item}")["v"])
+            value = tomllib.loads(f"v = {item}")["v"]
+            # a bare date is a bare word too: the string as typed (a scenario takes instants
+            # as strings, and batch.json has no dates)
+            values.append(item if _dated(value) is True else _undated(value))
         except tomllib.TOMLDecodeError:
             raise HilError(
                 f"--set {option}: {item!r} is not a TOML value (a number, true/false, a quoted "
@@ -146,8 +154,45 @@ def _values(option: str, text: str) -> list[Any]:
     return values
 
 
+def _dated(value: Any) -> bool | str:
+    """True for a TOML date or time, "inside" for a table or array holding one, else False."""
+    if isinstance(value, datetime.date | datetime.time):
+        return True
+    if isinstance(value, list):
+        return "inside" if any(_dated(v) for v in value) else False
+    if isinstance(value, dict):
+        return "inside" if any(_dated(v) for v in value.values()) else False
+    return False
+
+
+def _undated(value: Any) -> Any:
+    """`value` with each date or time inside it as its ISO 8601 string."""
+    if isinstance(value, datetime.date | datetime.time):
+        return value.isoformat().replace("+00:00", "Z")
+    if isinstance(value, list):
+        return [_undated(v) for v in value]
+    if isinstance(value, dict):
+        return {k: _undated(v) for k, v in value.items()}
+    return value
+
+
 def _canonical(value: Any) -> str:
     return json.dumps(value, sort_keys=True)
+
+
+def _same(value: Any) -> str:
+    """Equal values give equal keys: 1 and 1.0 are one value (the scenario reads both as 1.0)."""
+
+    def numbers(v: Any) -> Any:
+        if isinstance(v, int) and not isinstance(v, bool):
+            return float(v)
+        if isinstance(v, list):
+            return [numbers(x) for x in v]
+        if isinstance(v, dict):
+            return {k: numbers(x) for k, x in v.items()}
+        return v
+
+    return json.dumps(numbers(value), sort_keys=True)
 
 
 def apply_overrides(data: Mapping[str, Any], overrides: Iterable[tuple[str, Any]]) -> dict:
@@ -244,6 +289,16 @@ def make_plan(
     the option."""
     if trials < 1:
         raise HilError(f"--trials: must be at least 1, got {trials}")
+    points_count = math.prod(len(o.values) for o in overrides)
+    if points_count * trials > MAX_TRIALS:
+        split = "split it: fewer values, or --seed and --trials in parts"
+        if overrides:
+            raise HilError(
+                f"--set: {points_count} grid points x {count(trials, 'trial')} = "
+                f"{points_count * trials} trials; at most {MAX_TRIALS} in one batch or sweep "
+                f"({split})"
+            )
+        raise HilError(f"--trials: {trials} trials; at most {MAX_TRIALS} in one batch ({split})")
     check_controller(controller, external=False, what="a batch")
     keys = [o.key for o in overrides]
     for key in keys:
@@ -257,18 +312,23 @@ def make_plan(
     with tempfile.TemporaryDirectory(prefix="softhil-set-") as scratch:
         for override in overrides:  # one value at a time: the error names its option
             for value in override.values:
-                _check(data, ((override.key, value),), first, Path(scratch), override.option)
+                try:
+                    _check(data, ((override.key, value),), first, Path(scratch), override.option)
+                except ScenarioError as exc:
+                    raise _hinted(exc, override) from None
         points = tuple(
             tuple(zip(keys, combination, strict=True))
             for combination in itertools.product(*(o.values for o in overrides))
         )
         if len(overrides) > 1:
+            if len(points) > CHECK_NOTE_POINTS:  # tens of milliseconds each
+                note(f"checking {len(points)} grid points before anything runs")
             for point in points:
                 label = " ".join(f"{k}={_canonical(v)}" for k, v in point)
                 _check(data, point, first, Path(scratch), label)
     out = out if out is not None else Path("runs") / f"{base.name}-{kind}-{first}"
-    count = len(points) * trials
-    width = max(3, len(str(count - 1)))
+    total = len(points) * trials
+    width = max(3, len(str(total - 1)))
     specs = []
     for p, point in enumerate(points):
         for t, trial_seed in enumerate(seeds):
@@ -297,6 +357,21 @@ def make_plan(
         seeds=seeds,
         trials=tuple(specs),
     )
+
+
+def count(n: int, noun: str) -> str:
+    """'1 trial', '2 trials'."""
+    return f"{n} {noun}" if n == 1 else f"{n} {noun}s"
+
+
+def _hinted(exc: ScenarioError, override: Override) -> ScenarioError:
+    """An unknown key that --set took for a [robot] key (its first part is no section) says
+    that it is no section either: `camra.noise` is a typo of `camera`, not a robot key."""
+    first = override.option.partition("=")[0].strip().split(".")[0]
+    if override.key.startswith(f"robot.{first}") and f"robot.{first}: unknown key" in str(exc):
+        known = ", ".join(sorted(SECTIONS - {"robot", "seed"}))
+        return ScenarioError(f"{exc}; {first} is not a top-level key either ({known})")
+    return exc
 
 
 def _anchored(data: dict, source: Path) -> dict:
@@ -522,7 +597,7 @@ def _run_local(
         # a second interrupt, see _stop_pool) and those that finished are reported
         stopping.set()
         try:
-            _stop_pool(pool)
+            _stop_pool(pool, futures)
         finally:
             for future, spec in futures.items():
                 if future not in reported and future.done() and not future.cancelled():
@@ -564,30 +639,32 @@ def _worker_start(stopping: Any) -> None:
     signal.signal(signal.SIGTERM, terminate)
 
 
-def _stop_pool(pool: ProcessPoolExecutor) -> None:
+def _stop_pool(pool: ProcessPoolExecutor, futures: Iterable[Future[Any]]) -> None:
     """After the batch's interrupt: drop the trials not started and wait for the running ones
     to finish. A second interrupt (Ctrl-C) while they run stops them: each worker gets
     SIGTERM, and its trial ends as a terminated run, keeping what it recorded; a third kills
-    the workers."""
-    try:
-        pool.shutdown(wait=True, cancel_futures=True)
-        return
-    except BaseException:  # noqa: BLE001 - the second interrupt: the first one is re-raised
-        note("stopping the running trials (their folders keep what they recorded)")
-        _signal_workers(pool, signal.SIGTERM)
-    try:
-        pool.shutdown(wait=True)
-    except BaseException:  # noqa: BLE001 - the third
-        _signal_workers(pool, signal.SIGKILL)
-        with contextlib.suppress(BaseException):
-            pool.shutdown(wait=True)
-
-
-def _signal_workers(pool: ProcessPoolExecutor, signum: int) -> None:
-    for process in list((getattr(pool, "_processes", None) or {}).values()):
-        with contextlib.suppress(ProcessLookupError, ValueError, AttributeError):
-            if process.pid is not None:
-                os.kill(process.pid, signum)
+    the workers. The wait is on the trials, not on the pool's shutdown: an interrupted
+    Thread.join takes the pool's manager thread for stopped (CPython 3.11), and a later
+    shutdown would return at once with the trials still running."""
+    processes = list((getattr(pool, "_processes", None) or {}).values())
+    for future in futures:  # the trials not started; cancelled here, since wait() never
+        future.cancel()  # counts one that shutdown(cancel_futures=True) cancels as done
+    running = [future for future in futures if not future.done()]
+    pool.shutdown(wait=False)
+    for signum in (None, signal.SIGTERM, signal.SIGKILL):
+        if signum is not None:
+            if signum == signal.SIGTERM:
+                note("stopping the running trials (their folders keep what they recorded)")
+            for process in processes:
+                with contextlib.suppress(ProcessLookupError, ValueError, AttributeError):
+                    if process.pid is not None and process.exitcode is None:
+                        os.kill(process.pid, signum)
+        try:
+            wait(running)
+            return
+        except BaseException:  # noqa: BLE001 - the next interrupt; the first is re-raised
+            if signum == signal.SIGKILL:
+                return
 
 
 def connect(address: str) -> Any:
@@ -858,7 +935,7 @@ def plot(plan: Plan, content: Mapping[str, Any]) -> bytes:
         ax.set_visible(False)
     failed = content["failed"]
     fig.suptitle(
-        f"{plan.kind} of {plan.scenario}: {len(trials)} trials"
+        f"{plan.kind} of {plan.scenario}: {count(len(trials), 'trial')}"
         + (f", {failed} failed" if failed else ""),
         fontsize=10,
     )

@@ -297,15 +297,38 @@ def _robot_section(raw: Any, file: str, key: str) -> Any:
     from hil.robots import robot_kind
 
     if not isinstance(raw, dict):
-        raise _fail(file, key, f"must be a table, got {type(raw).__name__}")
+        raise _fail(file, key, f"must be a table, got {shown(raw)}")
     kind = raw.get("kind", "planar_arm")
     if not isinstance(kind, str):
-        raise _fail(file, f"{key}.kind", f"must be a string, got {kind!r}")
+        raise _fail(file, f"{key}.kind", f"must be a string, got {shown(kind)}")
     try:
         robot = robot_kind(kind)
     except HilError as exc:
         raise _fail(file, f"{key}.kind", str(exc)) from None
     return _build(robot.spec_class, raw, file, key)
+
+
+def shown(value: Any) -> str:
+    """A value as TOML writes it, for a message: true, 1.5, 'text', a table, an array, or a
+    date or time that needs quotes to be the string it was meant as."""
+    import datetime as dt
+
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, dict):
+        return "a table"
+    if isinstance(value, list):
+        return "an array"
+    if isinstance(value, dt.datetime):
+        text = value.isoformat()
+        if value.utcoffset() == dt.timedelta(0):
+            text = text.removesuffix("+00:00") + "Z"
+        return f"the TOML date-time {text} (quote it)"
+    if isinstance(value, dt.date):
+        return f"the TOML date {value.isoformat()} (quote it)"
+    if isinstance(value, dt.time):
+        return f"the TOML time {value.isoformat()} (quote it)"
+    return repr(value)
 
 
 def fail(file: str, key: str, reason: str) -> ScenarioError:
@@ -319,7 +342,7 @@ def _fail(file: str, key: str, reason: str) -> ScenarioError:
 
 def _build(cls: type, data: Any, file: str, key: str) -> Any:
     if not isinstance(data, dict):
-        raise _fail(file, key, f"must be a table, got {type(data).__name__}")
+        raise _fail(file, key, f"must be a table, got {shown(data)}")
     hints = typing.get_type_hints(cls)
     if cls is Scenario:
         hints["robot"] = RobotSection
@@ -332,8 +355,8 @@ def _build(cls: type, data: Any, file: str, key: str) -> Any:
         name = aliases.get(raw_name, "" if raw_name in display else raw_name)
         sub = f"{key}.{raw_name}" if key else raw_name
         if name not in known:
-            shown = [display.get(k, k) for k in known if k != "source" or cls is not Scenario]
-            allowed = ", ".join(shown)
+            names = [display.get(k, k) for k in known if k != "source" or cls is not Scenario]
+            allowed = ", ".join(names)
             raise _fail(file, sub, f"unknown key (allowed: {allowed})")
         if raw == [] and name in _NOT_EMPTY.get(cls, {}):
             raise _fail(file, sub, _NOT_EMPTY[cls][name])
@@ -359,33 +382,33 @@ def _convert(hint: Any, raw: Any, file: str, key: str) -> Any:
         return raw
     if hint is bool:
         if not isinstance(raw, bool):
-            raise _fail(file, key, f"must be true or false, got {raw!r}")
+            raise _fail(file, key, f"must be true or false, got {shown(raw)}")
         return raw
     if hint is float:
         if isinstance(raw, bool) or not isinstance(raw, int | float):
-            raise _fail(file, key, f"must be a number, got {raw!r}")
+            raise _fail(file, key, f"must be a number, got {shown(raw)}")
         try:
             value = float(raw)
         except OverflowError:
             raise _fail(file, key, "must be finite, got a number too large") from None
         if not math.isfinite(value):
-            raise _fail(file, key, f"must be finite, got {raw!r}")
+            raise _fail(file, key, f"must be finite, got {shown(raw)}")
         return value
     if hint is bool:
         if not isinstance(raw, bool):
-            raise _fail(file, key, f"must be true or false, got {raw!r}")
+            raise _fail(file, key, f"must be true or false, got {shown(raw)}")
         return raw
     if hint is int:
         if isinstance(raw, bool) or not isinstance(raw, int):
-            raise _fail(file, key, f"must be an integer, got {raw!r}")
+            raise _fail(file, key, f"must be an integer, got {shown(raw)}")
         return raw
     if hint is str:
         if not isinstance(raw, str):
-            raise _fail(file, key, f"must be a string, got {raw!r}")
+            raise _fail(file, key, f"must be a string, got {shown(raw)}")
         return raw
     if origin is tuple:
         if not isinstance(raw, list):
-            raise _fail(file, key, f"must be an array, got {raw!r}")
+            raise _fail(file, key, f"must be an array, got {shown(raw)}")
         if len(args) == 2 and args[1] is Ellipsis:
             return tuple(_convert(args[0], item, file, f"{key}[{i}]") for i, item in enumerate(raw))
         if len(raw) != len(args):
@@ -396,7 +419,7 @@ def _convert(hint: Any, raw: Any, file: str, key: str) -> Any:
         )
     if origin is dict:
         if not isinstance(raw, dict):
-            raise _fail(file, key, f"must be a table, got {raw!r}")
+            raise _fail(file, key, f"must be a table, got {shown(raw)}")
         return {k: _convert(args[1], v, file, f"{key}.{k}") for k, v in raw.items()}
     if isinstance(hint, type) and hasattr(hint, "__dataclass_fields__"):
         return _build(hint, raw, file, key)
@@ -668,6 +691,8 @@ def log_start(s: Scenario) -> float:
     if instant.tzinfo is None:
         instant = instant.replace(tzinfo=dt.UTC)
     start = instant.timestamp()
+    if start < 0:  # a CAN log stamps seconds since the epoch; candump and BLF take no sign
+        raise ValueError(f"{text!r} is before 1970-01-01T00:00:00Z, the CAN log stamps' epoch")
     last = dt.datetime(9999, 12, 31, 23, 59, 59, tzinfo=dt.UTC).timestamp()
     if start + s.duration > last:  # every frame's stamp must be a date the log formats write
         raise ValueError(

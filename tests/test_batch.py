@@ -499,6 +499,9 @@ def test_the_terminal_names_five_warned_trials_and_counts_the_rest(
         ("controller.crossover=1,1", "repeated"),
         ("controller.crossover=[1", "not a TOML value"),
         ("seed=1,2", "use --seed and --trials"),
+        ("controller.crossover=1,1.0", "repeated"),  # the same number
+        ("camra.noise=0.001", "robot.camra: unknown key"),
+        ("camra.noise=0.001", "; camra is not a top-level key either (bus, camera, "),
     ],
 )
 def test_set_errors_are_one_line_before_anything_runs(
@@ -509,6 +512,54 @@ def test_set_errors_are_one_line_before_anything_runs(
     assert code == 1 and len(err) == 1, err
     assert err[0].startswith(f"hil: error: --set {option.partition('=')[0]}") and reason in err[0]
     assert not out.exists()
+
+
+def test_a_bare_date_in_set_is_the_string_it_was_typed_as(builtins: Path, tmp_path: Path) -> None:
+    """A bare word is a string, and so is an unquoted date: `recording.start=2016-01-01T00:00:00Z`
+    sweeps the instant the README writes that way (it was a TypeError traceback)."""
+    option = batch.parse_set("recording.start=2016-01-01T00:00:00Z,1979-05-27T07:32:00Z")
+    assert option.values == ("2016-01-01T00:00:00Z", "1979-05-27T07:32:00Z")
+    assert batch.parse_set("a.b=[1979-05-27]").values == (["1979-05-27"],)
+    plan = batch.make_plan(builtins / "short.toml", kind="sweep", command="c",
+                           out=tmp_path / "p", trials=1, overrides=[option])  # fmt: skip
+    texts = [tomllib.loads(spec.scenario_text)["recording"]["start"] for spec in plan.trials]
+    assert texts == ["2016-01-01T00:00:00Z", "1979-05-27T07:32:00Z"]
+
+
+def test_a_batch_too_big_is_refused_before_anything_is_checked(
+    builtins: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """10^6 grid points or 10^8 seeds were planned in silence for minutes (and GB)."""
+    values = ",".join(str(0.5 + i / 1000) for i in range(1000))
+    out = tmp_path / "never"
+    code, _, err = hil(capsys, "sweep", "short", "--set", f"controller.crossover={values}",
+                       "--set", f"camera.noise={values}", "--out", out)  # fmt: skip
+    assert code == 1 and err == [
+        "hil: error: --set: 1000000 grid points x 1 trial = 1000000 trials; at most "
+        f"{batch.MAX_TRIALS} in one batch or sweep (split it: fewer values, or --seed and "
+        "--trials in parts)"
+    ]
+    code, _, err = hil(capsys, "batch", "short", "--trials", 100_000_000, "--out", out)
+    assert code == 1 and err[0].startswith("hil: error: --trials: 100000000 trials; at most ")
+    assert not out.exists()
+    assert batch.MAX_TRIALS == 10_000
+    noted = batch.make_plan(
+        builtins / "short.toml",
+        kind="sweep",
+        command="c",
+        out=out,
+        trials=1,
+        overrides=[
+            batch.parse_set("camera.noise=0,0.001,0.002"),
+            batch.parse_set("controller.crossover=" + ",".join(values.split(",")[:30])),
+        ],
+    )
+    assert len(noted.points) == 3 * 30 > batch.CHECK_NOTE_POINTS
+    assert capsys.readouterr().err.splitlines() == [
+        "hil: note: checking 90 grid points before anything runs"
+    ]  # fmt: skip
+    assert len(batch.make_plan(builtins / "short.toml", kind="batch", command="c", out=out,
+                               trials=batch.MAX_TRIALS).trials) == batch.MAX_TRIALS  # fmt: skip
 
 
 def test_parse_set_values_and_the_robot_fallback() -> None:

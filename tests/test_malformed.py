@@ -115,6 +115,11 @@ SCENARIOS = [
         edit(("[task]", '[recording]\nstart = "yesterday"\n\n[task]')),
         "recording.start",
     ),  # noqa: E501
+    (
+        "start-before-1970",
+        edit(("[task]", '[recording]\nstart = "1900-01-01T00:00:00Z"\n\n[task]')),
+        "recording.start: '1900-01-01T00:00:00Z' is before 1970-01-01T00:00:00Z",
+    ),  # noqa: E501
     ("not-toml", "name = \n[[[", "not valid TOML"),
     ("empty-file", "", "name"),
 ]
@@ -130,6 +135,32 @@ def test_bad_scenario_is_one_line_naming_the_key(
     line = one_line(capsys, code, "hil: error: ")
     assert key in line
     assert not (tmp_path / "out").exists()  # validated before anything was written
+
+
+@pytest.mark.parametrize(
+    ("edits", "said"),
+    [
+        ((("[task]", "[recording]\nstart = 2016-01-01T00:00:00Z\n\n[task]"),),
+         "recording.start: must be a string, got the TOML date-time 2016-01-01T00:00:00Z "
+         "(quote it)"),
+        ((("latency_compensation = true", "latency_compensation = 1"),),
+         "controller.latency_compensation: must be true or false, got 1"),
+        ((("duration = 10.0", "duration = true"),), "duration: must be a number, got true"),
+        ((("duration = 10.0", "duration = {a = 1}"),), "duration: must be a number, got a table"),
+        ((("duration = 10.0", "duration = [1]"),), "duration: must be a number, got an array"),
+        ((("duration = 10.0", 'duration = "ten"'),), "duration: must be a number, got 'ten'"),
+        ((("duration = 10.0", "duration = 1979-05-27"),),
+         "duration: must be a number, got the TOML date 1979-05-27 (quote it)"),
+    ],
+)  # fmt: skip
+def test_a_wrong_value_is_shown_as_toml_writes_it(
+    tmp_path: Path, edits: tuple[tuple[str, str], ...], said: str
+) -> None:
+    path = tmp_path / "bad.toml"
+    path.write_text(edit(*edits))
+    with pytest.raises(HilError) as error:
+        load_scenario(path)
+    assert str(error.value) == f"{path}: {said}"
 
 
 def test_binary_scenario_and_folder_and_missing_file(

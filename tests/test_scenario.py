@@ -87,7 +87,7 @@ CASES: dict[str, tuple[str, str, str]] = {
     "unknown top-level key": (MINIMAL + 'colour = "red"\n', "colour", "unknown key (allowed: "),
     "unknown nested key": (MINIMAL + "[camera]\nfps = 30\n", "camera.fps", "unknown key"),
     "wrong type": ('name = "t"\nseed = 1\nduration = "ten"\n', "duration", "must be a number"),
-    "bool for a number": ('name = "t"\nseed = 1\nduration = true\n', "duration", "got True"),
+    "bool for a number": ('name = "t"\nseed = 1\nduration = true\n', "duration", "got true"),
     "bool for an integer": ('name = "t"\nseed = true\nduration = 1.0\n', "seed", "an integer"),
     "float for an integer": ('name = "t"\nseed = 1.5\nduration = 1.0\n', "seed", "an integer"),
     "missing seed": ('name = "t"\nduration = 1.0\n', "seed", "missing required key"),

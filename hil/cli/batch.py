@@ -10,7 +10,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from hil.batch import Execution, Override, Plan, make_plan, parse_set, run_plan
+from hil.batch import Execution, Override, Plan, count, make_plan, parse_set, run_plan
 from hil.errors import HilError
 from hil.scenario import resolve_scenario
 
@@ -181,7 +181,8 @@ def _command(args: argparse.Namespace, kind: str) -> str:
 def _print(plan: Plan, content: Mapping[str, Any]) -> None:
     trials = content["trials"]
     print(
-        f"{plan.scenario}: {plan.kind} of {len(trials)} trials, {content['completed']} completed"
+        f"{plan.scenario}: {plan.kind} of {count(len(trials), 'trial')}, {content['completed']} "
+        "completed"
         + (f", success rate {content['success_rate']:.0%}" if "success_rate" in content else "")
     )
     for name, stats in content["aggregate"].items():
