@@ -635,6 +635,52 @@ def test_record_stops_on_ctrl_c_with_a_complete_file(tmp_path: Path) -> None:
     assert [key(m) for m in read_log(path)] == [key(m) for m in frames]
 
 
+def test_a_recording_whose_disk_fills_keeps_the_frames_before(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A live bus cannot be recorded again: when a write fails (a full disk), the frames before
+    it stay in the file and the error says how many (the file used to be removed)."""
+    import errno
+
+    from hil.bustools import record as recording
+
+    real = recording.open_writer
+
+    class FullAfterTwo:
+        def __init__(self, path: Path) -> None:
+            self.writer, self.count = real(path), 0
+
+        def on_message_received(self, msg: can.Message) -> None:
+            if self.count == 2:
+                raise OSError(errno.ENOSPC, "No space left on device")
+            self.count += 1
+            self.writer.on_message_received(msg)
+
+        def stop(self) -> None:
+            self.writer.stop()
+
+    monkeypatch.setattr(recording, "open_writer", FullAfterTwo)
+    frames = [m for m, _, _ in softhil_frames(4)]
+    path = tmp_path / "full.log"
+    with pytest.raises(LogError) as error:
+        record(_InterruptedBus(frames), path)
+    assert str(error.value) == (
+        f"{path}: cannot write frame 3: No space left on device; the 2 frames before it are kept"
+    )
+    assert [key(m) for m in read_log(path)] == [key(m) for m in frames[:2]]
+
+
+def test_a_recording_that_cannot_be_finished_is_kept_as_it_is(tmp_path: Path) -> None:
+    """/dev/full takes writes and refuses them at the flush: the error says so and the file
+    (here the link) is not removed."""
+    path = tmp_path / "rec.log"
+    path.symlink_to("/dev/full")
+    frames = [m for m, _, _ in softhil_frames(2)]
+    with pytest.raises(LogError, match=r"cannot finish writing: .*; what was written is kept"):
+        record(_InterruptedBus(frames), path, overwrite=True)
+    assert path.is_symlink()
+
+
 def test_sigterm_becomes_keyboard_interrupt() -> None:
     with pytest.raises(KeyboardInterrupt), sigterm_interrupts():
         os.kill(os.getpid(), signal.SIGTERM)

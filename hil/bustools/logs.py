@@ -289,15 +289,19 @@ def open_writer(path: Path) -> can.io.generic.MessageWriter:
         raise LogError(f"{path}: cannot write: {exc}") from exc
 
 
-def finish_writer(writer: can.io.generic.MessageWriter, path: Path, complete: bool) -> None:
-    """Flush and close the writer; remove the file unless it is complete."""
+def finish_writer(
+    writer: can.io.generic.MessageWriter, path: Path, complete: bool, keep: bool = False
+) -> None:
+    """Flush and close the writer; remove the file unless it is complete, or `keep` (a live
+    recording: frames that reached the file cannot be recorded again)."""
     try:
         writer.stop()
     except Exception as exc:
         complete = False
-        raise LogError(f"{path}: cannot finish writing: {exc}") from exc
+        kept = "; what was written is kept" if keep else ""
+        raise LogError(f"{path}: cannot finish writing: {exc}{kept}") from exc
     finally:
-        if not complete:
+        if not complete and not keep:
             with contextlib.suppress(OSError):
                 path.unlink()
 

@@ -3,7 +3,8 @@
 The file is written through python-can's writer for its suffix (`can.Logger`), flushed and
 closed in a `finally`, so Ctrl-C and SIGTERM (turned into KeyboardInterrupt while recording)
 leave a complete, readable file. An existing file is refused unless `overwrite`; if writing
-itself fails, the file is removed rather than left half-written.
+itself fails (a full disk), the frames written before stay in the file, since a live bus cannot
+be recorded again, and the error says how many.
 """
 
 from __future__ import annotations
@@ -53,20 +54,28 @@ def record(
         raise LogError(f"{path}: exists; pass --overwrite to replace it")
     writer = open_writer(path)
     written = 0
-    complete = False
+    failure: OSError | None = None
     try:
         with sigterm_interrupts():
             try:
                 if on_ready is not None:
                     on_ready()
                 for msg in live_frames(bus, idle_timeout):
-                    writer.on_message_received(msg)
+                    try:
+                        writer.on_message_received(msg)
+                    except OSError as exc:  # a full disk: keep what is written
+                        failure = exc
+                        break
                     written += 1
                     if count is not None and written >= count:
                         break
             except KeyboardInterrupt:
                 pass  # the normal way to stop recording
-        complete = True
     finally:
-        finish_writer(writer, path, complete)
+        finish_writer(writer, path, complete=False, keep=True)
+    if failure is not None:
+        raise LogError(
+            f"{path}: cannot write frame {written + 1}: {failure.strerror or failure}; the "
+            f"{written} frames before it are kept"
+        )
     return written
