@@ -692,6 +692,39 @@ def test_sigterm_becomes_keyboard_interrupt() -> None:
     assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL
 
 
+def test_a_csv_log_has_no_direction_to_choose_or_show(
+    tmp_path: Path, run_log: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """python-can's CSV has no direction column: --direction R or T cannot choose frames from
+    it (R used to send every frame, the plant's too), and a dump shows no R/T it does not
+    know; the raw lines still read back as a .log."""
+    csv = tmp_path / "run.csv"
+    write_log(csv, read_log(run_log))
+    for direction in ("R", "T"):
+        argv = [
+            "bus",
+            "replay",
+            str(csv),
+            "--direction",
+            direction,
+            "--bus",
+            "loopback:127.0.0.1:9",
+        ]
+        assert main(argv) == 1
+        assert one_error_line(capsys) == (
+            f"hil: error: {csv}: a .csv log has no direction column, so --direction {direction} "
+            "cannot choose its frames; use --direction all, or a .log, .asc, .blf or .trc log"
+        )
+    assert main(["bus", "dump", "--log", str(csv), "--raw", "--count", "2"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert len(lines) == 2 and not any(line.endswith((" R", " T")) for line in lines), lines
+    copy = tmp_path / "copy.log"
+    copy.write_text("\n".join(lines) + "\n")
+    assert [key(m) for m in read_log(copy)] == [key(m) for m in read_log(csv)][:2]
+    assert main(["bus", "dump", "--log", str(run_log), "--raw", "--count", "1"]) == 0
+    assert capsys.readouterr().out.rstrip().endswith((" R", " T"))
+
+
 def test_record_refuses_to_overwrite(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     path = tmp_path / "exists.log"
     path.write_text("precious\n")

@@ -67,16 +67,19 @@ def dump(
     count: int | None,
     out: TextIO,
     tally: DumpCount | None = None,
+    direction: bool = True,
 ) -> DumpCount:
     """Print the selected frames; stops after `count` of them or at the end of `frames`.
-    Counts into `tally` as it goes, so a caller that is interrupted still has the counts."""
+    Counts into `tally` as it goes, so a caller that is interrupted still has the counts.
+    `direction` False: the frames come from a log without one (.csv), no R/T is shown."""
     tally = DumpCount() if tally is None else tally
     for msg in frames:
         if count is not None and tally.shown >= count:
             break
         if not selection.matches(msg):
             continue
-        line = candump_text(msg, str(msg.channel) if msg.channel is not None else "can0")
+        channel = str(msg.channel) if msg.channel is not None else "can0"
+        line = candump_text(msg, channel, direction)
         text, known = describe(database, msg)
         if known:
             tally.decoded += 1

@@ -78,15 +78,16 @@ class FrameFilter:
         return name is not None and any(fnmatch.fnmatchcase(name, p) for p in self.names)
 
 
-def candump_text(msg: can.Message, channel: str = "can0") -> str:
-    """The message as one candump -L line (what `.log` files hold), with the R/T flag."""
+def candump_text(msg: can.Message, channel: str = "can0", direction: bool = True) -> str:
+    """The message as one candump -L line (what `.log` files hold), with the R/T flag unless
+    `direction` is False (a log that does not record it)."""
     frame_id = f"{msg.arbitration_id:08X}" if msg.is_extended_id else f"{msg.arbitration_id:03X}"
     if msg.is_remote_frame:
         payload = f"R{msg.dlc}" if msg.dlc else "R"
     else:
         payload = bytes(msg.data).hex().upper()
-    direction = "R" if msg.is_rx else "T"
-    return f"({msg.timestamp:.6f}) {channel} {frame_id}#{payload} {direction}"
+    flag = (" R" if msg.is_rx else " T") if direction else ""
+    return f"({msg.timestamp:.6f}) {channel} {frame_id}#{payload}{flag}"
 
 
 def dbc_message(database: Database, msg: can.Message) -> Message | None:

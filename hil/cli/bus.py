@@ -339,7 +339,8 @@ def _dump(args: argparse.Namespace) -> int:
     frames, bus = _frames_of(args)
     tally = DumpCount(raw=args.raw)
     try:
-        dump(frames, database, selection, args.raw, args.count, sys.stdout, tally)
+        directed = not (args.log and str(args.log).lower().endswith(".csv"))
+        dump(frames, database, selection, args.raw, args.count, sys.stdout, tally, directed)
     except KeyboardInterrupt:
         pass
     finally:
@@ -380,6 +381,11 @@ def _replay(args: argparse.Namespace) -> int:
 
     database = load_database()
     selection = FrameFilter.parse(args.id or [], args.message or [], database)
+    if args.direction != "all" and str(args.file).lower().endswith(".csv"):
+        raise HilError(
+            f"{args.file}: a .csv log has no direction column, so --direction {args.direction} "
+            "cannot choose its frames; use --direction all, or a .log, .asc, .blf or .trc log"
+        )
     messages = read_log(args.file)
     if not args.lockstep and not args.speed >= MIN_SPEED:
         raise HilError(f"--speed must be at least {MIN_SPEED:g} (inf: no waits), got {args.speed}")
