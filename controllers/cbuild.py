@@ -31,6 +31,22 @@ def cache_root() -> Path:
     return (Path(xdg) if xdg else Path.home() / ".cache") / "softhil"
 
 
+def cache_folder(folder: Path, error: type[Exception] = CompileError) -> Path:
+    """`folder` in the cache, made if needed; `error` in one line naming the cache (and the
+    variable that chose it) if it cannot be made or written."""
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        if not os.access(folder, os.W_OK | os.X_OK):
+            raise PermissionError(13, "Permission denied")
+    except OSError as exc:
+        name = "SOFTHIL_CACHE_DIR" if os.environ.get("SOFTHIL_CACHE_DIR") else "the cache"
+        raise error(
+            f"{name} {cache_root()}: cannot make or write {folder} ({exc.strerror or exc}); "
+            "set SOFTHIL_CACHE_DIR to a folder you can write"
+        ) from None
+    return folder
+
+
 def compiler() -> str:
     """The C compiler command: $CC or gcc."""
     return os.environ.get("CC", "gcc")
@@ -61,7 +77,7 @@ def compile_library(
         return target
     if shutil.which(cc) is None:
         raise error(f"C compiler {cc!r} not found: install gcc or set CC")
-    target.parent.mkdir(parents=True, exist_ok=True)
+    cache_folder(target.parent, error)
     with tempfile.TemporaryDirectory(prefix=f".{stem}-", dir=target.parent) as work:
         c_file = source if isinstance(source, Path) else Path(work) / f"{stem}.c"
         if not isinstance(source, Path):

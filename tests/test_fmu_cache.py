@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 import shutil
 import subprocess
@@ -180,3 +181,34 @@ def test_a_build_finishing_second_keeps_the_sound_entry_in_place(
     assert cache_damage(ours.path.parent) is None
     with FmuSlave(ours, "kept") as slave:
         slave.do_step(0.0, 1e-3)
+
+
+@pytest.mark.parametrize("where", ["under-a-file", "read-only"])
+def test_a_cache_folder_that_cannot_be_used_is_one_line(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str], where: str
+) -> None:
+    """SOFTHIL_CACHE_DIR under a file, or read-only: one line naming the variable and the
+    folder, from `hil fmu build` and from `hil run` (a FileNotFoundError or OSError traceback
+    before, and a run folder without a summary); the run's summary.json says why it failed."""
+    from hil.cli import main
+
+    if where == "under-a-file":
+        (tmp_path / "a-file").write_text("x")
+        cache = tmp_path / "a-file" / "cache"
+    else:
+        cache = tmp_path / "ro"
+        cache.mkdir()
+        cache.chmod(0o555)
+        if os.access(cache, os.W_OK):  # root ignores the mode: a read-only bind is not here
+            pytest.skip("this user writes into read-only folders")
+    monkeypatch.setenv("SOFTHIL_CACHE_DIR", str(cache))
+    assert main(["fmu", "build", "GasSource", "--force"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"hil: error: SOFTHIL_CACHE_DIR {cache}"), err
+    assert err[0].endswith("; set SOFTHIL_CACHE_DIR to a folder you can write")
+    out = tmp_path / "run"
+    assert main(["run", "--out", str(out), "--no-progress"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"hil: error: SOFTHIL_CACHE_DIR {cache}"), err
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["status"] == "failed" and summary["error"] == err[0].removeprefix("hil: error: ")

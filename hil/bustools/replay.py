@@ -2,8 +2,9 @@
 
 Which frames: the direction flag of each frame selects them (`direction`: "R" the frames the
 logging node received, "T" those it transmitted, "all" both; a log without a direction, .csv,
-is replayed whole: `hil bus replay` refuses R or T for it), then the optional id/name filter. In a softhil run log (the plant's view)
-R are the controller's frames (SYNC, DriveCommand, ControllerState) and T the plant's.
+is replayed whole: `hil bus replay` refuses R or T for it), then the optional id/name filter.
+In a softhil run log (the plant's view) R are the controller's frames (SYNC, DriveCommand,
+ControllerState) and T the plant's.
 
 Timed (`speed` X): each frame leaves at (its log time - the first frame's log time) / X on the
 monotonic wall clock; X = 2 replays twice as fast.

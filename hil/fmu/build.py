@@ -35,7 +35,7 @@ from pathlib import Path
 
 import fmus
 from controllers import cbuild
-from controllers.cbuild import cache_root, compiler
+from controllers.cbuild import cache_folder, cache_root, compiler
 from hil.errors import BuildError
 from hil.fmu import spec as spec_module
 from hil.fmu.spec import ModelSpec, generate_header, generate_model_description, guid, load_spec
@@ -111,7 +111,7 @@ def build_fmu(name: str, *, force: bool = False) -> BuiltFmu:
         if damage is None:
             return built
         print(f"hil: note: rebuilt {name}: {damage}", file=sys.stderr)
-    target.parent.mkdir(parents=True, exist_ok=True)
+    cache_folder(target.parent, BuildError)
     work = Path(tempfile.mkdtemp(prefix=f".{name}-", dir=target.parent))
     try:
         _build_into(work, folder, spec, model_guid)
