@@ -193,6 +193,16 @@ class RecordFile:
                 os.close(fd)
 
 
+def _batch_input(path: Path) -> bool:
+    """True for a trial's scenario.toml as `hil batch` and `hil sweep` write it (its header)."""
+    try:
+        with path.open(encoding="utf-8", errors="replace") as file:
+            first = file.readline()
+    except OSError:
+        return False
+    return first.startswith(("# hil batch trial ", "# hil sweep trial "))
+
+
 class ResultsFolder:
     """A run's hold on its results folder: the lock, the manifest, and the refusals.
 
@@ -301,7 +311,42 @@ class ResultsFolder:
                     path.unlink()
                 except OSError as exc:
                     raise HilError(f"{path}: cannot remove: {_cause(exc)}") from None
-        self.written = [n for n in self._manifest() if (self.out / n).exists()]
+            elif path.is_dir() and not path.is_symlink() and name not in self.planned:
+                self._remove_folder(path)  # an earlier batch's trial this one does not have
+        self.written = [
+            n
+            for n in self._manifest()
+            if (self.out / n).exists() and not ((self.out / n).is_dir() and n not in self.planned)
+        ]  # a folder kept for a user's files there is no longer softhil's
+
+    def _remove_folder(self, path: Path) -> None:
+        """Remove a results folder an earlier run made here (a batch's trial): the files its
+        own manifest lists, then the folder if nothing else is in it (else it stays, noted)."""
+        inner = ResultsFolder(path, ())
+        names = inner._manifest()
+        if _batch_input(path / "scenario.toml"):  # the trial's input, written by its batch
+            names.append("scenario.toml")
+        for name in names:
+            entry = path / name
+            if name not in (LOCK,) and entry.is_file() and not entry.is_symlink():
+                try:
+                    entry.unlink()
+                except OSError as exc:
+                    raise HilError(f"{entry}: cannot remove: {_cause(exc)}") from None
+        left = sorted(p.name for p in path.iterdir() if p.name not in (MANIFEST, LOCK))
+        if left:
+            (path / MANIFEST).unlink(missing_ok=True)
+            self.notes.append(
+                f"kept {path}: an earlier batch's trial, it holds files softhil did not write "
+                f"({', '.join(left[:3])}{', ...' if len(left) > 3 else ''})"
+            )
+            return
+        for name in (MANIFEST, LOCK):
+            (path / name).unlink(missing_ok=True)
+        try:
+            path.rmdir()
+        except OSError as exc:
+            raise HilError(f"{path}: cannot remove: {_cause(exc)}") from None
 
     def _manifest(self) -> list[str]:
         try:

@@ -176,6 +176,30 @@ def test_overwrite_replaces_an_earlier_batch_and_keeps_foreign_files(
     assert load(out / "trial-000" / "summary.json")["status"] == "completed"
 
 
+def test_overwrite_with_fewer_trials_removes_the_earlier_batch_s_other_trials(
+    builtins: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A batch of 3 overwritten by a batch of 1: trial-001 and trial-002 were the earlier
+    batch's; their files go and so do they, unless a user's file is in one (then it stays,
+    holding only that file, with a note); the manifest lists only what is there."""
+    out = tmp_path / "batch"
+    argv = ["batch", "short", "--workers", 1, "--out", out, "--no-progress"]
+    code, _, _ = hil(capsys, *argv, "--trials", 3)
+    assert code == 0
+    (out / "trial-002" / "notes.txt").write_text("mine")
+    code, _, err = hil(capsys, *argv, "--trials", 1, "--overwrite")
+    assert code == 0, err
+    assert not (out / "trial-001").exists()
+    assert sorted(p.name for p in (out / "trial-002").iterdir()) == ["notes.txt"]
+    assert err[0] == (
+        f"hil: note: kept {out / 'trial-002'}: an earlier batch's trial, it holds files softhil "
+        "did not write (notes.txt)"
+    )
+    listed = (out / ".softhil-manifest").read_text().split()
+    assert "trial-000" in listed and "trial-001" not in listed and "trial-002" not in listed
+    assert [t["folder"] for t in load(out / "batch.json")["trials"]] == ["trial-000"]
+
+
 @pytest.mark.parametrize("signal_name", ["interrupted", "terminated"])
 def test_a_stopped_batch_keeps_the_trials_that_finished(
     builtins: Path,
