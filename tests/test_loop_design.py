@@ -93,10 +93,14 @@ def test_hil_tune_out_is_a_png_file_and_its_path_is_printed(
         ("afile/x.png", "not a folder"),
         ("missing/x.png", "no such folder"),
         ("folder", "is a folder"),
+        ("newdir/", "names a folder (it ends in /)"),  # wrote newdir.png before
     ):
-        code, _, lines = _tune(capsys, "--out", str(tmp_path / out))
+        code, _, lines = _tune(capsys, "--out", str(tmp_path / out) + ("/" * out.endswith("/")))
         assert code == 1 and len(lines) == 1, out
-        assert f"--out {tmp_path / out}: " in lines[0] and reason in lines[0]
+        assert f"--out {tmp_path / out.rstrip('/')}" in lines[0] and reason in lines[0], lines
+    assert not (tmp_path / "newdir.png").exists()
+    code, _, lines = _tune(capsys, "--out", "")
+    assert code == 1 and lines == ["hil: error: --out: an empty file name; name the PNG file"]
     code, printed, _ = _tune(capsys, "--out", str(tmp_path / "bode"))
     assert code == 0 and (tmp_path / "bode.png").read_bytes()[:4] == b"\x89PNG"
     assert printed.splitlines()[-1].endswith(f": {tmp_path / 'bode.png'}")

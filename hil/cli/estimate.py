@@ -34,7 +34,7 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
         type=Path,
         help="scenario NAME or FILE (default: built-in)",
     )
-    tune.add_argument("--out", type=Path, help="Bode plot PNG (default: tune-NAME.png)")
+    tune.add_argument("--out", help="Bode plot PNG (default: tune-NAME.png)")
     tune.set_defaults(handler=_tune)
 
 
@@ -81,7 +81,7 @@ def _tune(args: argparse.Namespace) -> int:
         )
     c, T = scenario.controller, scenario.timing.control_period
     delay = effective_delay(estimator_delay(c.estimator, T, c.latency_compensation), T)
-    out = _png_path(args.out) if args.out else Path(f"tune-{scenario.name}.png")
+    out = _png_path(args.out) if args.out is not None else Path(f"tune-{scenario.name}.png")
     print(
         f"{scenario.name}: estimator {c.estimator} (latency compensation "
         f"{'on' if c.latency_compensation else 'off'}), effective delay {1e3 * delay:.1f} ms, "
@@ -103,9 +103,14 @@ def _tune(args: argparse.Namespace) -> int:
     return 0
 
 
-def _png_path(out: Path) -> Path:
+def _png_path(given: str) -> Path:
     """The Bode plot's file for --out: a PNG file (".png" added to a name without a suffix) in
     an existing folder; HilError naming the path otherwise."""
+    if not given:
+        raise HilError("--out: an empty file name; name the PNG file")
+    out = Path(given)
+    if given.endswith("/"):
+        raise HilError(f"--out {out}: names a folder (it ends in /); name the PNG file")
     if out.is_dir():
         raise HilError(f"--out {out}: is a folder; name the PNG file (e.g. {out / 'bode.png'})")
     if not out.suffix:
