@@ -1100,3 +1100,10 @@ def test_dump_attached_to_a_run_on_an_external_hub_sees_every_frame(tmp_path: Pa
     assert len(seen) == len(logged)
     key = lambda line: line.split()[2]  # noqa: E731 - ID#DATA
     assert sorted(map(key, seen)) == sorted(map(key, logged))
+
+
+def test_a_count_of_one_frame_is_singular() -> None:
+    from hil.bustools.dump import DumpCount
+
+    assert DumpCount(shown=1, decoded=1).line() == "1 frame, 1 decoded"
+    assert DumpCount(shown=0).line() == "0 frames, 0 decoded"

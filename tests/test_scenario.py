@@ -372,3 +372,17 @@ def test_every_command_taking_a_scenario_takes_a_built_in_name(
     main(argv)
     out, err = capsys.readouterr()
     assert expected in out + err and "no such scenario" not in err, (out, err)
+
+
+def test_the_default_scenario_shows_every_section() -> None:
+    """The README says default.toml shows every section: each table of a scenario is there,
+    as a table or (with its defaults) as a commented one."""
+    import typing
+    from dataclasses import fields, is_dataclass
+
+    text = DEFAULT_SCENARIO.read_text()
+    hints = typing.get_type_hints(Scenario)
+    tables = [f.name for f in fields(Scenario) if is_dataclass(hints[f.name]) or f.name == "robot"]
+    assert "recording" in tables and "task" in tables
+    for name in tables:
+        assert f"\n[{name}]" in text or f"\n# [{name}]" in text, name

@@ -52,7 +52,7 @@ class DumpCount:
 
     def line(self) -> str:
         known = "known to the DBC" if self.raw else "decoded"
-        text = f"{self.shown} frames, {self.decoded} {known}"
+        text = f"{self.shown} frame{'s' * (self.shown != 1)}, {self.decoded} {known}"
         if self.unknown:
             ids = ", ".join(f"0x{i:03X} x{n}" for i, n in sorted(self.unknown.items()))
             text += f", {sum(self.unknown.values())} unknown ({ids})"
