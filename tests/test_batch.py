@@ -293,14 +293,20 @@ def _batch_in_its_own_group(tmp_path: Path) -> tuple[subprocess.Popen[str], Path
 
 
 def _group_left(group: int) -> list[int]:
-    """Processes still in process group `group` (zombies aside)."""
-    left = []
-    for stat in Path("/proc").glob("[0-9]*/stat"):
-        with contextlib.suppress(OSError):
-            fields = stat.read_text().rpartition(")")[2].split()
-            if int(fields[2]) == group and fields[0] != "Z":
-                left.append(int(stat.parent.name))
-    return left
+    """Processes still in process group `group` (zombies aside) once those that end with the
+    batch have had up to 30 s to do so (a worker and the forkserver see the batch's pipes
+    close, then exit; on a loaded machine that is not at once)."""
+    deadline = time.monotonic() + 30.0
+    while True:
+        left = []
+        for stat in Path("/proc").glob("[0-9]*/stat"):
+            with contextlib.suppress(OSError):
+                fields = stat.read_text().rpartition(")")[2].split()
+                if int(fields[2]) == group and fields[0] != "Z":
+                    left.append(int(stat.parent.name))
+        if not left or time.monotonic() > deadline:
+            return left
+        time.sleep(0.1)
 
 
 def test_ctrl_c_at_a_terminal_lets_the_running_trial_finish(tmp_path: Path) -> None:
