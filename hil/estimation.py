@@ -27,7 +27,7 @@ from controllers.estimators import make_estimator
 from controllers.node import ESTIMATORS, CameraAssembler, ControllerConfig
 from controllers.protocol import CameraFrame, CameraMarker, DriveStatus, Protocol
 from hil.errors import HilError
-from hil.replay import config_beside, read_cycles, read_log
+from hil.replay import CSV_HAS_NO_DIRECTION, config_beside, read_cycles, read_log
 from hil.summary import read_signals
 
 Cycle = tuple[float, dict[int, DriveReading], list[MarkerFrame]]
@@ -104,21 +104,61 @@ def score(name: str, config: ControllerConfig, cycles: list[Cycle]) -> Estimator
     )
 
 
-def estimation_report(run: Path, plot: bool = True, log: Path | None = None) -> dict[str, Any]:
-    """Per estimator: `rms` and `max` curvature error against truth [1/m] over every cycle but
-    the first (nothing is measured before the first picture arrives), `gated` (share of camera
-    measurements rejected as outliers) and `update_time` [s]. The CAN log is `log`, by default
-    the one the run in `run` wrote (`_log_of`)."""
-    check_estimable(run)
+@dataclass(frozen=True)
+class RecordedRun:
+    """What the estimation report reads from a run's folder, every part of it checked."""
+
+    log: Path
+    config: ControllerConfig
+    signals: dict[str, np.ndarray]
+    truth: np.ndarray  # (cycles, segments) true curvature [1/m]
+    cycles: list[Cycle]
+
+
+def read_run(run: Path, log: Path | None = None) -> RecordedRun:
+    """The recorded inputs of the estimation report of the run in `run` (its CAN log `log`, by
+    default the one the run wrote, `_log_of`): HilError naming the file (and line) that is
+    missing, damaged, of another robot kind, or a CSV log."""
+    check_estimable(run, log)
     log = log or _log_of(run)
-    config = config_beside(log)
-    signals = read_signals(run / "signals.csv")
+    config = config_beside(
+        log,
+        "hil estimate needs the run's controller configuration (estimator, camera, arm) to "
+        "rebuild what its estimator was given",
+    )
+    if not isinstance(config, ControllerConfig):
+        raise HilError(
+            f"{log.parent / 'controller.json'}: the estimation report applies to planar-arm "
+            f"runs, not robot kind {getattr(config, 'robot', '?')!r}"
+        )
+    path = run / "signals.csv"
+    signals = read_signals(path)
+    for n in range(1, config.segments + 1):
+        if f"kappa_{n}" not in signals:
+            raise HilError(f"{path}: no column kappa_{n} (the true curvature of segment {n})")
     truth = np.column_stack([signals[f"kappa_{n}"] for n in range(1, config.segments + 1)])
     cycles = measured_cycles(log, config)
     if len(cycles) != len(truth):
         raise HilError(
             f"{run}: {len(cycles)} cycles in the CAN log but {len(truth)} rows in signals.csv"
         )
+    return RecordedRun(log, config, signals, truth, cycles)
+
+
+def estimation_report(
+    run: Path, plot: bool = True, log: Path | None = None, recorded: RecordedRun | None = None
+) -> dict[str, Any]:
+    """Per estimator: `rms` and `max` curvature error against truth [1/m] over every cycle but
+    the first (nothing is measured before the first picture arrives), `gated` (share of camera
+    measurements rejected as outliers) and `update_time` [s]. The CAN log is `log`, by default
+    the one the run in `run` wrote (`_log_of`); `recorded` is what `read_run` read, if it did."""
+    recorded = recorded or read_run(run, log)
+    config, signals, truth, cycles = (
+        recorded.config,
+        recorded.signals,
+        recorded.truth,
+        recorded.cycles,
+    )
     scores = {name: score(name, config, cycles) for name in ESTIMATORS}
     report: dict[str, Any] = {"chosen": config.estimator}
     for name, s in scores.items():
@@ -135,24 +175,45 @@ def estimation_report(run: Path, plot: bool = True, log: Path | None = None) -> 
     return report
 
 
-def check_estimable(run: Path) -> None:
+def check_estimable(run: Path, log: Path | None = None) -> None:
     """HilError unless the run in `run` is of a robot kind with this report (the planar arm's
-    curvature estimators), as its scenario.toml says; a folder without one is taken for an arm."""
+    curvature estimators), as its scenario.toml says, or without one its controller.json (a
+    folder with neither is taken for an arm); or if its CAN log (`log`, by default the one found
+    there) is a CSV, which cannot tell the plant's frames from the controller's. Reads only."""
     from hil.robots import robot_kind
 
+    kind, source = _robot_kind_of(run)
+    if kind is not None and not getattr(robot_kind(kind), "estimation_report", True):
+        raise HilError(
+            f"{run}: the estimation report applies to planar-arm runs, not robot kind {kind!r} "
+            f"({source})"
+        )
+    if log is None:
+        try:
+            log = _log_of(run)
+        except HilError:
+            return  # said when the report reads the log
+    if log.suffix.lower() == ".csv":
+        raise HilError(f"{log}: hil estimate cannot use a .csv log: {CSV_HAS_NO_DIRECTION}")
+
+
+def _robot_kind_of(run: Path) -> tuple[str | None, str]:
+    """The robot kind of the run in `run` and the file that says so: its scenario.toml's
+    [robot] kind, else its controller.json's `robot` (None where neither says)."""
     try:
         data = tomllib.loads((run / "scenario.toml").read_text(encoding="utf-8"))
     except (OSError, ValueError):
-        return
-    section = data.get("robot")
-    kind = section.get("kind", "planar_arm") if isinstance(section, dict) else "planar_arm"
-    if not isinstance(kind, str):
-        return
-    if not getattr(robot_kind(kind), "estimation_report", True):
-        raise HilError(
-            f"{run}: the estimation report applies to planar-arm runs, not robot kind {kind!r} "
-            "(scenario.toml)"
-        )
+        pass
+    else:
+        section = data.get("robot")
+        kind = section.get("kind", "planar_arm") if isinstance(section, dict) else "planar_arm"
+        return (kind if isinstance(kind, str) else None), "scenario.toml"
+    try:
+        data = json.loads((run / "controller.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None, "controller.json"
+    kind = data.get("robot", "planar_arm") if isinstance(data, dict) else None
+    return (kind if isinstance(kind, str) else None), "controller.json"
 
 
 def _log_of(run: Path) -> Path:

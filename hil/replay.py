@@ -91,6 +91,13 @@ class ReplayResult:
         }
 
 
+# why a python-can CSV log serves neither replay nor the estimation report
+CSV_HAS_NO_DIRECTION = (
+    "python-can's CSV has no direction column, so the controller's frames cannot be told from "
+    "the plant's (record with --can-log can.log, .asc, .blf or .trc)"
+)
+
+
 def read_cycles(messages: Iterable[can.Message], protocol: Protocol, source: str) -> list[Cycle]:
     """Split a plant-side log into cycles; ReplayError names the file and the problem."""
     cycles: list[Cycle] = []
@@ -148,17 +155,17 @@ def read_log(path: Path) -> list[can.Message]:
         raise ReplayError(str(exc)) from None
 
 
-def config_beside(log: Path) -> Any:
+def config_beside(
+    log: Path, missing: str = "give --scenario to say which controller to replay"
+) -> Any:
     """The controller configuration a run recorded beside its log (controller.json), of
-    whichever robot kind its `robot` key names (a fish run's is not the arm's)."""
+    whichever robot kind its `robot` key names (a fish run's is not the arm's); without one,
+    ReplayError ending in `missing` (what the caller needs it for, or how to do without)."""
     path = log.parent / "controller.json"
     try:
         return read_config(path.read_text())
     except FileNotFoundError:
-        raise ReplayError(
-            f"{path}: no controller.json beside the log; give --scenario to say which "
-            "controller to replay"
-        ) from None
+        raise ReplayError(f"{path}: no controller.json beside the log; {missing}") from None
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise ReplayError(f"{path}: {exc}") from None
 
@@ -313,11 +320,7 @@ def replay(
     softhil's, or `controller`, a user's command line (`hil.program`; always a process)."""
     check_controller(controller, external=False)
     if Path(log).suffix.lower() == ".csv":
-        raise ReplayError(
-            f"{log}: a .csv log cannot be replayed: python-can's CSV has no direction column, "
-            "so the controller's frames cannot be told from the plant's (record with --can-log "
-            "can.log, .asc, .blf or .trc)"
-        )
+        raise ReplayError(f"{log}: a .csv log cannot be replayed: {CSV_HAS_NO_DIRECTION}")
     protocol = Protocol()
     check_tolerances(protocol, tolerances or {})
     cycles = read_cycles(read_log(log), protocol, str(log))

@@ -75,6 +75,10 @@ class WriteError(HilError):
     """A results file could not be written (disk full, permissions): names the file and cause."""
 
 
+class ReadOnlyError(WriteError):
+    """A results folder that cannot be written (a read-only file system, no permission)."""
+
+
 def write_bytes(fd: int, data: bytes) -> int:
     """os.write; the one write of every results file (tests replace it to simulate ENOSPC)."""
     return os.write(fd, data)
@@ -264,6 +268,10 @@ class ResultsFolder:
                 )
                 continue
             except OSError as exc:
+                if exc.errno in (errno.EROFS, errno.EACCES, errno.EPERM):
+                    raise ReadOnlyError(
+                        f"results folder {self.out} is read-only ({_cause(exc)})"
+                    ) from None
                 raise HilError(f"results folder {self.out}: cannot lock: {_cause(exc)}") from None
             try:
                 _write_all(lock, fd, f"{os.getpid()}\n".encode())
@@ -364,11 +372,15 @@ class ResultsFolder:
 
 
 @contextlib.contextmanager
-def locked(out: Path) -> Iterator[None]:
+def locked(out: Path, writes: str) -> Iterator[None]:
     """Hold an existing results folder's lock, as a run does, while a command writes into it
-    after the run (`hil estimate`): refused while a run or another command holds it."""
+    after the run (`hil estimate`): refused while a run or another command holds it, and in a
+    folder that cannot be written, saying what the command `writes` there."""
     folder = ResultsFolder(out, ())
-    folder._lock()
+    try:
+        folder._lock()
+    except ReadOnlyError as exc:
+        raise ReadOnlyError(f"{exc}: {writes}") from None
     try:
         for text in folder.notes:
             note(text)

@@ -9,6 +9,7 @@ of the profile: overshoot as a fraction of the step, settling time into a +-5 % 
 from __future__ import annotations
 
 import csv
+import io
 import math
 from collections.abc import Mapping
 from dataclasses import asdict
@@ -18,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from controllers.protocol import Protocol, bus_load
+from hil.errors import HilError
 from hil.plant import PlantStats
 from hil.recording import CanLogger
 from hil.robots import robot_kind
@@ -28,14 +30,54 @@ BUS_LOAD_WARNING = 0.70
 
 
 def read_signals(path: Path) -> dict[str, np.ndarray]:
-    """The signals CSV as columns (empty cells are NaN)."""
-    with path.open(newline="") as f:
-        rows = list(csv.reader(f))
+    """The signals CSV as columns (empty cells are NaN). HilError naming the file if it is
+    missing, unreadable or empty, and the line if one is cut short (fewer cells than the header,
+    or a last line without its line end: softhil writes whole lines) or holds a cell that is not
+    a number."""
+    try:
+        with path.open(newline="", encoding="utf-8") as f:
+            text = f.read()
+    except FileNotFoundError:
+        raise HilError(f"{path}: no such file") from None
+    except IsADirectoryError:
+        raise HilError(f"{path}: is a folder, not a signals CSV") from None
+    except OSError as exc:
+        raise HilError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    except UnicodeDecodeError:
+        raise HilError(f"{path}: not a signals CSV (not UTF-8 text)") from None
+    try:
+        rows = list(csv.reader(io.StringIO(text, newline="")))
+    except csv.Error as exc:
+        raise HilError(f"{path}: not a signals CSV ({exc})") from None
+    if not rows or not rows[0]:
+        raise HilError(f"{path}: empty: no header line of signal names")
     header, body = rows[0], rows[1:]
-    return {
-        name: np.array([float(r[i]) if r[i] else math.nan for r in body])
-        for i, name in enumerate(header)
-    }
+    for line, row in enumerate(body, start=2):
+        if len(row) != len(header):
+            cut = " (a file cut short?)" if len(row) < len(header) else ""
+            raise HilError(
+                f"{path}: line {line}: {len(row)} cells where the header names {len(header)}{cut}"
+            )
+    if not text.endswith(("\n", "\r")):
+        raise HilError(f"{path}: line {len(rows)}: cut short (the last line has no line end)")
+    columns: dict[str, np.ndarray] = {}
+    for i, name in enumerate(header):
+        try:
+            columns[name] = np.array([float(r[i]) if r[i] else math.nan for r in body])
+        except ValueError:
+            line, cell = next((n, r[i]) for n, r in enumerate(body, start=2) if not _number(r[i]))
+            raise HilError(
+                f"{path}: line {line}, column {name}: {cell!r} is not a number"
+            ) from None
+    return columns
+
+
+def _number(cell: str) -> bool:
+    try:
+        float(cell or "nan")
+    except ValueError:
+        return False
+    return True
 
 
 def bus_load_of(scenario: Scenario, protocol: Protocol) -> float:

@@ -414,9 +414,11 @@ def test_a_rerun_with_overwrite_replaces_what_hil_estimate_wrote(
     assert json.loads((folder / "summary.json").read_text())["seed"] == 3
 
 
+@pytest.mark.parametrize("said_by", ["scenario.toml", "controller.json"])
 def test_hil_estimate_of_a_fish_run_is_one_line(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], said_by: str
 ) -> None:
+    # without its scenario.toml, the run's controller.json says it is a fish
     from hil.scenario import SCENARIO_FOLDER
 
     text = (SCENARIO_FOLDER / "fish-escape.toml").read_text()
@@ -425,7 +427,131 @@ def test_hil_estimate_of_a_fish_run_is_one_line(
     assert "duration = 0.1" in path.read_text()
     folder = tmp_path / "run"
     run(path, folder)
+    if said_by == "controller.json":
+        (folder / "scenario.toml").unlink()
     code, lines = hil_estimate(capsys, str(folder))
     assert code == 1 and len(lines) == 1
     assert "estimation report applies to planar-arm runs" in lines[0] and "'fish'" in lines[0]
+    assert lines[0].endswith(f"({said_by})")
     assert not (folder / "estimation.json").exists()
+
+
+def _untouched(folder: Path) -> tuple[bytes, list[str]]:
+    """What `hil estimate` must leave as it was when it refuses: the manifest, the file list."""
+    import hil.results
+
+    return (folder / hil.results.MANIFEST).read_bytes(), sorted(p.name for p in folder.iterdir())
+
+
+def test_hil_estimate_refuses_a_csv_can_log_before_writing(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # a CSV log has no direction: no plant frame is found and every estimator scored nothing,
+    # so it is refused as `hil replay` refuses it, with nothing written
+    path = scenario(tmp_path, "short", ("duration = 10.0", "duration = 0.3"))
+    options = RunOptions(out=tmp_path / "run", inprocess=True, progress=False, can_log="can.csv")
+    run_scenario(load_scenario(path), options)
+    folder = tmp_path / "run"
+    before = _untouched(folder)
+    code, lines = hil_estimate(capsys, str(folder))
+    assert code == 1 and lines == [
+        f"hil: error: {folder / 'can.csv'}: hil estimate cannot use a .csv log: python-can's CSV "
+        "has no direction column, so the controller's frames cannot be told from the plant's "
+        "(record with --can-log can.log, .asc, .blf or .trc)"
+    ]
+    assert _untouched(folder) == before
+
+
+def _cut_mid_line(signals: Path) -> None:
+    """Cut after the third cell of line 50 (a copy interrupted half-way)."""
+    lines = signals.read_text().split("\n")
+    signals.write_text("\n".join([*lines[:49], ",".join(lines[49].split(",")[:3])]))
+
+
+def _cut_in_the_last_cell(signals: Path) -> None:
+    text = signals.read_text()
+    signals.write_text(text[:-3])
+
+
+def _not_a_number(signals: Path) -> None:
+    lines = signals.read_text().split("\n")
+    cells = lines[5].split(",")
+    cells[3] = "abc"
+    lines[5] = ",".join(cells)
+    signals.write_text("\n".join(lines))
+
+
+@pytest.mark.parametrize(
+    ("damage", "expected"),
+    [
+        (lambda s: s.unlink(), "{signals}: no such file"),
+        (
+            _cut_mid_line,
+            "{signals}: line 50: 3 cells where the header names 12 (a file cut short?)",
+        ),
+        (
+            _cut_in_the_last_cell,
+            "{signals}: line {last}: cut short (the last line has no line end)",
+        ),
+        (_not_a_number, "{signals}: line 6, column kappa_1: 'abc' is not a number"),
+        (lambda s: s.write_text(""), "{signals}: empty: no header line of signal names"),
+        (
+            lambda s: (s.parent / "controller.json").unlink(),
+            "{folder}/controller.json: no controller.json beside the log; hil estimate needs the "
+            "run's controller configuration (estimator, camera, arm) to rebuild what its "
+            "estimator was given",
+        ),
+    ],
+    ids=["no-signals", "cut-mid-line", "cut-in-last-cell", "not-a-number", "empty", "no-config"],
+)
+def test_hil_estimate_of_a_damaged_folder_is_one_line_naming_the_file(
+    short_run, tmp_path: Path, capsys: pytest.CaptureFixture[str], damage, expected: str
+) -> None:  # noqa: ANN001
+    import shutil
+
+    folder = tmp_path / "run"
+    shutil.copytree(short_run.out, folder)
+    (folder / "estimation.json").unlink(missing_ok=True)
+    signals = folder / "signals.csv"
+    rows = signals.read_text().count("\n")  # the header and one line a cycle
+    assert rows > 50
+    damage(signals)
+    before = _untouched(folder)
+    code, lines = hil_estimate(capsys, str(folder))
+    assert code == 1 and lines == [
+        f"hil: error: {expected.format(signals=signals, folder=folder, last=rows)}"
+    ]
+    assert _untouched(folder) == before  # nothing written, not even the manifest
+
+
+def test_hil_estimate_of_a_read_only_folder_says_so(
+    short_run, tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:  # noqa: ANN001
+    import errno
+    import os
+    import shutil
+
+    import hil.results
+
+    folder = tmp_path / "run"
+    shutil.copytree(short_run.out, folder)
+    (folder / "estimation.json").unlink(missing_ok=True)
+    before = _untouched(folder)
+    real_open = os.open
+
+    def read_only(path, flags, *args, **kwargs):  # noqa: ANN001, ANN002, ANN003, ANN202
+        if flags & (os.O_WRONLY | os.O_RDWR) and Path(path).parent == folder:
+            raise OSError(errno.EROFS, os.strerror(errno.EROFS), str(path))
+        return real_open(path, flags, *args, **kwargs)
+
+    monkeypatch.setattr(hil.results.os, "open", read_only)
+    for argv, files in (
+        ((), "estimation.json and estimation.png"),
+        (("--no-plot",), "estimation.json"),
+    ):
+        code, lines = hil_estimate(capsys, str(folder), *argv)
+        assert code == 1 and lines == [
+            f"hil: error: results folder {folder} is read-only ({os.strerror(errno.EROFS)}): "
+            f"hil estimate writes {files} there; copy the folder somewhere writable"
+        ]
+    assert _untouched(folder) == before

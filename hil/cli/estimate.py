@@ -39,16 +39,19 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
 
 
 def _estimate(args: argparse.Namespace) -> int:
-    from hil.estimation import check_estimable, estimation_report
+    from hil.estimation import check_estimable, estimation_report, read_run
     from hil.results import ESTIMATE_FILES, list_in_manifest, locked, write_file
 
     if not args.run.is_dir():
         raise HilError(f"{args.run}: no such results folder")
-    check_estimable(args.run)
-    with locked(args.run):  # not while a run (or another estimate) writes there
+    check_estimable(args.run)  # robot kind, CSV log: refused before the folder is locked
+    files = ESTIMATE_FILES if not args.no_plot else ("estimation.json",)
+    writes = f"hil estimate writes {' and '.join(files)} there; copy the folder somewhere writable"
+    with locked(args.run, writes):  # not while a run (or another estimate) writes there
+        recorded = read_run(args.run)  # every input checked before anything is written
         # listed in the run's manifest first: a rerun with --overwrite replaces them too
-        list_in_manifest(args.run, ESTIMATE_FILES if not args.no_plot else ("estimation.json",))
-        report = estimation_report(args.run, plot=not args.no_plot)
+        list_in_manifest(args.run, files)
+        report = estimation_report(args.run, plot=not args.no_plot, recorded=recorded)
         text = json.dumps(report, indent=2, sort_keys=True) + "\n"
         write_file(args.run / "estimation.json", text)
     print(f"{args.run}: estimation against the true curvature (controller used {report['chosen']})")
