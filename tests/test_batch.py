@@ -550,6 +550,8 @@ def test_a_bare_date_in_set_is_the_string_it_was_typed_as(builtins: Path, tmp_pa
     option = batch.parse_set("recording.start=2016-01-01T00:00:00Z,1979-05-27T07:32:00Z")
     assert option.values == ("2016-01-01T00:00:00Z", "1979-05-27T07:32:00Z")
     assert batch.parse_set("a.b=[1979-05-27]").values == (["1979-05-27"],)
+    spaced = batch.parse_set("recording.start=2016-01-01 00:00:00Z")  # TOML allows the space
+    assert spaced.values == ("2016-01-01 00:00:00Z",)  # as typed, not re-formatted
     plan = batch.make_plan(builtins / "short.toml", kind="sweep", command="c",
                            out=tmp_path / "p", trials=1, overrides=[option])  # fmt: skip
     texts = [tomllib.loads(spec.scenario_text)["recording"]["start"] for spec in plan.trials]
