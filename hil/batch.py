@@ -55,9 +55,9 @@ WALL_CLOCK_WORDS = ("wall", "real_time", "startup", "lateness", "overrun")
 # summary.json values that echo the scenario's inputs rather than measure the run
 INPUT_KEYS = frozenset({"seed", "duration", "bitrate", "log_start"})
 OUTPUT_FILES = ("batch.json", "timing.json", "batch.png")
-# a bare word on the command line (kf, ukf, frame) is taken as a string: the shell eats quotes
 MAX_TRIALS = 10_000  # in one batch or sweep: each is a folder of results and a worker's run
 CHECK_NOTE_POINTS = 50  # a grid larger than this says that it is being checked
+# a bare word on the command line (kf, ukf, frame) is taken as a string: the shell eats quotes
 _BARE_WORD = re.compile(r"[A-Za-z_][A-Za-z0-9_-]*")
 _BARE_KEY = re.compile(r"[A-Za-z0-9_-]+")
 # pyplot (the run's plots) is not thread-safe: one trial at a time per worker process, so that a
