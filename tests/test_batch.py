@@ -309,16 +309,26 @@ def _group_left(group: int) -> list[int]:
         time.sleep(0.1)
 
 
-def test_ctrl_c_at_a_terminal_lets_the_running_trial_finish(tmp_path: Path) -> None:
-    """A terminal's Ctrl-C reaches every process of the job: the workers ignore it, so the
-    running trial completes and is reported, as the README says; the others never start."""
+def _ctrl_c(tmp_path: Path, presses: int) -> tuple[subprocess.Popen[str], Path, str]:
+    """The batch of `_batch_in_its_own_group` given Ctrl-C `presses` times, 0.5 s apart, as a
+    terminal gives it (to the whole job); (the finished batch, its folder, its stderr)."""
     run, out = _batch_in_its_own_group(tmp_path)
     try:
-        os.killpg(run.pid, signal.SIGINT)
+        for press in range(presses):
+            if press:
+                time.sleep(0.5)
+            os.killpg(run.pid, signal.SIGINT)
         _, err = run.communicate(timeout=120)
     finally:
         with contextlib.suppress(ProcessLookupError):
             os.killpg(run.pid, signal.SIGKILL)
+    return run, out, err
+
+
+def test_ctrl_c_at_a_terminal_lets_the_running_trial_finish(tmp_path: Path) -> None:
+    """A terminal's Ctrl-C reaches every process of the job: the workers ignore it, so the
+    running trial completes and is reported, as the README says; the others never start."""
+    run, out, err = _ctrl_c(tmp_path, 1)
     assert run.returncode == 130, err
     content = load(out / "batch.json")
     assert content["stopped"] == "interrupted"
@@ -333,15 +343,7 @@ def test_a_second_ctrl_c_stops_the_running_trial_and_keeps_what_it_recorded(
     """The second Ctrl-C, while the batch waits for its running trial, stops that trial as a
     terminated run (its folder keeps its signals, can.log and a summary saying so); batch.json
     is written and the batch exits 130 with no process of its job left behind."""
-    run, out = _batch_in_its_own_group(tmp_path)
-    try:
-        os.killpg(run.pid, signal.SIGINT)
-        time.sleep(0.5)
-        os.killpg(run.pid, signal.SIGINT)
-        _, err = run.communicate(timeout=120)
-    finally:
-        with contextlib.suppress(ProcessLookupError):
-            os.killpg(run.pid, signal.SIGKILL)
+    run, out, err = _ctrl_c(tmp_path, 2)
     assert run.returncode == 130, err
     content = load(out / "batch.json")
     assert content["stopped"] == "interrupted" and content["completed"] == 0
