@@ -389,6 +389,11 @@ def locked(out: Path, writes: str) -> Iterator[None]:
         folder.release()
 
 
+def manifest_names(out: Path) -> list[str]:
+    """The files a softhil command listed as its own in the folder `out` (none if no manifest)."""
+    return ResultsFolder(out, ())._manifest()
+
+
 def list_in_manifest(out: Path, names: Iterable[str]) -> None:
     """Add files softhil writes into a run's folder after the run (`hil estimate`'s) to the
     folder's manifest, before they are written, so that a rerun with --overwrite replaces them

@@ -127,11 +127,25 @@ def test_bad_options_are_one_line_before_the_replay_runs(
         ("--tolerance-for", "DriveCommand1.nosuch=1"): "'DriveCommand1.nosuch': no such signal",
         ("--tolerance-for", "kappa_est=nan"): "--tolerance-for 'kappa_est=nan': expected SIGNAL=",
     }
-    for argv, reason in cases.items():
+    # the recording and the run's results are not for --json to overwrite (it did, silently)
+    log_link = tmp_path / "other-name.json"
+    log_link.symlink_to(recorded)
+    foreign_log = tmp_path / "mine.blf"
+    foreign_log.write_bytes(b"LOGG")
+    protected = {
+        ("--json", str(recorded)): f"--json {recorded}: is the log being replayed",
+        ("--json", str(log_link)): f"--json {log_link}: is the log being replayed",
+        ("--json", str(recorded.parent / "summary.json")): "a file of the run",
+        ("--json", str(recorded.parent / "controller.json")): "a file of the run",
+        ("--json", str(foreign_log)): "is a CAN log",
+    }
+    before = {path: Path(path).read_bytes() for (_, path) in protected}
+    for argv, reason in {**cases, **protected}.items():
         assert main(["replay", str(recorded), *argv]) == 1, argv
         err = capsys.readouterr().err.splitlines()
         assert len(err) == 1 and reason in err[0], (argv, err)
     assert not ran
+    assert all(Path(path).read_bytes() == data for path, data in before.items())
     # the signal and the message's signal are both names a tolerance may use
     assert hil.replay.check_tolerances(hil.replay.Protocol(), {"piston_setpoint": 1}) is None
     hil.replay.check_tolerances(hil.replay.Protocol(), {"DriveCommand1.piston_setpoint": 1})

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 from pathlib import Path
 
@@ -54,7 +55,11 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
         help="the controller program, as hil run --controller takes it: softhil's own, or your "
         "command line with {config} {bus} ... (a separate program: implies --process)",
     )
-    parser.add_argument("--json", type=Path, help="write the comparison's summary as JSON")
+    parser.add_argument(
+        "--json",
+        type=Path,
+        help="write the comparison's summary as JSON (never over the log, a CAN log or a run's files)",
+    )
     parser.set_defaults(handler=_replay)
 
 
@@ -75,7 +80,7 @@ def _replay(args: argparse.Namespace) -> int:
             raise HilError(f"--tolerance-for {item!r}: expected SIGNAL=NUMBER >= 0")
     if not args.tolerance >= 0:
         raise HilError(f"--tolerance must not be negative, got {args.tolerance}")
-    json_out = _json_path(args.json) if args.json else None
+    json_out = _json_path(args.json, Path(args.log)) if args.json else None
     config = None
     if args.scenario is not None:
         scenario = load_scenario(resolve_scenario(args.scenario))
@@ -101,8 +106,22 @@ def _replay(args: argparse.Namespace) -> int:
     return 0 if result.ok else 1
 
 
-def _json_path(out: Path) -> Path:
-    """--json's file, checked before the replay runs: not a folder, in an existing folder."""
+def _json_path(out: Path, log: Path) -> Path:
+    """--json's file, checked before the replay runs: not a folder, in an existing folder, and
+    not a file that holds a recording: the log being replayed, another CAN log, or a file of a
+    run's results (an earlier replay's JSON may be replaced)."""
+    from hil.bustools.logs import SUFFIXES as LOG_SUFFIXES
+    from hil.results import ESTIMATE_FILES, RESULT_FILES, manifest_names
+
+    if out.is_file():
+        with contextlib.suppress(OSError):
+            if out.samefile(log):
+                raise HilError(f"--json {out}: is the log being replayed; name another file")
+        listed = out.name in manifest_names(out.parent)
+        if out.suffix.lower() in LOG_SUFFIXES:
+            raise HilError(f"--json {out}: is a CAN log; name another file")
+        if listed or out.name.casefold() in {n.casefold() for n in RESULT_FILES + ESTIMATE_FILES}:
+            raise HilError(f"--json {out}: is a file of the run in {out.parent}; name another file")
     if out.is_dir():
         raise HilError(
             f"--json {out}: is a folder; name the JSON file (e.g. {out / 'replay.json'})"
