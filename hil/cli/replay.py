@@ -58,7 +58,7 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--json",
         type=Path,
-        help="write the comparison's summary as JSON (never over the log, a CAN log or a run's files)",
+        help="write the comparison's summary as JSON (not over a CAN log or a run's files)",
     )
     parser.set_defaults(handler=_replay)
 
