@@ -251,8 +251,17 @@ def compare(
     for cycle, actual in zip(cycles, sent, strict=True):
         expected_frames = _by_name(cycle.controller, protocol)
         actual_frames = _by_name(actual, protocol)
-        for name in sorted(set(expected_frames) | set(actual_frames), key=_id_order(protocol)):
-            exp, act = expected_frames.get(name), actual_frames.get(name)
+        order = {
+            name: can_id for name, (can_id, _) in (*expected_frames.items(), *actual_frames.items())
+        }
+        for name in sorted(order, key=lambda n: (order[n], n)):
+            exp = expected_frames[name][1] if name in expected_frames else None
+            act = actual_frames[name][1] if name in actual_frames else None
+            if isinstance(act, int) or isinstance(exp, int):  # the wrong length for the DBC
+                length = protocol.message(order[name]).length
+                sizes = [v if isinstance(v, int) else length for v in (exp, act)]
+                note(Divergence(cycle.index, cycle.time, name, "(length)", *sizes))
+                continue
             if exp is None or act is None:
                 note(
                     Divergence(
@@ -291,18 +300,28 @@ def check_tolerances(protocol: Protocol, tolerances: Mapping[str, float]) -> Non
             )
 
 
-def _by_name(messages: Iterable[can.Message], protocol: Protocol) -> dict[str, dict[str, float]]:
-    frames = {}
+def _by_name(
+    messages: Iterable[can.Message], protocol: Protocol
+) -> dict[str, tuple[int, dict[str, float] | int]]:
+    """Per frame name: (its id, its signals), or for a DBC message of the wrong length
+    (its id, the length it came with); an id the DBC lacks is named "0x123 (not in the DBC)",
+    with no signals."""
+    frames: dict[str, tuple[int, dict[str, float] | int]] = {}
+    known = {m.frame_id for m in protocol.database.messages}
     for message in messages:
-        definition = protocol.message(message.arbitration_id)
-        frames[definition.name] = dict(
-            definition.decode(bytes(message.data), decode_choices=False)  # type: ignore[arg-type]
+        can_id, data = message.arbitration_id, bytes(message.data)
+        if message.is_extended_id or can_id not in known:
+            frames[f"0x{can_id:03X} (not in the DBC)"] = (can_id, {})
+            continue
+        definition = protocol.message(can_id)
+        if len(data) != definition.length:
+            frames[definition.name] = (can_id, len(data))
+            continue
+        frames[definition.name] = (
+            can_id,
+            dict(definition.decode(data, decode_choices=False)),  # type: ignore[arg-type]
         )
     return frames
-
-
-def _id_order(protocol: Protocol) -> Any:
-    return lambda name: protocol.message_by_name(name).frame_id
 
 
 def replay(

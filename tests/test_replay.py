@@ -247,3 +247,28 @@ def test_compare_checks_every_signal_of_every_frame() -> None:
     assert result.divergences[0].expected == pytest.approx(3.5)
     assert result.divergences[0].actual == pytest.approx(3.25)
     assert compare([cycle], [recorded], protocol).ok
+
+
+def test_a_frame_the_dbc_lacks_or_of_the_wrong_length_is_a_divergence_not_a_traceback(
+    recorded: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A controller under test that sends an id the DBC does not have, or a DBC message of
+    the wrong length, diverges there (a KeyError or cantools DecodeError traceback before)."""
+    from hil.replay import Protocol, compare, read_cycles, read_log
+
+    protocol = Protocol()
+    cycles = read_cycles(read_log(recorded), protocol, str(recorded))[:3]
+    sent = [list(cycle.controller) for cycle in cycles]
+    command = next(m for m in sent[1] if m.arbitration_id == 0x201)
+    sent[1].append(can.Message(arbitration_id=0x123, data=b"\x01", is_extended_id=False))
+    sent[2] = [m for m in sent[2] if m.arbitration_id != 0x201]
+    sent[2].append(can.Message(arbitration_id=0x201, data=bytes(command.data[:2]),
+                               is_extended_id=False))  # fmt: skip
+    result = compare(cycles, sent, protocol)
+    shown = [str(d) for d in result.divergences]
+    assert len(shown) == 2, shown
+    assert shown[0].endswith("0x123 (not in the DBC).(frame) expected (no frame), got 1")
+    assert shown[1].endswith(
+        f"DriveCommand1.(length) expected {len(command.data)}, got 2"
+    ), shown  # fmt: skip
+    assert result.by_signal == {"0x123 (not in the DBC).(frame)": 1, "DriveCommand1.(length)": 1}
