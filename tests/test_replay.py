@@ -132,12 +132,15 @@ def test_bad_options_are_one_line_before_the_replay_runs(
     log_link.symlink_to(recorded)
     foreign_log = tmp_path / "mine.blf"
     foreign_log.write_bytes(b"LOGG")
+    copied = tmp_path / "summary.json"  # a run's file copied without its manifest
+    copied.write_text("{}")
     protected = {
         ("--json", str(recorded)): f"--json {recorded}: is the log being replayed",
         ("--json", str(log_link)): f"--json {log_link}: is the log being replayed",
         ("--json", str(recorded.parent / "summary.json")): "a file of the run",
         ("--json", str(recorded.parent / "controller.json")): "a file of the run",
         ("--json", str(foreign_log)): "is a CAN log",
+        ("--json", str(copied)): "a file of the run",
     }
     before = {path: Path(path).read_bytes() for (_, path) in protected}
     for argv, reason in {**cases, **protected}.items():
