@@ -141,14 +141,22 @@ def test_bad_options_are_one_line_before_the_replay_runs(
         ("--json", str(recorded.parent / "controller.json")): "a file of the run",
         ("--json", str(foreign_log)): "is a CAN log",
         ("--json", str(copied)): "a file of the run",
+        # the run's manifest (replaced, the run's own files were no longer softhil's to overwrite)
+        (
+            "--json",
+            str(recorded.parent / ".softhil-manifest"),
+        ): "is softhil's own .softhil-manifest",
     }
     before = {path: Path(path).read_bytes() for (_, path) in protected}
+    lock = recorded.parent / ".softhil.lock"  # not there: --json must not make one either
+    protected[("--json", str(lock))] = "is softhil's own .softhil.lock of a run"
     for argv, reason in {**cases, **protected}.items():
         assert main(["replay", str(recorded), *argv]) == 1, argv
         err = capsys.readouterr().err.splitlines()
         assert len(err) == 1 and reason in err[0], (argv, err)
     assert not ran
     assert all(Path(path).read_bytes() == data for path, data in before.items())
+    assert not lock.exists()
     # the signal and the message's signal are both names a tolerance may use
     assert hil.replay.check_tolerances(hil.replay.Protocol(), {"piston_setpoint": 1}) is None
     hil.replay.check_tolerances(hil.replay.Protocol(), {"DriveCommand1.piston_setpoint": 1})
@@ -181,6 +189,7 @@ def test_a_fish_run_replays_by_its_own_controller_json(tmp_path: Path) -> None:
 
 def test_the_json_summary_is_written_after_the_report(recorded: Path, tmp_path: Path) -> None:
     out = tmp_path / "r.json"
+    out.write_text('{"cycles": 0}\n')  # an earlier replay's report: a rerun replaces it
     assert main(["replay", str(recorded), "--json", str(out),
                  "--tolerance-for", "DriveCommand1.piston_setpoint=0.1"]) == 0  # fmt: skip
     summary = json.loads(out.read_text())

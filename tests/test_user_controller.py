@@ -17,6 +17,7 @@ import shlex
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -282,6 +283,64 @@ def test_your_own_python_can_controller_drives_the_six_drives_and_replays(
     assert hil_main(["replay", log, "--controller", changed]) == 1
     shown = capsys.readouterr().out
     assert "first divergence: cycle 0 (t = 0.000 s): DriveCommand1.piston_setpoint" in shown
+
+
+# the example, sending an id the DBC lacks after its 5th DriveCommand1 (cycle 4) and its 3rd
+# (cycle 2) two bytes long: what a replay must report as divergences, not as a traceback
+_STRAY_FRAMES = f"""
+import runpy, sys
+import can
+
+Bus, sent = can.Bus, []
+
+def bus(*args, **kwargs):
+    opened = Bus(*args, **kwargs)
+    send = opened.send
+
+    def stray(message, timeout=None):
+        if message.arbitration_id == 0x201:
+            sent.append(message)
+            if len(sent) == 3:
+                message = can.Message(arbitration_id=0x201, data=bytes(message.data[:2]),
+                                      is_extended_id=False)
+        send(message, timeout)
+        if message.arbitration_id == 0x201 and len(sent) == 5:
+            send(can.Message(arbitration_id=0x123, data=b"\\x01", is_extended_id=False), timeout)
+
+    opened.send = stray
+    return opened
+
+can.Bus = bus
+sys.argv[0] = {str(EXAMPLE)!r}
+runpy.run_path(sys.argv[0], run_name="__main__")
+"""
+
+
+def test_a_replay_of_a_program_sending_an_id_the_dbc_lacks_or_a_short_frame_diverges(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], softhil_replay: Any
+) -> None:
+    """hil replay and softhil_replay name the cycle and the frame (a KeyError or cantools
+    DecodeError traceback before): an id the DBC lacks, a DBC message of the wrong length."""
+    out = tmp_path / "run"
+    _run(shortened(tmp_path, 0.3), out, controller=EXAMPLE_COMMAND)
+    program = tmp_path / "stray.py"
+    program.write_text(_STRAY_FRAMES)
+    stray = EXAMPLE_COMMAND.replace(shlex.quote(str(EXAMPLE)), shlex.quote(str(program)))
+    log = str(out / "can.log")
+    assert hil_main(["replay", log, "--controller", stray]) == 1
+    captured = capsys.readouterr()
+    assert captured.err == ""
+    assert captured.out.splitlines()[1:] == [
+        "  first divergence: cycle 2 (t = 0.020 s): DriveCommand1.(length) expected 4, got 2",
+        "  0x123 (not in the DBC).(frame): 1 cycle(s)",
+        "  DriveCommand1.(length): 1 cycle(s)",
+    ]
+    with pytest.raises(AssertionError) as failed:
+        softhil_replay(log, controller=stray)
+    assert str(failed.value) == (
+        f"{log}: 2 divergence(s); first: cycle 2 (t = 0.020 s): DriveCommand1.(length) expected "
+        '4, got 2; by signal: {"0x123 (not in the DBC).(frame)": 1, "DriveCommand1.(length)": 1}'
+    )
 
 
 def test_setpoints_outside_the_stroke_are_clamped_and_the_summary_says_so(

@@ -108,11 +108,14 @@ def _replay(args: argparse.Namespace) -> int:
 
 def _json_path(out: Path, log: Path) -> Path:
     """--json's file, checked before the replay runs: not a folder, in an existing folder, and
-    not a file that holds a recording: the log being replayed, another CAN log, or a file of a
-    run's results (an earlier replay's JSON may be replaced)."""
+    not a file that holds a recording: the log being replayed, another CAN log, a file of a
+    run's results, or a run folder's lock or manifest (an earlier replay's JSON may be
+    replaced)."""
     from hil.bustools.logs import SUFFIXES as LOG_SUFFIXES
-    from hil.results import ESTIMATE_FILES, RESULT_FILES, manifest_names
+    from hil.results import ESTIMATE_FILES, LOCK, MANIFEST, RESULT_FILES, manifest_names
 
+    if out.name.casefold() in (LOCK.casefold(), MANIFEST.casefold()):  # there or not
+        raise HilError(f"--json {out}: is softhil's own {out.name} of a run; name another file")
     if out.is_file():
         with contextlib.suppress(OSError):
             if out.samefile(log):
