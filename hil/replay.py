@@ -36,6 +36,9 @@ from controllers.protocol import COUNTER_MODULO, SYNC_ID, FrameError, Protocol, 
 from hil.errors import HilError
 from hil.program import SOFTHIL, USER_LINGER, check_controller, last_words, start, stop
 
+WAIT = 60.0  # s for the controller's SYNC(0), as `hil run --wait`: a program may load slowly
+MAX_WAIT = 86400.0
+
 
 class ReplayError(HilError):
     """A log that cannot be replayed (no SYNC, counters out of order, ids not in the DBC)."""
@@ -143,6 +146,71 @@ def read_cycles(messages: Iterable[can.Message], protocol: Protocol, source: str
     return cycles
 
 
+def check_served(cycles: Sequence[Cycle], config: Any, protocol: Protocol, source: str) -> None:
+    """Under the strict policy softhil's controller stops at the first cycle that lacks a
+    status frame echoing its SYNC or a camera picture due by it (after waiting its timeout, and
+    asking whether the plant runs): say so before the replay starts, naming the cycle and the
+    frame, and whether the log lacks it there (frames missing) or everywhere (the log of another
+    robot than the controller's configuration)."""
+    if getattr(config, "policy", "strict") != "strict":
+        return  # `hold` goes on past a missing frame, as it did in the run
+    from controllers.node import CameraAssembler, robot_module
+    from controllers.protocol import CameraFrame, CameraMarker, GenericFrame, frame_key
+
+    expected = robot_module(config.robot).expected(config)
+    kinds = {kind for kind, _ in expected}
+    timing = config.camera_timing
+    camera = CameraAssembler(timing.markers)
+    seen: set[str] = set()  # the status frames the log holds anywhere, and "camera frames"
+    taken = 0
+    for cycle in cycles:
+        have: set[tuple[str, int | None]] = set()
+        for message in cycle.plant:
+            frame = protocol.decode(message)  # read_cycles decoded every frame already
+            key = frame_key(frame)
+            if key[0] in kinds:
+                seen.add(_name(key))
+                echo = (
+                    frame.signals["counter"] if isinstance(frame, GenericFrame) else frame.counter
+                )
+                if int(echo) == cycle.index % COUNTER_MODULO:
+                    have.add(key)
+            elif isinstance(frame, CameraFrame | CameraMarker):
+                seen.add("camera frames")
+                camera.add(frame)
+        missing = [_name(key) for key in sorted(expected - have, key=_order)]
+        due = timing.frames_due(cycle.index)
+        pictures = [f"camera frame {j}" for j in range(taken, due) if not camera.complete(j)]
+        for j in range(taken, due):
+            camera.drop(j)
+        taken = max(taken, due)
+        if not missing and not pictures:
+            continue
+        nowhere = [name for name in missing if name not in seen]
+        if pictures and "camera frames" not in seen:
+            nowhere.append("camera frames")
+        why = (
+            f"the log holds no {nowhere[0]} at all: the log of another robot than the "
+            "controller's (its controller.json or --scenario)?"
+            if nowhere
+            else "frames missing from the log?"
+        )
+        raise ReplayError(
+            f"{source}: cycle {cycle.index} (t = {cycle.time:.3f} s) lacks "
+            f"{', '.join(missing + pictures)}, which softhil's controller waits for at SYNC "
+            f"{cycle.index} under its strict policy: {why}"
+        )
+
+
+def _name(key: tuple[str, int | None]) -> str:
+    """The DBC message name of (kind, index): DriveStatus3, CanisterStatus."""
+    return f"{key[0]}{'' if key[1] is None else key[1]}"
+
+
+def _order(key: tuple[str, int | None]) -> tuple[str, int]:
+    return key[0], -1 if key[1] is None else key[1]
+
+
 def read_log(path: Path) -> list[can.Message]:
     """The messages of a CAN log in any format python-can reads (by suffix); a malformed log is
     one line naming the file and where."""
@@ -179,10 +247,12 @@ class _ReplayPlant:
         bus: can.BusABC,
         timeout: float,
         linger: float | None = None,
+        wait: float | None = None,
     ) -> None:
         self.cycles = cycles
         self.bus = bus
         self.timeout = timeout
+        self.wait = timeout if wait is None else wait  # for SYNC(0): a program starting up
         # after the final SYNC: how long a controller that is still there may stay silent
         # before the replay ends (frames it sends until then are compared)
         self.linger = timeout if linger is None else min(linger, timeout)
@@ -209,7 +279,12 @@ class _ReplayPlant:
                 silent = time.monotonic() - last_heard
                 if current >= final and silent > self.linger:
                     return
-                if silent > self.timeout:
+                if current < 0 and silent > self.wait:
+                    raise ReplayError(
+                        f"no SYNC(0) from the controller within {self.wait:g} s of the start; "
+                        "the replay stopped"
+                    )
+                if current >= 0 and silent > self.timeout:
                     raise ReplayError(
                         f"the controller sent nothing for {self.timeout:g} s {self._when(current)}"
                     )
@@ -333,11 +408,15 @@ def replay(
     tolerances: Mapping[str, float] | None = None,
     timeout: float = 10.0,
     controller: str = SOFTHIL,
+    wait: float = WAIT,
 ) -> ReplayResult:
     """Replay `log` (any python-can format) against the controller `config` (default: the
     run's controller.json beside the log), in this process or as a separate program:
-    softhil's, or `controller`, a user's command line (`hil.program`; always a process)."""
+    softhil's, or `controller`, a user's command line (`hil.program`; always a process).
+    The controller has `wait` s to send SYNC(0), then `timeout` s for each further frame."""
     check_controller(controller, external=False)
+    if not 0 < wait <= MAX_WAIT:  # NaN too
+        raise ReplayError(f"--wait: {wait:g} s; give 0 < SECONDS <= {MAX_WAIT:g} (a day)")
     if Path(log).suffix.lower() == ".csv":
         raise ReplayError(f"{log}: a .csv log cannot be replayed: {CSV_HAS_NO_DIRECTION}")
     protocol = Protocol()
@@ -345,19 +424,41 @@ def replay(
     cycles = read_cycles(read_log(log), protocol, str(log))
     config = config or config_beside(log)
     if config.cycles != len(cycles) - 1:
+        stopped = _stopped_early(Path(log)) if len(cycles) <= config.cycles else None
         raise ReplayError(
             f"{log}: {len(cycles)} SYNC cycles recorded, but the controller runs "
-            f"{config.cycles + 1} (a log from a different scenario?)"
+            f"{config.cycles + 1} "
+            + (
+                f"(the run stopped early: summary.json beside the log says {stopped})"
+                if stopped
+                else "(a log from a different scenario?)"
+            )
         )
+    if controller == SOFTHIL:
+        check_served(cycles, config, protocol, str(log))
     if process or controller != SOFTHIL:
-        sent = _replay_process(cycles, config, timeout, controller)
+        sent = _replay_process(cycles, config, timeout, controller, wait)
     else:
-        sent = _replay_thread(cycles, config, timeout)
+        sent = _replay_thread(cycles, config, timeout, wait)
     return compare(cycles, sent, protocol, tolerance, tolerances)
 
 
+def _stopped_early(log: Path) -> str | None:
+    """What summary.json beside `log` says stopped its run, if the run recorded `log` and did
+    not complete ("interrupted: interrupted (SIGINT)"); None otherwise."""
+    try:
+        summary = json.loads((log.parent / "summary.json").read_text())
+        status, can_log = summary["status"], summary.get("can_log", log.name)
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    if status == "completed" or can_log != log.name:
+        return None
+    error = str(summary.get("error", ""))[:200]
+    return error if error.startswith(status) else f"{status}: {error}" if error else status
+
+
 def _replay_thread(
-    cycles: Sequence[Cycle], config: ControllerConfig, timeout: float
+    cycles: Sequence[Cycle], config: ControllerConfig, timeout: float, wait: float = WAIT
 ) -> list[list[can.Message]]:
     channel = f"softhil-replay-{uuid.uuid4().hex[:8]}"
     plant_bus = open_bus(BusSpec("virtual", channel))
@@ -371,7 +472,7 @@ def _replay_thread(
             errors.append(exc)
 
     thread = threading.Thread(target=work, name="replayed-controller", daemon=True)
-    plant = _ReplayPlant(cycles, plant_bus, timeout)
+    plant = _ReplayPlant(cycles, plant_bus, timeout, wait=wait)
     try:
         thread.start()
 
@@ -391,7 +492,11 @@ def _replay_thread(
 
 
 def _replay_process(
-    cycles: Sequence[Cycle], config: ControllerConfig, timeout: float, controller: str = SOFTHIL
+    cycles: Sequence[Cycle],
+    config: ControllerConfig,
+    timeout: float,
+    controller: str = SOFTHIL,
+    wait: float = WAIT,
 ) -> list[list[can.Message]]:
     from hil.bus.loopback import LoopbackHub
 
@@ -417,7 +522,7 @@ def _replay_process(
                 words = last_words(log_path)
                 return f" ({words})" if words else ""
 
-            plant = _ReplayPlant(cycles, bus, timeout, USER_LINGER if user else None)
+            plant = _ReplayPlant(cycles, bus, timeout, USER_LINGER if user else None, wait)
             try:
 
                 def alive() -> str | None:
@@ -456,6 +561,7 @@ def assert_replays(
     tolerances: Mapping[str, float] | None = None,
     process: bool = False,
     controller: str = SOFTHIL,
+    wait: float = WAIT,
 ) -> ReplayResult:
     """For pytest: replay a recorded run against a controller and fail on the first divergence.
 
@@ -469,6 +575,7 @@ def assert_replays(
         tolerance=tolerance,
         tolerances=tolerances,
         controller=controller,
+        wait=wait,
     )
     if not result.ok:
         raise AssertionError(

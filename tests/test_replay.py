@@ -126,6 +126,9 @@ def test_bad_options_are_one_line_before_the_replay_runs(
         ("--tolerance-for", "nosuch=1"): "tolerance for 'nosuch': no such signal in",
         ("--tolerance-for", "DriveCommand1.nosuch=1"): "'DriveCommand1.nosuch': no such signal",
         ("--tolerance-for", "kappa_est=nan"): "--tolerance-for 'kappa_est=nan': expected SIGNAL=",
+        ("--wait", "0"): "--wait: 0 s; give 0 < SECONDS <= 86400 (a day)",
+        ("--wait", "nan"): "--wait: nan s; give 0 < SECONDS",
+        ("--wait", "1e6"): "--wait: 1e+06 s; give 0 < SECONDS",
     }
     # the recording and the run's results are not for --json to overwrite (it did, silently)
     log_link = tmp_path / "other-name.json"
@@ -160,6 +163,108 @@ def test_bad_options_are_one_line_before_the_replay_runs(
     # the signal and the message's signal are both names a tolerance may use
     assert hil.replay.check_tolerances(hil.replay.Protocol(), {"piston_setpoint": 1}) is None
     hil.replay.check_tolerances(hil.replay.Protocol(), {"DriveCommand1.piston_setpoint": 1})
+
+
+def _drop(lines: list[str], cycle: int, frame_id: str) -> list[str]:
+    """The log's lines without the first `frame_id` frame after SYNC(`cycle`)."""
+    sync = next(i for i, x in enumerate(lines) if f" 080#{cycle:02X} R" in x)
+    gone = next(i for i in range(sync + 1, len(lines)) if f" {frame_id}#" in lines[i])
+    return lines[:gone] + lines[gone + 1 :]
+
+
+def test_a_log_lacking_a_frame_the_controller_waits_for_is_named_before_the_replay(
+    recorded: Path, tmp_path: Path
+) -> None:
+    """The controller, under its strict policy, would wait its 10 s for the frame and then ask
+    whether the plant runs; the replay names the cycle and the frame at once instead, and tells
+    a frame missing here from a log of another robot (which never holds the frame)."""
+    import dataclasses
+
+    from controllers.protocol import Protocol
+    from hil.replay import check_served, read_cycles, read_log
+
+    lines = recorded.read_text().splitlines()
+    config = load_scenario_config(recorded.parent / "scenario.toml")
+    cases = {
+        ("181", 5): "cycle 5 (t = 0.050 s) lacks DriveStatus1, which softhil's controller "
+        "waits for at SYNC 5 under its strict policy: frames missing from the log?",
+        ("27F", 7): "cycle 7 (t = 0.070 s) lacks camera frame 6, which",
+        ("281", 1): "cycle 1 (t = 0.010 s) lacks camera frame 0, which",  # a marker: none at 0
+        ("181", 150): "cycle 150 (t = 1.500 s) lacks DriveStatus1",  # the final SYNC's too
+    }
+    for (frame_id, cycle), reason in cases.items():
+        path = _write(
+            tmp_path, f"no-{frame_id}-{cycle}.log", "\n".join(_drop(lines, cycle, frame_id))
+        )
+        with pytest.raises(ReplayError) as error:
+            replay(path, config, timeout=60.0)  # would the controller run, it would wait 60 s
+        assert str(error.value).startswith(f"{path}: {reason}"), str(error.value)
+    # a stale status (the counter of another cycle) is not the one the controller waits for
+    stale = list(lines)
+    index = next(i for i, x in enumerate(stale) if " 080#03 R" in x)
+    status = next(i for i in range(index, len(stale)) if " 181#" in stale[i])
+    stale[status] = stale[status][:-4] + "02 T"  # DriveStatus1's counter (last byte): 2 not 3
+    path = _write(tmp_path, "stale.log", "\n".join(stale))
+    with pytest.raises(ReplayError, match="cycle 3 .* lacks DriveStatus1"):
+        replay(path, config)
+    # the arm's six drives against a one-drive log: a log of another robot
+    six = dataclasses.replace(
+        config,
+        lengths=config.lengths * 6,
+        x_mid=config.x_mid * 6,
+        x_min=config.x_min * 6,
+        x_max=config.x_max * 6,
+        gains=config.gains * 6,
+        bends=config.bends * 6,
+        feedforward=config.feedforward * 6,
+    )
+    with pytest.raises(ReplayError) as error:
+        check_served(read_cycles(read_log(recorded), Protocol(), "r"), six, Protocol(), "r")
+    assert str(error.value) == (
+        "r: cycle 0 (t = 0.000 s) lacks DriveStatus2, DriveStatus3, DriveStatus4, DriveStatus5, "
+        "DriveStatus6, which softhil's controller waits for at SYNC 0 under its strict policy: "
+        "the log holds no DriveStatus2 at all: the log of another robot than the controller's "
+        "(its controller.json or --scenario)?"
+    )
+    blind = [x for x in lines if not any(f" {i}#" in x for i in ("27F", "280", "281"))]
+    path = _write(tmp_path, "no-camera.log", "\n".join(blind))
+    with pytest.raises(ReplayError, match=r"cycle 1 .* lacks camera frame 0, .* the log holds "
+                       r"no camera frames at all: the log of another robot"):  # fmt: skip
+        replay(path, config)
+    # under the hold policy the controller goes on past a missing frame, as in a run: replayed
+    path = tmp_path / "no-181-5.log"
+    held = dataclasses.replace(config, policy="hold", timeout=0.2)
+    result = replay(path, held)
+    assert result.cycles == 151
+
+
+def test_a_log_of_a_run_that_stopped_early_says_so(recorded: Path, tmp_path: Path) -> None:
+    lines = recorded.read_text().splitlines()
+    folder = tmp_path / "stopped"
+    folder.mkdir()
+    shutil.copy(recorded.parent / "controller.json", folder)
+    cut = next(i for i, x in enumerate(lines) if " 080#64 R" in x)  # SYNC 100
+    path = _write(folder, "can.log", "\n".join(lines[:cut]))
+    summary = {"status": "interrupted", "error": "interrupted (SIGINT)", "can_log": "can.log"}
+    (folder / "summary.json").write_text(json.dumps(summary))
+    with pytest.raises(ReplayError) as error:
+        replay(path)
+    assert str(error.value) == (
+        f"{path}: 100 SYNC cycles recorded, but the controller runs 151 (the run stopped early: "
+        "summary.json beside the log says interrupted (SIGINT))"
+    )
+    summary.update(status="failed", error="the controller stopped")
+    (folder / "summary.json").write_text(json.dumps(summary))
+    with pytest.raises(ReplayError, match=r"says failed: the controller stopped\)$"):
+        replay(path)
+    summary.update(status="completed")  # a completed run's log cut short: not that run's
+    (folder / "summary.json").write_text(json.dumps(summary))
+    with pytest.raises(ReplayError, match=r"151 \(a log from a different scenario\?\)$"):
+        replay(path)
+    summary.update(status="failed", can_log="other.log")  # the summary of another log
+    (folder / "summary.json").write_text(json.dumps(summary))
+    with pytest.raises(ReplayError, match="different scenario"):
+        replay(path)
 
 
 def test_a_csv_log_is_refused_at_once_naming_why(recorded: Path, tmp_path: Path) -> None:

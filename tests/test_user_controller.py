@@ -694,3 +694,21 @@ def test_last_words_skip_python_can_s_shutdown_warning_and_control_characters(
     log.write_text("x" * 500 + "\n")
     assert last_words(log) == "x" * 197 + "..."
     assert last_words(tmp_path / "missing.log") == ""
+
+
+def test_replay_waits_for_a_slow_starting_program_and_wait_bounds_it(
+    default_run: tuple[Path, Path], capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A program's start (loading a model, say) is bounded by --wait (default 60 s, as in hil
+    run), not by the 10 s a replay waits between frames; too short a --wait is one line."""
+    from hil.replay import replay
+
+    log = default_run[1] / "can.log"
+    program = f"sleep 1.5; exec {PYTHON} -m controllers --config {{config}} --bus {{bus}}"
+    slow = f"sh -c {shlex.quote(program)}"
+    assert replay(log, controller=slow, timeout=0.5, wait=30.0).ok  # 1.5 s to SYNC(0): waited
+    assert hil_main(["replay", str(log), "--controller", slow, "--wait", "0.5"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [
+        "hil: error: no SYNC(0) from the controller within 0.5 s of the start; the replay stopped"
+    ]

@@ -56,6 +56,14 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
         "command line with {config} {bus} ... (a separate program: implies --process)",
     )
     parser.add_argument(
+        "--wait",
+        type=float,
+        default=None,
+        metavar="SECONDS",
+        help="how long the replay waits for the controller's first SYNC (default: 60); after "
+        "that, 10 s for each further frame",
+    )
+    parser.add_argument(
         "--json",
         type=Path,
         help="write the comparison's summary as JSON (not over a CAN log or a run's files)",
@@ -92,6 +100,7 @@ def _replay(args: argparse.Namespace) -> int:
         controller=args.controller,
         tolerance=args.tolerance,
         tolerances=tolerances,
+        **({} if args.wait is None else {"wait": args.wait}),
     )
     print(
         f"{args.log}: {result.cycles} cycles, {result.frames_compared} controller frames "
