@@ -175,6 +175,8 @@ class CanLogger:
             else:
                 self._record = None
                 self._writer = can.Logger(str(path))  # type: ignore[abstract]
+                if isinstance(self._writer, can.TRCWriter):  # its header names the file, not
+                    self._writer.filepath = path.name  # the folder: the same in every folder
         except OSError as exc:
             raise WriteError(f"{path}: cannot create: {exc.strerror or exc}") from None
         except (ImportError, NotImplementedError) as exc:  # python-can's MF4 writer: the latter

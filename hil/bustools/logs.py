@@ -282,11 +282,14 @@ def open_writer(path: Path) -> can.io.generic.MessageWriter:
     if not path.parent.is_dir():
         raise LogError(f"{path}: no such folder {path.parent}")
     try:
-        return can.Logger(str(path))
+        writer = can.Logger(str(path))
     except ImportError as exc:
         raise LogError(f"{path}: writing {path.suffix} needs {exc.name or 'an extra'}") from exc
     except (OSError, ValueError) as exc:
         raise LogError(f"{path}: cannot write: {exc}") from exc
+    if isinstance(writer, can.TRCWriter):  # its header names the file, not the folder
+        writer.filepath = path.name
+    return writer
 
 
 def finish_writer(
