@@ -324,14 +324,17 @@ def compare(
         result.by_signal[key] = result.by_signal.get(key, 0) + 1
 
     for cycle, actual in zip(cycles, sent, strict=True):
-        expected_frames = _by_name(cycle.controller, protocol)
-        actual_frames = _by_name(actual, protocol)
+        expected_frames, expected_count = _by_name(cycle.controller, protocol)
+        actual_frames, actual_count = _by_name(actual, protocol)
         order = {
             name: can_id for name, (can_id, _) in (*expected_frames.items(), *actual_frames.items())
         }
         for name in sorted(order, key=lambda n: (order[n], n)):
             exp = expected_frames[name][1] if name in expected_frames else None
             act = actual_frames[name][1] if name in actual_frames else None
+            counts = expected_count.get(name, 0), actual_count.get(name, 0)
+            if exp is not None and act is not None and counts[0] != counts[1]:  # sent twice
+                note(Divergence(cycle.index, cycle.time, name, "(count)", *map(float, counts)))
             if isinstance(act, int) or isinstance(exp, int):  # the wrong length for the DBC
                 length = protocol.message(order[name]).length
                 sizes = [v if isinstance(v, int) else length for v in (exp, act)]
@@ -377,18 +380,27 @@ def check_tolerances(protocol: Protocol, tolerances: Mapping[str, float]) -> Non
 
 def _by_name(
     messages: Iterable[can.Message], protocol: Protocol
-) -> dict[str, tuple[int, dict[str, float] | int]]:
-    """Per frame name: (its id, its signals), or for a DBC message of the wrong length
-    (its id, the length it came with); an id the DBC lacks is named "0x123 (not in the DBC)",
-    with no signals."""
+) -> tuple[dict[str, tuple[int, dict[str, float] | int]], dict[str, int]]:
+    """Per frame name: (its id, its signals) of the last such frame, or for a DBC message of
+    the wrong length (its id, the length it came with); an id the DBC lacks is named
+    "0x123 (not in the DBC)" (an extended one "0x00000201 (extended, not in the DBC)"), with no
+    signals. And how many frames of each name there were."""
     frames: dict[str, tuple[int, dict[str, float] | int]] = {}
+    counts: dict[str, int] = {}
     known = {m.frame_id for m in protocol.database.messages}
     for message in messages:
         can_id, data = message.arbitration_id, bytes(message.data)
         if message.is_extended_id or can_id not in known:
-            frames[f"0x{can_id:03X} (not in the DBC)"] = (can_id, {})
+            name = (
+                f"0x{can_id:08X} (extended, not in the DBC)"
+                if message.is_extended_id
+                else f"0x{can_id:03X} (not in the DBC)"
+            )
+            frames[name] = (can_id, {})
+            counts[name] = counts.get(name, 0) + 1
             continue
         definition = protocol.message(can_id)
+        counts[definition.name] = counts.get(definition.name, 0) + 1
         if len(data) != definition.length:
             frames[definition.name] = (can_id, len(data))
             continue
@@ -396,7 +408,7 @@ def _by_name(
             can_id,
             dict(definition.decode(data, decode_choices=False)),  # type: ignore[arg-type]
         )
-    return frames
+    return frames, counts
 
 
 def replay(

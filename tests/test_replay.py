@@ -389,3 +389,15 @@ def test_a_frame_the_dbc_lacks_or_of_the_wrong_length_is_a_divergence_not_a_trac
         f"DriveCommand1.(length) expected {len(command.data)}, got 2"
     ), shown  # fmt: skip
     assert result.by_signal == {"0x123 (not in the DBC).(frame)": 1, "DriveCommand1.(length)": 1}
+    # a frame sent twice in a cycle (the last one counts on the bus) and an extended id that
+    # is the number of a DBC message (a different frame on the bus)
+    sent = [list(cycle.controller) for cycle in cycles]
+    sent[1].append(command)
+    sent[2].append(can.Message(arbitration_id=0x201, data=bytes(command.data),
+                               is_extended_id=True))  # fmt: skip
+    shown = [str(d) for d in compare(cycles, sent, protocol).divergences]
+    assert len(shown) == 2, shown
+    assert shown[0].endswith("DriveCommand1.(count) expected 1, got 2"), shown
+    assert shown[1].endswith(
+        "0x00000201 (extended, not in the DBC).(frame) expected (no frame), got 1"
+    )
