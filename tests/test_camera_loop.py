@@ -555,3 +555,29 @@ def test_hil_estimate_of_a_read_only_folder_says_so(
             f"hil estimate writes {files} there; copy the folder somewhere writable"
         ]
     assert _untouched(folder) == before
+
+
+def test_hil_estimate_says_whose_controller_ran(
+    short_run, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:  # noqa: ANN001
+    """A run under a user's program used the program's own estimator, not controller.json's."""
+    import shutil
+
+    from hil.cli import main
+
+    folder = tmp_path / "run"
+    shutil.copytree(short_run.out, folder)
+    said = {}
+    for program in ("softhil", "external", "python mine.py --bus {bus}", None):
+        summary = json.loads((folder / "summary.json").read_text())
+        summary["controller_program"] = program
+        (folder / "summary.json").write_text(json.dumps(summary))
+        assert main(["estimate", str(folder), "--no-plot"]) == 0
+        said[program] = capsys.readouterr().out.splitlines()[0].partition(" (")[2]
+    assert said == {
+        "softhil": "controller used ukf)",
+        None: "controller used ukf)",  # a run before softhil recorded who
+        "external": "the run's controller was an external controller; softhil's would use ukf)",
+        "python mine.py --bus {bus}": "the run's controller was your program; softhil's would "
+        "use ukf)",
+    }

@@ -54,7 +54,13 @@ def _estimate(args: argparse.Namespace) -> int:
         report = estimation_report(args.run, plot=not args.no_plot, recorded=recorded)
         text = json.dumps(report, indent=2, sort_keys=True) + "\n"
         write_file(args.run / "estimation.json", text)
-    print(f"{args.run}: estimation against the true curvature (controller used {report['chosen']})")
+    program = _program(args.run)
+    used = (
+        f"controller used {report['chosen']}"
+        if program == "softhil"
+        else f"the run's controller was {program}; softhil's would use {report['chosen']}"
+    )
+    print(f"{args.run}: estimation against the true curvature ({used})")
     print("  estimator   rms [1/m]   max [1/m]   gated   update [us]")
     for name in ("raw", "kf", "ukf"):
         r = report[name]
@@ -131,3 +137,15 @@ def _decibels(ratio: float) -> str:
     import math
 
     return "infinite" if not math.isfinite(ratio) else f"{20.0 * math.log10(ratio):.1f} dB"
+
+
+def _program(run: Path) -> str:
+    """Who controlled the run, as summary.json says: "softhil" (also when it does not say),
+    "an external controller", or "your program"."""
+    try:
+        program = json.loads((run / "summary.json").read_text()).get("controller_program")
+    except (OSError, ValueError, AttributeError):
+        return "softhil"
+    if program in (None, "softhil"):
+        return "softhil"
+    return "an external controller" if program == "external" else "your program"
