@@ -1112,3 +1112,18 @@ def test_a_count_of_one_frame_is_singular() -> None:
 
     assert DumpCount(shown=1, decoded=1).line() == "1 frame, 1 decoded"
     assert DumpCount(shown=0).line() == "0 frames, 0 decoded"
+    # a filter that selects nothing says so (an --id 0x800 the log lacks printed "0 frames")
+    assert DumpCount(passed=7).line() == "0 frames, 0 decoded; 7 not selected by --id/--message"
+
+
+def test_dump_of_an_id_the_log_lacks_says_how_many_frames_it_passed_over(
+    run_log: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    frames = len(read_log(run_log))
+    assert main(["bus", "dump", "--log", str(run_log), "--id", "0x800"]) == 0
+    captured = capsys.readouterr()
+    assert captured.out == ""
+    assert captured.err.strip() == f"0 frames, 0 decoded; {frames} not selected by --id/--message"
+    assert main(["bus", "dump", "--log", str(run_log), "--message", "SYNC", "--raw"]) == 0
+    shown = len(capsys.readouterr().out.splitlines())
+    assert 0 < shown < frames

@@ -49,6 +49,7 @@ class DumpCount:
     decoded: int = 0
     unknown: Counter[int] = field(default_factory=Counter)
     raw: bool = False  # shown undecoded (--raw): `decoded` counts the ids the DBC knows
+    passed: int = 0  # frames read that --id / --message did not select
 
     def line(self) -> str:
         known = "known to the DBC" if self.raw else "decoded"
@@ -56,6 +57,8 @@ class DumpCount:
         if self.unknown:
             ids = ", ".join(f"0x{i:03X} x{n}" for i, n in sorted(self.unknown.items()))
             text += f", {sum(self.unknown.values())} unknown ({ids})"
+        if self.passed:
+            text += f"; {self.passed} not selected by --id/--message"
         return text
 
 
@@ -77,6 +80,7 @@ def dump(
         if count is not None and tally.shown >= count:
             break
         if not selection.matches(msg):
+            tally.passed += 1
             continue
         channel = str(msg.channel) if msg.channel is not None else "can0"
         line = candump_text(msg, channel, direction)
