@@ -50,6 +50,14 @@ STARTUP_TIMEOUT = 60.0  # [s] wall clock for the controller's first SYNC
 EMCY_REASONS = {EMCY_OVER_PRESSURE: "over-pressure", EMCY_COMMAND_TIMEOUT: "command timeout"}
 
 
+def when(reached: dict[str, float | int]) -> str:
+    """Where a run is or stopped, for a message: before SYNC 0, or the time and the last SYNC
+    ("at t = 1.230 s (after SYNC 123 of 1000)")."""
+    if reached["cycle"] < 0:
+        return "before SYNC 0"
+    return f"at t = {reached['time']:.3f} s (after SYNC {reached['cycle']} of {reached['cycles']})"
+
+
 @dataclass
 class PlantStats:
     sync_received: int = 0
@@ -158,9 +166,12 @@ class Plant:
 
     def _when(self) -> str:
         """Where the run is, for a message: before SYNC 0, or the time and the last SYNC."""
-        if self.cycle < 0:
-            return "before SYNC 0"
-        return f"at t = {self.sim_time:.3f} s (after SYNC {self.cycle} of {self.scenario.cycles})"
+        return when(self.reached())
+
+    def reached(self) -> dict[str, float | int]:
+        """How far the run got (summary.json's `reached` of a run that stopped early): the
+        simulation time [s], the last SYNC served (-1: none) and the run's final SYNC."""
+        return {"time": self.sim_time, "cycle": self.cycle, "cycles": self.scenario.cycles}
 
     def run_driven(
         self, driver: Callable[[], object], progress: Callable[[int], None] | None = None

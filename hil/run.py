@@ -46,7 +46,7 @@ from hil.bus.hosted import HostedBus
 from hil.bus.loopback import HubProcess, LoopbackHub
 from hil.devices import HEARTBEAT_PERIOD
 from hil.errors import BusError, HilError, Terminated
-from hil.plant import STARTUP_TIMEOUT, Plant
+from hil.plant import STARTUP_TIMEOUT, Plant, when
 from hil.program import (
     EXTERNAL,
     SOFTHIL,
@@ -154,6 +154,8 @@ def run_scenario(scenario: Scenario, options: RunOptions) -> RunResult:
             return _run(scenario, options, folder, start, scenario_text, summary)
         except BaseException as exc:
             summary["status"], summary["error"] = _stopped(exc)
+            if summary["status"] != "failed" and "reached" in summary:  # Ctrl-C, SIGTERM
+                summary["error"] += f" {when(summary['reached'])}"
             with contextlib.suppress(HilError):  # a full disk may refuse this one too
                 _write_summary(folder, summary)
             raise
@@ -230,6 +232,7 @@ def _run(
                 stats = plant.run(peer.gone, progress, startup_timeout=options.wait)
                 report = peer.finish()
         except BaseException:
+            summary["reached"] = plant.reached()  # how far the run got, in summary.json
             peer.stop()
             raise
         if recording.mf4:

@@ -497,6 +497,14 @@ def test_hil_run_signalled(tmp_path: Path, sig, code: int, line: str, status: st
     assert err.strip().splitlines() == [line]
     s = summary(out)
     assert s["status"] == status and s["error"]
+    # how far the run got: the rows recorded, and the same in the error's words
+    reached = s["reached"]
+    assert reached["cycles"] == 1000 and 0 < reached["cycle"] < 1000, reached
+    assert reached["time"] == pytest.approx(reached["cycle"] * 0.01)
+    assert s["error"] == (
+        f"{status} (SIG{sig.name[3:]}) at t = {reached['time']:.3f} s "
+        f"(after SYNC {reached['cycle']} of 1000)"
+    )
     assert not (out / "controller.pid").exists() and not (out / hil.results.LOCK).exists()
     readable(out)
 
@@ -513,6 +521,8 @@ def test_controller_killed(tmp_path: Path, sig) -> None:
     assert len(lines) == 1 and "the controller exited with code" in lines[0], err
     s = summary(out)
     assert s["status"] == "failed" and "controller exited" in s["error"]
+    assert s["error"].endswith(f"stopped at t = {s['reached']['time']:.3f} s (after SYNC "
+                               f"{s['reached']['cycle']} of 1000)")  # fmt: skip
     readable(out)
 
 
