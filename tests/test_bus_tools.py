@@ -415,6 +415,17 @@ def test_dump_raw_is_a_candump_log_and_count_limits(
     copy.write_text(captured.out)
     assert [key(m) for m in read_log(copy)] == [key(m) for m in read_log(run_log)[:7]]
     assert captured.err.startswith("7 frames")
+    # a log whose channels are numbers (.blf, .trc): named as python-can's logconvert to .log
+    # names them (can0, can1; a bare "0" is no interface name)
+    for suffix in (".blf", ".trc"):
+        other = tmp_path / f"copy{suffix}"
+        write_log(other, read_log(run_log)[:3])
+        converted = tmp_path / f"converted{suffix}.log"
+        subprocess.run([sys.executable, "-m", "can.logconvert", str(other), str(converted)],
+                       check=True, capture_output=True)  # fmt: skip
+        assert main(["bus", "dump", "--log", str(other), "--raw"]) == 0
+        lines = capsys.readouterr().out.splitlines()
+        assert lines == converted.read_text().splitlines(), suffix
 
 
 @pytest.mark.parametrize(

@@ -82,7 +82,9 @@ def dump(
         if not selection.matches(msg):
             tally.passed += 1
             continue
-        channel = str(msg.channel) if msg.channel is not None else "can0"
+        channel = "can0" if msg.channel is None else str(msg.channel)
+        if channel.isdigit():  # a .blf/.asc/.trc channel number: named as python-can's
+            channel = f"can{channel}"  # CanutilsLogWriter (logconvert to .log) names it
         line = candump_text(msg, channel, direction)
         text, known = describe(database, msg)
         if known:
