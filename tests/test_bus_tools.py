@@ -203,6 +203,8 @@ def _bad_logs(run_log: Path, tmp: Path) -> list[tuple[Path, str]]:
             "line 3",
         ),
         "empty.log": ("", "empty log"),
+        "empty.blf": (b"", "empty log"),  # not "unpack requires a buffer of 72 bytes"
+        "empty.trc": ("", "empty log"),
         "garbage.asc": (_lines_with_garbage(tmp / "good.asc", "garbage here", 9), "line 9"),
         "garbage.trc": (_lines_with_garbage(tmp / "good.trc", "not a trc line", 25), "line 25"),
         "garbage.csv": (_lines_with_garbage(tmp / "good.csv", "garbage", 5), "line 5"),

@@ -179,6 +179,8 @@ def iter_log(path: Path | str, warn: Callable[[str], None] = warn_stderr) -> Ite
     if not path.is_file():
         raise LogError(f"{path}: no such log file")
     check_format_available(path, "reading")
+    if path.stat().st_size == 0:  # in every format (a binary reader would want its header)
+        raise LogError(f"{path}: empty log (no CAN frames)")
     count = 0
     lines: _NumberedLines | None = None
     reader: can.io.generic.MessageReader | None = None
