@@ -26,6 +26,7 @@ from controllers.estimation import DriveReading, MarkerFrame
 from controllers.estimators import make_estimator
 from controllers.node import ESTIMATORS, CameraAssembler, ControllerConfig
 from controllers.protocol import CameraFrame, CameraMarker, DriveStatus, Protocol
+from hil.bustools.logs import has_direction
 from hil.errors import HilError
 from hil.replay import CSV_HAS_NO_DIRECTION, config_beside, read_cycles, read_log
 from hil.summary import read_signals
@@ -193,7 +194,7 @@ def check_estimable(run: Path, log: Path | None = None) -> None:
             log = _log_of(run)
         except HilError:
             return  # said when the report reads the log
-    if log.suffix.lower() == ".csv":
+    if not has_direction(log):
         raise HilError(f"{log}: hil estimate cannot use a .csv log: {CSV_HAS_NO_DIRECTION}")
 
 

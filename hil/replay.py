@@ -33,6 +33,7 @@ import can
 from controllers.canbus import BusSpec, open_bus
 from controllers.node import ControllerConfig, ControllerNode, read_config
 from controllers.protocol import COUNTER_MODULO, SYNC_ID, FrameError, Protocol, Sync
+from hil.bustools.logs import DIRECTED, NO_DIRECTION, has_direction
 from hil.errors import HilError
 from hil.program import SOFTHIL, USER_LINGER, check_controller, last_words, start, stop
 
@@ -96,8 +97,8 @@ class ReplayResult:
 
 # why a python-can CSV log serves neither replay nor the estimation report
 CSV_HAS_NO_DIRECTION = (
-    "python-can's CSV has no direction column, so the controller's frames cannot be told from "
-    "the plant's (record with --can-log can.log, .asc, .blf or .trc)"
+    f"{NO_DIRECTION}, so the controller's frames cannot be told from the plant's (record with "
+    f"--can-log can{DIRECTED})"
 )
 
 
@@ -429,7 +430,7 @@ def replay(
     check_controller(controller, external=False)
     if not 0 < wait <= MAX_WAIT:  # NaN too
         raise ReplayError(f"--wait: {wait:g} s; give 0 < SECONDS <= {MAX_WAIT:g} (a day)")
-    if Path(log).suffix.lower() == ".csv":
+    if not has_direction(log):
         raise ReplayError(f"{log}: a .csv log cannot be replayed: {CSV_HAS_NO_DIRECTION}")
     protocol = Protocol()
     check_tolerances(protocol, tolerances or {})

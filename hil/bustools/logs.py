@@ -138,6 +138,16 @@ def suffix_of(path: Path) -> str:
     return suffix
 
 
+NO_DIRECTION = "python-can's CSV has no direction column"
+DIRECTED = ".log, .asc, .blf or .trc"  # the formats with one that softhil writes and reads
+
+
+def has_direction(path: Path | str) -> bool:
+    """Whether a log of `path`'s suffix records each frame's direction (R received, T sent): a
+    .csv does not, so the controller's frames cannot be told from the plant's."""
+    return Path(path).suffix.lower() != ".csv"
+
+
 def check_format_available(path: Path, action: str = "writing") -> None:
     """LogError unless the optional package `path`'s format needs is installed: .mf4 needs
     asammdf (python-can's MF4 reader and writer only fail once used, with a traceback)."""

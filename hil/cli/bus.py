@@ -331,6 +331,7 @@ def _check_count(value: int | None) -> None:
 def _dump(args: argparse.Namespace) -> int:
     from hil.bustools.dump import DumpCount, dump, print_count
     from hil.bustools.frames import FrameFilter, load_database
+    from hil.bustools.logs import has_direction
 
     _check_count(args.count)
     _check_wait("--timeout", args.timeout)
@@ -339,7 +340,7 @@ def _dump(args: argparse.Namespace) -> int:
     frames, bus = _frames_of(args)
     tally = DumpCount(raw=args.raw)
     try:
-        directed = not (args.log and str(args.log).lower().endswith(".csv"))
+        directed = not args.log or has_direction(args.log)
         dump(frames, database, selection, args.raw, args.count, sys.stdout, tally, directed)
     except KeyboardInterrupt:
         pass
@@ -376,15 +377,15 @@ def _record(args: argparse.Namespace) -> int:
 
 def _replay(args: argparse.Namespace) -> int:
     from hil.bustools.frames import FrameFilter, load_database, open_spec
-    from hil.bustools.logs import read_log
+    from hil.bustools.logs import DIRECTED, has_direction, read_log
     from hil.bustools.replay import check_lockstep_direction, replay_lockstep, replay_timed
 
     database = load_database()
     selection = FrameFilter.parse(args.id or [], args.message or [], database)
-    if args.direction != "all" and str(args.file).lower().endswith(".csv"):
+    if args.direction != "all" and not has_direction(args.file):
         raise HilError(
             f"{args.file}: a .csv log has no direction column, so --direction {args.direction} "
-            "cannot choose its frames; use --direction all, or a .log, .asc, .blf or .trc log"
+            f"cannot choose its frames; use --direction all, or a {DIRECTED} log"
         )
     messages = read_log(args.file)
     if not args.lockstep and not args.speed >= MIN_SPEED:
