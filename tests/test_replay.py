@@ -299,6 +299,24 @@ def test_the_json_summary_is_written_after_the_report(recorded: Path, tmp_path: 
                  "--tolerance-for", "DriveCommand1.piston_setpoint=0.1"]) == 0  # fmt: skip
     summary = json.loads(out.read_text())
     assert summary["cycles"] == 151 and summary["divergences"] == 0, summary
+    assert summary["status"] == "passed"
+    # a replay that cannot finish replaces the earlier report with its error: a script reading
+    # the JSON never takes the last replay's verdict for this one's
+    cut = tmp_path / "cut" / "can.log"
+    cut.parent.mkdir()
+    shutil.copy(recorded.parent / "controller.json", cut.parent)
+    cut.write_text("\n".join(recorded.read_text().splitlines()[:100]))
+    assert main(["replay", str(cut), "--json", str(out)]) == 1
+    summary = json.loads(out.read_text())
+    assert summary == {"status": "error", "error": summary["error"]}
+    assert summary["error"].startswith(f"{cut}: 15 SYNC cycles recorded"), summary
+    changed = tmp_path / "changed.toml"  # a scenario that does not load: the same
+    changed.write_text("bogus")
+    assert main(["replay", str(recorded), "--json", str(out), "--scenario", str(changed)]) == 1
+    assert json.loads(out.read_text())["status"] == "error"
+    out.write_text("mine")  # options refused before anything is replayed: nothing written
+    assert main(["replay", str(recorded), "--json", str(out), "--tolerance", "-1"]) == 1
+    assert out.read_text() == "mine"
 
 
 def _write(tmp_path: Path, name: str, data: bytes | str) -> Path:

@@ -90,18 +90,27 @@ def _replay(args: argparse.Namespace) -> int:
         raise HilError(f"--tolerance must not be negative, got {args.tolerance}")
     json_out = _json_path(args.json, Path(args.log)) if args.json else None
     config = None
-    if args.scenario is not None:
-        scenario = load_scenario(resolve_scenario(args.scenario))
-        config = robot_kind(scenario.robot.kind).controller_config(scenario)
-    result = replay(
-        args.log,
-        config,
-        process=args.process,
-        controller=args.controller,
-        tolerance=args.tolerance,
-        tolerances=tolerances,
-        **({} if args.wait is None else {"wait": args.wait}),
-    )
+    try:
+        if args.scenario is not None:
+            scenario = load_scenario(resolve_scenario(args.scenario))
+            config = robot_kind(scenario.robot.kind).controller_config(scenario)
+        result = replay(
+            args.log,
+            config,
+            process=args.process,
+            controller=args.controller,
+            tolerance=args.tolerance,
+            tolerances=tolerances,
+            **({} if args.wait is None else {"wait": args.wait}),
+        )
+    except (HilError, KeyboardInterrupt) as exc:
+        if json_out:  # an earlier replay's report is not left there, read as this one's
+            error = str(exc) if isinstance(exc, HilError) else "interrupted (SIGINT)"
+            with contextlib.suppress(HilError):
+                write_file(
+                    json_out, json.dumps({"status": "error", "error": error}, indent=2) + "\n"
+                )
+        raise
     print(
         f"{args.log}: {result.cycles} cycles, {result.frames_compared} controller frames "
         f"compared, {len(result.divergences)} divergence(s)"
@@ -111,7 +120,8 @@ def _replay(args: argparse.Namespace) -> int:
         for signal, count in sorted(result.by_signal.items()):
             print(f"  {signal}: {count} cycle(s)")
     if json_out:  # after the report: a failing write loses no result
-        write_file(json_out, json.dumps(result.summary(), indent=2) + "\n")
+        report = {"status": "passed" if result.ok else "diverged", **result.summary()}
+        write_file(json_out, json.dumps(report, indent=2) + "\n")
     return 0 if result.ok else 1
 
 
