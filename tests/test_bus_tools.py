@@ -733,6 +733,15 @@ def test_a_csv_log_has_no_direction_to_choose_or_show(
             f"hil: error: {csv}: a .csv log has no direction column, so --direction {direction} "
             "cannot choose its frames; use --direction all, or a .log, .asc, .blf or .trc log"
         )
+    # --lockstep needs a side: it must not send the user round to --direction all and back
+    for direction in ("all", "R"):
+        argv = ["bus", "replay", str(csv), "--lockstep", "--direction", direction]
+        assert main([*argv, "--bus", "loopback:127.0.0.1:9"]) == 1
+        assert one_error_line(capsys) == (
+            f"hil: error: {csv}: --lockstep replays one side of the log (--direction R or T), "
+            "which a .csv log does not record; replay it timed (--speed), or use a .log, .asc, "
+            ".blf or .trc log"
+        )
     assert main(["bus", "dump", "--log", str(csv), "--raw", "--count", "2"]) == 0
     lines = capsys.readouterr().out.splitlines()
     assert len(lines) == 2 and not any(line.endswith((" R", " T")) for line in lines), lines

@@ -382,6 +382,11 @@ def _replay(args: argparse.Namespace) -> int:
 
     database = load_database()
     selection = FrameFilter.parse(args.id or [], args.message or [], database)
+    if args.lockstep and not has_direction(args.file):
+        raise HilError(
+            f"{args.file}: --lockstep replays one side of the log (--direction R or T), which a "
+            f".csv log does not record; replay it timed (--speed), or use a {DIRECTED} log"
+        )
     if args.direction != "all" and not has_direction(args.file):
         raise HilError(
             f"{args.file}: a .csv log has no direction column, so --direction {args.direction} "
