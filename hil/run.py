@@ -45,7 +45,7 @@ from hil.bus.direct import direct_pair
 from hil.bus.hosted import HostedBus
 from hil.bus.loopback import HubProcess, LoopbackHub
 from hil.devices import HEARTBEAT_PERIOD
-from hil.errors import BusError, HilError, Terminated
+from hil.errors import BusError, HilError, ProtocolError, Terminated
 from hil.plant import STARTUP_TIMEOUT, Plant, when
 from hil.program import (
     EXTERNAL,
@@ -161,6 +161,19 @@ def run_scenario(scenario: Scenario, options: RunOptions) -> RunResult:
             raise
 
 
+def _on_another_channel(exc: ProtocolError, bus: object, cycle: int) -> ProtocolError:
+    """A controller that never sent SYNC(0) to the hub the plant hosts may have joined another
+    channel of it: `exc` saying which, if one did."""
+    others = bus.elsewhere() if isinstance(bus, HostedBus) and cycle < 0 else []
+    if not others:
+        return exc
+    names = ", ".join(repr(name) for name in others)
+    return ProtocolError(
+        f"{exc}; a client joined the hub's channel {names}, not this run's "
+        f"{bus.channel_name!r} (the channel of its bus spec)"
+    )
+
+
 def _stopped(exc: BaseException) -> tuple[str, str]:
     """(status, error) of summary.json for what stopped a run."""
     if isinstance(exc, KeyboardInterrupt):
@@ -229,7 +242,10 @@ def _run(
                 if isinstance(plant_bus, HostedBus):  # who sends the SYNCs: see _Peer.gone
                     peer.hub = plant_bus
                     plant_bus.watch(SYNC_ID)
-                stats = plant.run(peer.gone, progress, startup_timeout=options.wait)
+                try:
+                    stats = plant.run(peer.gone, progress, startup_timeout=options.wait)
+                except ProtocolError as exc:
+                    raise _on_another_channel(exc, plant_bus, plant.cycle) from None
                 report = peer.finish()
         except BaseException:
             summary["reached"] = plant.reached()  # how far the run got, in summary.json

@@ -125,6 +125,38 @@ def test_an_external_controller_that_never_comes_fails_the_run_in_one_line_after
     assert (out / "controller.json").is_file() and not (out / "controller.log").exists()
 
 
+def test_an_external_controller_on_another_channel_of_the_hub_is_named(tmp_path: Path) -> None:
+    """A controller started by hand on the right hub but the wrong channel (its python-can
+    config's `can0`, say) sees an empty bus and the run none of its SYNCs: the error names
+    the channel it joined."""
+    import can
+
+    path = shortened(tmp_path, 0.2)
+    run = subprocess.Popen(
+        [sys.executable, "-m", "hil", "run", str(path), "--out", str(tmp_path / "run")]
+        + ["--no-progress", "--controller", "external", "--wait", "3"],
+        stderr=subprocess.PIPE,
+        text=True,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+    )
+    try:
+        assert run.stderr is not None
+        line = run.stderr.readline()
+        port = int(re.search(r"socketcand 127\.0\.0\.1:(\d+), channel softhil", line)[1])
+        bus = can.Bus(interface="socketcand", host="127.0.0.1", port=port, channel="can0")
+        bus.send(can.Message(arbitration_id=0x080, data=b"\x00", is_extended_id=False))
+        assert run.wait(timeout=60) == 1
+        bus.shutdown()
+        assert run.stderr.read().strip().splitlines() == [
+            "hil: error: no SYNC(0) from the controller within 3 s of the start; the plant "
+            "stopped; a client joined the hub's channel 'can0', not this run's 'softhil' (the "
+            "channel of its bus spec)"
+        ]
+    finally:
+        run.kill()
+        run.wait()
+
+
 def test_a_hand_started_controller_that_leaves_mid_run_is_noticed_by_its_closed_connection(
     tmp_path: Path,
 ) -> None:

@@ -49,6 +49,7 @@ class HostedBus(can.BusABC):
         self._busy_poll = busy_poll_seconds(busy_poll)
         self.hub = LoopbackHub(host, handshake_grace=handshake_grace)
         self._member = self.hub.host(channel)
+        self.channel_name = channel
         self.channel_info = f"softhil hub hosted on {host}:{self.hub.port}, channel {channel}"
         self.closed = False
         super().__init__(channel=channel, **kwargs)  # type: ignore[arg-type]
@@ -65,6 +66,11 @@ class HostedBus(can.BusABC):
     def watch(self, can_id: int) -> None:
         """Remember which connection sends frames of `can_id` (see `sender_gone`)."""
         self._member.watch_id = can_id
+
+    def elsewhere(self) -> list[str]:
+        """The other channels of the hub that clients joined (a controller that named the
+        wrong one is there, not on this bus)."""
+        return [name for name in self.hub.joined() if name != self.channel_name]
 
     def sender_gone(self) -> str | None:
         """Where the last connection that sent a watched frame was connected from, if that

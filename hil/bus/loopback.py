@@ -406,6 +406,7 @@ class LoopbackHub:
         self._turning = False
         self._clients: dict[int, _Client] = {}  # keyed by socket fd
         self._channels: dict[bytes, list[_Client]] = {}  # rawmode clients per channel
+        self._joined: set[bytes] = set()  # every channel a client has joined
         self._dirty: dict[int, _Client] = {}  # clients with output to flush (insertion order)
         self._holding: dict[int, _Client] = {}  # clients in the handshake grace period
         self._doomed: list[_Client] = []  # clients to disconnect at the end of this iteration
@@ -430,6 +431,11 @@ class LoopbackHub:
         if self._address is None:
             raise RuntimeError("LoopbackHub is not bound yet; call start() first")
         return self._address
+
+    def joined(self) -> list[str]:
+        """The channels that clients have joined since the hub started (the hosting member's
+        own excepted), sorted: where a client that named the wrong channel went."""
+        return sorted(name.decode() for name in self._joined)
 
     @property
     def frames_forwarded(self) -> int:
@@ -886,6 +892,7 @@ class LoopbackHub:
         client.rawmode = True
         self._rawmode_clients += 1
         self._channels.setdefault(client.channel, []).append(client)
+        self._joined.add(client.channel)
         if self._grace > 0:
             client.held = bytearray()
             client.hold_until = time.monotonic() + self._grace
@@ -1012,6 +1019,7 @@ class LoopbackHub:
             client.binary = client.rawmode = True
             self._rawmode_clients += 1
             self._channels.setdefault(name, []).append(client)
+            self._joined.add(name)
             self._queue(client, _binary_ack())
             log.debug("binary client %s joined channel %s", client.addr, name.decode())
 
