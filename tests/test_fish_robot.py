@@ -126,6 +126,13 @@ def test_fish_swim_moves_forward(tmp_path: Path) -> None:
     s = run(path, tmp_path / "swim")
     assert s["forward_speed"] > 0.05 and s["forward_speed_bl"] > 0.1
     assert s["manoeuvres"] >= 3 and s["success"] and not s["gas_exhausted"]
+    # the gas budget from the true canister mass: beyond the report's 8-bit 255 ("or more")
+    assert s["manoeuvres_left_reported"] == 255 and s["manoeuvres_left"] > 255
+    signals = np.genfromtxt(tmp_path / "swim" / "signals.csv", delimiter=",", names=True)
+    reserve = json.loads((tmp_path / "swim" / "controller.json").read_text())["gas_reserve"]
+    per = s["gas_used"] / s["manoeuvres"]
+    usable = signals["m_canister"][-1] - reserve
+    assert s["manoeuvres_left"] * per <= usable < (s["manoeuvres_left"] + 1) * per
 
 
 def test_fish_heading_holds_within_10_degrees_with_the_realistic_camera(tmp_path: Path) -> None:

@@ -113,7 +113,14 @@ def fish_metrics(robot: Fish, scenario: Scenario, signals: Mapping[str, Any]) ->
     empty = np.nan_to_num(signals["empty"]) > 0.5
     mode = signals["mode"]
     reported_no_gas = np.nan_to_num(mode) == NO_GAS_MODE
-    left = signals["manoeuvres_left"][np.isfinite(signals["manoeuvres_left"])]
+    reported = signals["manoeuvres_left"][np.isfinite(signals["manoeuvres_left"])]
+    gas_used = float(signals["m_canister"][0] - signals["m_canister"][-1])
+    left: int | None = None  # the true figure: the report saturates at 255 (an 8-bit signal)
+    if reported.size and int(reported[-1]) == 0:
+        left = 0  # the controller's "no gas" (latched): the supply no longer holds its pressure
+    elif starts and gas_used > 0.0:
+        usable = float(signals["m_canister"][-1]) - robot.controller_config(scenario).gas_reserve
+        left = max(0, math.floor(usable / (gas_used / len(starts))))
     metrics: dict[str, Any] = {
         "heading_change": first.get("heading_change"),
         "turn_time": first.get("turn_time"),
@@ -123,9 +130,10 @@ def fish_metrics(robot: Fish, scenario: Scenario, signals: Mapping[str, Any]) ->
         "forward_speed_bl": forward / length,
         "body_length": length,
         "final_heading": math.degrees(float(signals["yaw"][-1])),
-        "gas_used": float(signals["m_canister"][0] - signals["m_canister"][-1]),
+        "gas_used": gas_used,
         "manoeuvres": len(starts),
-        "manoeuvres_left": int(left[-1]) if left.size else None,
+        "manoeuvres_left": left,
+        "manoeuvres_left_reported": int(reported[-1]) if reported.size else None,
         "work": manoeuvres,
         "work_violations": sum(
             1 for m in manoeuvres if m["elastic"] + m["resistive"] > m["gas_work"] + 1e-9
