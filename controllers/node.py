@@ -344,6 +344,7 @@ class ControllerReport:
     frames_received: int = 0
     intrusions: int = 0  # frames in the controller's (or a drive's) name that it did not send
     first_intrusion: str = ""
+    notes: list[str] = field(default_factory=list)  # what the task wants told (summary warnings)
 
 
 class LockstepClock:
@@ -502,6 +503,7 @@ class ControllerNode:
                 self._send(frame, t)
             if not batching:
                 self._flush()
+        self.report.notes = [str(n) for n in getattr(self.controller, "notes", ())]
         if lateness:
             self.report.max_lateness = max(lateness)
             self.report.mean_lateness = float(np.mean(lateness))

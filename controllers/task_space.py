@@ -71,6 +71,7 @@ class TaskSpaceControl:
         self.path_timing = (0.0, 0.0)  # (duration, ramp) [s] of the current path's traverse
         self.waypoints: list[np.ndarray] = []  # pipe: the whole-arm plan's configurations
         self.planned: Any = None  # pipe: the plan (controllers.confined.Plan)
+        self.notes: list[str] = []  # for the run's summary (ControllerReport.notes)
 
     # ------------------------------------------------------------------ the cycle
 
@@ -210,6 +211,14 @@ class TaskSpaceControl:
             margin=self.plan.clearance,
         )
         self.planned = result
+        if result.slack_steps:
+            self.notes.append(
+                f"the pipe plan cannot keep the {self.plan.clearance * 1e3:g} mm clearance from "
+                f"the walls at {len(result.slack_steps)} of its {len(result.configurations) - 1} "
+                f"steps (first: step {result.slack_steps[0]}) and relaxes it there"
+            )
+        if not result.reached:
+            self.notes.append(f"the pipe plan falls short of the goal: {result.reason}")
         self.waypoints = [np.asarray(k, float) for k in result.configurations[1:]] or [start]
         self.reference = start.copy()
         self.solution = self.waypoints[-1].copy()

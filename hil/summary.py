@@ -203,6 +203,9 @@ def summarise(
             f"{intrusions['count']} frame(s) from a node that is not their sender (intrusions); "
             f"first: {intrusions['first']}"
         )
+    notes = controller_report.get("notes", [])
+    if isinstance(notes, list):  # a program's report may hold anything (hil.run checks it)
+        warnings.extend(f"controller: {n}" for n in notes if isinstance(n, str))
     if metrics.get("settling_time") is not None and math.isinf(metrics["settling_time"]):
         warnings.append("a step never settled within its hold (settling_time is null)")
     return {

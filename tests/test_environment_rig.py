@@ -142,6 +142,28 @@ def test_pipe_is_traversed_to_its_goal_without_penetrating(tmp_path: Path, pipe:
     assert summary["goal_error"] < 2e-3
     assert summary["penetration_max"] < 2e-3
     assert summary["contact_impulse"] >= 0.0
+    assert summary["warnings"] == [] and summary["controller"]["notes"] == []
+
+
+def test_a_pipe_plan_that_relaxes_its_clearance_says_so_in_the_summary(tmp_path: Path) -> None:
+    """A clearance the pipe cannot give (50 mm from each wall of a 50 mm pipe): the planner
+    relaxes it (a collision tolerated) and the run's summary warns, as the README promises."""
+    from hil.scenario import resolve_scenario
+
+    text = resolve_scenario("planar-pipe-1").read_text()
+    text = text.replace("duration = 8.0", "duration = 1.0").replace(
+        "clearance = 0.002", "clearance = 0.05"
+    )
+    summary = run_scenario(
+        load_scenario(write(tmp_path, text)),
+        RunOptions(out=tmp_path / "run", inprocess=True, progress=False),
+    ).summary
+    note = (
+        "the pipe plan cannot keep the 50 mm clearance from the walls at 6 of its 6 steps "
+        "(first: step 1) and relaxes it there"
+    )
+    assert summary["controller"]["notes"] == [note]
+    assert summary["warnings"] == [f"controller: {note}"]
 
 
 def test_a_segment_that_starts_bent_starts_at_rest(tmp_path: Path) -> None:
