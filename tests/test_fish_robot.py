@@ -348,3 +348,14 @@ def test_a_corrective_stroke_turns_towards_the_reference_by_the_calibration(
             assert opened == pytest.approx(wanted) and control.corrected_at == at
         else:
             assert opened == pytest.approx(plain) and control.corrected_at == -math.inf
+
+
+def test_only_the_heading_task_plots_a_heading_reference(tmp_path: Path) -> None:
+    """The escape and the swim have no reference: a dashed line at 0 deg said they had."""
+    from hil.robots import robot_kind
+
+    fish = robot_kind("fish")
+    for name, drawn in (("fish-escape", False), ("fish-swim", False), ("fish-heading", True)):
+        scenario = load_scenario(scenario_file(tmp_path, name, {}))
+        heading = next(p for p in fish.plots(scenario) if p.name == "heading")
+        assert ("heading_ref" in [line[0] for line in heading.lines]) is drawn, name

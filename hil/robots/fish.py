@@ -379,17 +379,18 @@ class Fish:
         return specs
 
     def plots(self, scenario: Scenario) -> list[PlotSpec]:
+        lines: tuple[tuple[str, str, float, dict[str, str]], ...] = (
+            ("yaw", "heading (true)", 180.0 / math.pi, {"color": "tab:blue"}),
+            ("heading_est", "estimate (wrapped)", 180.0 / math.pi, {"color": "tab:orange"}),
+        )
+        if scenario.task.kind == "heading":  # the other tasks have no reference
+            lines += (
+                ("heading_ref", "reference", 180.0 / math.pi, {"color": "black", "ls": "--"}),
+            )
+        lines += (("yaw_rate", "yaw rate / 10", 18.0 / math.pi, {"color": "tab:green"}),)
         return [
             PlotSpec(
-                "heading",
-                "heading [deg], yaw rate [deg/s] / 10",
-                ("heading and yaw rate",),
-                (
-                    ("yaw", "heading (true)", 180.0 / math.pi, {"color": "tab:blue"}),
-                    ("heading_est", "estimate (wrapped)", 180.0 / math.pi, {"color": "tab:orange"}),
-                    ("heading_ref", "reference", 180.0 / math.pi, {"color": "black", "ls": "--"}),
-                    ("yaw_rate", "yaw rate / 10", 18.0 / math.pi, {"color": "tab:green"}),
-                ),
+                "heading", "heading [deg], yaw rate [deg/s] / 10", ("heading and yaw rate",), lines
             ),
             PlotSpec(
                 "pressures",
