@@ -74,6 +74,18 @@ def test_stage_one_ends_where_the_yaw_rate_first_returns_to_zero(sweep) -> None:
         assert rate[end] <= 0.0 < rate[end - 1] and np.all(rate[onset:end] > 0.0)
         change = np.degrees(signals["yaw"][end] - signals["yaw"][start])
         assert s["heading_change"] == pytest.approx(change, rel=1e-9)
+        assert s["turn_direction"] == "left"  # valve 1: yaw up
+
+
+def test_the_turn_s_direction_is_in_the_summary(tmp_path: Path) -> None:
+    """heading_change is a size; which way the fish turned is turn_direction (side 2: right,
+    its final heading negative)."""
+    path = scenario_file(
+        tmp_path, "fish-escape", {"side": "side = 2", "duration": "duration = 0.3"}
+    )
+    s = run(path, tmp_path / "right")
+    assert s["turn_direction"] == "right" and s["heading_change"] > 30.0
+    assert s["final_heading"] < 0.0
 
 
 def test_sweep_heading_change_rises_with_open_time_beyond_100_degrees(sweep) -> None:

@@ -122,7 +122,8 @@ def fish_metrics(robot: Fish, scenario: Scenario, signals: Mapping[str, Any]) ->
         usable = float(signals["m_canister"][-1]) - robot.controller_config(scenario).gas_reserve
         left = max(0, math.floor(usable / (gas_used / len(starts))))
     metrics: dict[str, Any] = {
-        "heading_change": first.get("heading_change"),
+        "heading_change": first.get("heading_change"),  # its size; the turn's way:
+        "turn_direction": first.get("direction"),  # "left" (yaw up) or "right"
         "turn_time": first.get("turn_time"),
         "peak_yaw_rate": first.get("peak_yaw_rate"),
         "peak_acceleration": first.get("peak_acceleration"),
