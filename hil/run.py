@@ -125,7 +125,7 @@ def run_scenario(scenario: Scenario, options: RunOptions) -> RunResult:
         require_asammdf("--can-log" if options.can_log else f"{source}: recording.can_log")
     if options.animate is not None:  # before anything runs: a format this machine can write
         check_format(options.animate)
-    bus_option(options)
+    _check_bus_opens(scenario, options)
     check_controller(options.controller)
     if options.inprocess and options.controller != SOFTHIL:
         raise HilError(
@@ -392,6 +392,21 @@ def bus_option(options: RunOptions) -> BusSpec | None:
     if spec.kind == "virtual":
         raise HilError("a virtual bus only joins one process: use --inprocess, or --bus loopback")
     return spec
+
+
+def _check_bus_opens(scenario: Scenario, options: RunOptions) -> None:
+    """Open the bus the run is to join (not a hub of its own) and close it again, before the
+    results folder is made: a bus that cannot be opened is one line, not a failed run whose
+    folder then refuses the retry its message suggests."""
+    spec = bus_option(options)
+    if options.inprocess:
+        return
+    if spec is None:
+        b = scenario.bus
+        if b.kind == "virtual" or (b.kind in HUB_KINDS and b.port == 0):
+            return  # refused by _bus_specs; or the run's own hub
+        spec = BusSpec(b.kind, b.channel, b.host, b.port)
+    _open(spec).shutdown()
 
 
 def _bus_specs(

@@ -332,6 +332,28 @@ def test_a_dead_hub_answers_at_once_with_a_hint() -> None:
         open_bus(BusSpec.parse(f"loopback:{port}"))
 
 
+def test_a_bus_that_cannot_be_opened_leaves_no_results_folder(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """hil run --bus at a hub that is not there (or a spec that cannot be) is one line before
+    the results folder is made: the retry the line suggests (leave out --bus) then runs there;
+    it was refused, the folder holding a failed run's files."""
+    import socket
+
+    with socket.socket() as s:  # a free port nothing listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    scenario = short_default(tmp_path)
+    out = tmp_path / "run"
+    for bus in (f"loopback:127.0.0.1:{port}", f"softhil:{port},busy_poll=5"):
+        argv = ["run", str(scenario), "--out", str(out), "--no-progress", "--bus", bus]
+        assert main(argv) == 1
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("hil: error: cannot open CAN bus"), err
+        assert not out.exists()
+    assert main(["run", str(scenario), "--out", str(out), "--no-progress"]) == 0
+
+
 def test_a_listener_that_never_greets_is_a_timeout_not_a_hang() -> None:
     import socket
 

@@ -1,5 +1,5 @@
 """`hil bus up/down`: create or remove a virtual SocketCAN interface (vcan) where the kernel
-has one; elsewhere say so in one line and point at the loopback hub, exit code 2.
+has one; elsewhere say so in one `hil: error:` line and point at the loopback hub (exit 1).
 
 Support is detected without side effects: opening (and closing) an AF_CAN raw socket tells
 whether the kernel has SocketCAN; the vcan driver itself is only known once `ip link add`
@@ -14,7 +14,6 @@ import subprocess
 
 from hil.errors import BusError
 
-NO_SOCKETCAN = 2
 LOOPBACK_HINT = (
     "use the loopback hub instead: `hil bus serve` in one terminal, then `--bus loopback` "
     "(or python-can interface socketcand, host 127.0.0.1, port 29536)"

@@ -285,13 +285,10 @@ def _measured_load(args: argparse.Namespace) -> int:
 def _vcan(args: argparse.Namespace) -> int:
     from hil.bustools import vcan
 
-    if not vcan.socketcan_available():
-        print(
-            f"hil: this kernel has no SocketCAN (AF_CAN), so no {args.iface}; "
-            + vcan.LOOPBACK_HINT,
-            file=sys.stderr,
+    if not vcan.socketcan_available():  # an error like any other (exit 1; 2 is wrong usage)
+        raise HilError(
+            f"this kernel has no SocketCAN (AF_CAN), so no {args.iface}; {vcan.LOOPBACK_HINT}"
         )
-        return vcan.NO_SOCKETCAN
     action = vcan.up if args.vcan_action == "up" else vcan.down
     print(action(args.iface))
     return 0
