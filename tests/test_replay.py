@@ -63,6 +63,8 @@ def test_a_changed_gain_fails_and_names_the_first_cycle(
     assert (first.message, first.signal) == ("DriveCommand1", "piston_setpoint")
     assert f"first divergence: cycle {first.cycle} (t = {first.time:.3f} s): " in out
     assert first.expected != first.actual
+    report = json.loads((tmp_path / "r.json").read_text())
+    assert report["status"] == "diverged" and report["first"] == str(first)
     # a tolerance wider than the change lets it pass
     wide = replay(recorded, load_scenario_config(changed), tolerance=0.05)
     assert wide.ok

@@ -116,9 +116,7 @@ def fish_metrics(robot: Fish, scenario: Scenario, signals: Mapping[str, Any]) ->
     reported = signals["manoeuvres_left"][np.isfinite(signals["manoeuvres_left"])]
     gas_used = float(signals["m_canister"][0] - signals["m_canister"][-1])
     left: int | None = None  # the true figure: the report saturates at 255 (an 8-bit signal)
-    if reported.size and int(reported[-1]) == 0:
-        left = 0  # the controller's "no gas" (latched): the supply no longer holds its pressure
-    elif starts and gas_used > 0.0:
+    if starts and gas_used > 0.0:
         usable = float(signals["m_canister"][-1]) - robot.controller_config(scenario).gas_reserve
         left = max(0, math.floor(usable / (gas_used / len(starts))))
     metrics: dict[str, Any] = {
