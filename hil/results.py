@@ -26,6 +26,7 @@ from hil.errors import HilError
 
 LOCK = ".softhil.lock"
 MANIFEST = ".softhil-manifest"
+BATCH_FILE = "batch.json"  # a batch's summary: its folder is a batch's, not a run's
 
 # Every file a run may write in its folder, whatever its robot (a plot is one of its robot kind's
 # plot specs or figures, the CAN log one of the can.* names or the one the run was given): a run
@@ -304,6 +305,12 @@ class ResultsFolder:
                 "earlier run wrote there"
             )
         ours = set(self._manifest())
+        if BATCH_FILE in ours and BATCH_FILE not in self.planned:
+            raise HilError(
+                f"results folder {self.out} holds a batch ({BATCH_FILE} and its trials): "
+                "--overwrite replaces an earlier run's files, not a whole batch; choose another "
+                "--out"
+            )
         for name in self.planned:
             if (self.out / name).exists() and name not in ours and not self.kept(name):
                 raise HilError(

@@ -174,6 +174,14 @@ def test_overwrite_replaces_an_earlier_batch_and_keeps_foreign_files(
     assert (out / "notes.txt").read_text() == "mine"
     assert (out / "trial-000" / "notes.txt").read_text() == "mine too"
     assert load(out / "trial-000" / "summary.json")["status"] == "completed"
+    # a run's --overwrite replaces an earlier run's files, not a whole batch (it removed them)
+    code, _, err = hil(capsys, "run", "short", "--out", out, "--overwrite", "--no-progress")
+    assert code == 1 and err == [
+        f"hil: error: results folder {out} holds a batch (batch.json and its trials): "
+        "--overwrite replaces an earlier run's files, not a whole batch; choose another --out"
+    ]
+    assert (out / "batch.json").read_bytes() == (local_batch / "batch.json").read_bytes()
+    assert (out / "trial-002" / "summary.json").is_file()
 
 
 def test_overwrite_with_fewer_trials_removes_the_earlier_batch_s_other_trials(
