@@ -133,6 +133,20 @@ def test_larger_nozzle_gives_a_higher_peak_yaw_rate(tmp_path: Path) -> None:
 # ------------------------------------------------------------------ swimming and heading
 
 
+def test_a_large_nozzle_escape_is_one_manoeuvre_below_the_supply(tmp_path: Path) -> None:
+    # defect B: with a 2.5 mm nozzle the channel once overshot the supply, tripped the valve
+    # driver's 300 kPa over-pressure vent, re-opened and counted the escape as two manoeuvres
+    path = scenario_file(
+        tmp_path, "fish-escape", {"open_time": "open_time = 0.06\nd_nozzle = 0.0025"}
+    )
+    summary = run(path, tmp_path / "out")
+    assert summary["manoeuvres"] == 1 and summary["heading_change"] is not None
+    signals = np.genfromtxt(tmp_path / "out" / "signals.csv", delimiter=",", names=True)
+    assert np.all(signals["p_a"] <= signals["p_supply"] - 101325.0)
+    assert np.all(np.diff(signals["m_vented"]) >= 0.0)
+    assert np.all(signals["valve_state_2"] == CLOSED)  # never opened, never seen venting
+
+
 def test_fish_swim_moves_forward(tmp_path: Path) -> None:
     path = scenario_file(tmp_path, "fish-swim", {"duration": "duration = 1.0"})
     s = run(path, tmp_path / "swim")
@@ -278,6 +292,8 @@ def test_calibration_is_monotonic_and_inverted_by_interpolation() -> None:
         ({"open_time": "open_time = 2.0"}, "", "robot.valve.open_time"),
         ({}, "\n[robot.valve.3]\nd_nozzle = 1e-3\n", "robot.valve.3"),
         ({}, "\n[robot.body]\nx_start = 0.1\n", "robot.body.x_start"),
+        ({"open_time": "open_time = 0.06\nd_nozzle = 0.02"}, "", "robot.valve.d_nozzle"),
+        ({}, "\n[robot.valve.2]\nd_vent = 0.5\n", "robot.valve.2.d_vent"),
         ({'kind = "escape"': 'kind = "dance"'}, "", "task.kind"),
     ],
 )
@@ -371,3 +387,10 @@ def test_only_the_heading_task_plots_a_heading_reference(tmp_path: Path) -> None
         scenario = load_scenario(scenario_file(tmp_path, name, {}))
         heading = next(p for p in fish.plots(scenario) if p.name == "heading")
         assert ("heading_ref" in [line[0] for line in heading.lines]) is drawn, name
+
+
+def test_a_nozzle_beyond_the_lumped_channel_is_refused_with_its_range(tmp_path: Path) -> None:
+    # defect C: 0.5 m once failed mid-run ("canister mass ... is not positive"), 0.02 m diverged
+    path = scenario_file(tmp_path, "fish-escape", {"open_time": "open_time = 0.06\nd_nozzle = 0.5"})
+    with pytest.raises(ScenarioError, match=r"robot\.valve\.d_nozzle: .*\[1e-06, 0\.005\]$"):
+        load_scenario(path)

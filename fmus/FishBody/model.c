@@ -1,10 +1,14 @@
 /* FishBody physics: the soft robotic fish of PHYSICS.md section 7, a rigid head free in the plane
  * and a tapered bidirectional tail of three constant-curvature (PCC) pieces driven by two gas
- * channels a and b, as a planar multibody chain valid at any bend. See FishValve/model.c for why
- * the fish is three FMUs coupled by mass flow: this one integrates each channel's gas mass from
- * mdot_in - mdot_vent (its inputs, held over the step), so the masses balance exactly against the
- * source and the vents. Invariant: W_gas = E_elastic + E_kinetic + E_resistive to the
- * integrator's accuracy, and every hydrodynamic term dissipates or is conservative.
+ * channels a and b, as a planar multibody chain valid at any bend. Each channel is fed by its
+ * valve's supply nozzle and drained by its vent; the valves publish the nozzles' effective areas
+ * (FishValve/model.c says why) and this model integrates the flows through them together with the
+ * channels' gas, in its own substeps. It publishes the mass each channel drew from the supply over
+ * the last step (mdot_in_a, mdot_in_b, step means) for GasSource, which takes it off the canister
+ * over the next step. Invariants: canister + channels + vented - drawn back = the initial gas to
+ * rounding, counting the step's draw not yet taken off the canister (mdot_in h); W_gas =
+ * E_elastic + E_kinetic + E_resistive to the integrator's accuracy, and every hydrodynamic term
+ * dissipates or is conservative.
  *
  * Coordinates q = (X, Y, psi, theta_1, theta_2, theta_3): the head-tail joint at (X, Y) in the
  * world, the heading psi of the nose and the pieces' bend angles. Walking from the joint to the
@@ -56,9 +60,36 @@
  * U = p V / (gamma - 1): dm/dt = mdot_in - mdot_vent and
  *   dU/dt = c_p T_in mdot_in - c_p T_out mdot_vent - p dV/dt - m c_v (T - T_wall) / tau_thermal,
  * T_in the supply temperature for inflow (the channel's own for reverse flow), T_out the channel's
- * for outflow: adiabatic filling (a fast fill heats the gas towards gamma T_supply) relaxing to the
- * walls. Volumes as above (rigid walls apart from the bend); the bending torque on piece j is
- * G_j (p_a - p_b) (virtual work of the gas).
+ * for outflow (ambient gas at T_wall drawn back through the vent): adiabatic filling (a fast fill
+ * heats the gas towards gamma T_supply) relaxing to the walls. Volumes as above (rigid walls apart
+ * from the bend); the bending torque on piece j is G_j (p_a - p_b) (virtual work of the gas).
+ *
+ * Nozzle flow of an ideal gas from upstream (p_u, T_u) to downstream p_d, r = p_d / p_u, effective
+ * area CdA (isentropic flow to the throat, Saint-Venant-Wantzel; PHYSICS.md 7) [derived]:
+ *   choked,   r <= r_c: mdot = CdA p_u sqrt(gamma / (R T_u)) (2 / (gamma + 1))^((gamma+1)/(2(gamma-1)))
+ *   subsonic, r >  r_c: mdot = CdA p_u sqrt(2 gamma / ((gamma - 1) R T_u) (r^(2/gamma) - r^((gamma+1)/gamma)))
+ * with r_c = (2 / (gamma + 1))^(gamma / (gamma - 1)) = 0.5475 for CO2; the two branches meet with
+ * a continuous slope at r_c, and a reverse pressure drop reverses the flow (upstream swapped).
+ * mdot_in_j runs from the supply (p_supply, T_supply) to channel j, mdot_vent_j from channel j to
+ * ambient (p_atm, T_wall).
+ *
+ * Stiffness of the gas, and its stability limit [derived]: near equal pressures the flow behaves
+ * as CdA sqrt(2 rho dp), whose slope is unbounded, so a channel settles on its supply or on
+ * ambient with a time constant that tends to zero; no explicit substep resolves that exactly. So
+ * within dp_lin of equal pressures the flow is taken as mdot (3 - x) sqrt(x) / 2, x = dp / dp_lin
+ * (linear in dp at zero, equal to the law with the same slope at dp_lin), and dp_lin is set at the
+ * start of each step, per nozzle, so that the linearised rate of the channel there, K slope with
+ * K = gamma R T / V the channel's pressure per mass and slope = 1.5 CdA sqrt(2 rho / dp_lin), is
+ * one per substep: dp_lin = 4.5 rho (K CdA h)^2. RK4's amplification on a real rate is positive
+ * up to its stability limit 2.79 / h (its value at h lambda = 1 is 0.375, at 2 (two nozzles of a
+ * channel open at once, mid-travel) 0.33), so a channel approaches its supply or ambient
+ * monotonically, never beyond it, and a vented channel does not oscillate. Where dp_lin would
+ * exceed 1 % of the larger pressure (a large nozzle, a compressed hot channel) the substep is
+ * split into up to 8 parts, which divides dp_lin by up to 64. The only error is the approach
+ * within dp_lin (at most about 1 % of the pressure) of equilibrium: exponential with the substep's
+ * time constant where the square-root law would arrive in a finite time of the same order. The
+ * supply and the vent are ideal pressure sources over a step (the regulator holds the set
+ * pressure; ambient is fixed), so the loop that matters, channel and nozzle, is inside this model.
  *
  * Energy (outputs): W_gas = int (g_a dV_a + g_b dV_b) (gauge pressure: the water pushes back with
  * p_atm) is the work the gas does on the tail; W_gas = E_elastic + E_kinetic + E_resistive to the
@@ -76,6 +107,8 @@
 #define N_HEAD_SAMPLES 8    /* midpoints on the head */
 #define N_POINTS (N_HEAD_SAMPLES + N_PIECES * N_SAMPLES)
 #define SMALL_ANGLE 0.1     /* below it sinc and its derivatives take their series */
+#define LINEAR_BAND 0.01    /* dp_lin at most this share of the larger pressure, by splitting */
+#define MAX_SPLIT 8         /* the glue's MAX_PARTS */
 
 /* continuous states, in this order in State.y (MAX_STATES = 32 in glue.h) */
 enum {
@@ -83,6 +116,8 @@ enum {
     Q_X, Q_Y, Q_PSI, Q_TH,                 /* joint [m], heading [rad], bend angles [rad] ... */
     DQ_X = Q_X + N_Q, DQ_Y, DQ_PSI, DQ_TH, /* ... and their rates [m/s], [rad/s] */
     W_GAS = DQ_X + N_Q, E_RES,             /* gas work and dissipation [J] */
+    SUPPLIED_A, SUPPLIED_B,                /* mass drawn from the supply per channel [kg] */
+    VENTED, RETURNED,                      /* mass out through the vents and drawn back [kg] */
     N_STATES
 };
 
@@ -99,8 +134,11 @@ typedef struct {
 
 typedef struct {
     double y[N_STATES];
-    double m_vented;        /* vented mass [kg], exact sum of the held inputs */
     Point points[N_POINTS];
+    double dp_lin[2][2];        /* per channel: the nozzle's and the vent's linear band [Pa] */
+    int parts;                  /* into how many parts this step's substeps are split */
+    double step_elapsed;        /* time integrated since the last step's start [s] */
+    double supplied_start[2];   /* SUPPLIED_A, SUPPLIED_B then */
 } State;
 
 /* Kinematics of one material point at (q, q'): position, Jacobian, velocity, velocity-product
@@ -398,6 +436,39 @@ static void cholesky_solve(const double L[N_Q][N_Q], double x[N_Q]) {
     }
 }
 
+static double critical_ratio(double gamma) {
+    return pow(2.0 / (gamma + 1.0), gamma / (gamma - 1.0));
+}
+
+/* Mass flow [kg/s] through a nozzle of effective area CdA from upstream (p_u, T_u) to p_d <= p_u,
+ * choked or subsonic (see the header). */
+static double forward_flow(double CdA, double p_u, double T_u, double p_d, double gamma, double R) {
+    const double r = p_d / p_u;
+    if (!(p_u > 0.0) || CdA == 0.0) return 0.0;
+    if (r <= critical_ratio(gamma)) {
+        return CdA * p_u * sqrt(gamma / (R * T_u)) *
+               pow(2.0 / (gamma + 1.0), (gamma + 1.0) / (2.0 * (gamma - 1.0)));
+    }
+    {
+        const double bracket = pow(r, 2.0 / gamma) - pow(r, (gamma + 1.0) / gamma);
+        return CdA * p_u * sqrt(2.0 * gamma / ((gamma - 1.0) * R * T_u) * (bracket > 0.0 ? bracket : 0.0));
+    }
+}
+
+/* Signed mass flow from side 1 to side 2 [kg/s], the higher pressure upstream, linear within
+ * dp_lin of equal pressures (see the header). */
+static double nozzle_flow(double CdA, double p1, double T1, double p2, double T2, double gamma,
+                          double R, double dp_lin) {
+    const double dp = fabs(p1 - p2);
+    double q = p1 >= p2 ? forward_flow(CdA, p1, T1, p2, gamma, R)
+                        : -forward_flow(CdA, p2, T2, p1, gamma, R);
+    if (dp < dp_lin) {
+        const double x = dp / dp_lin;
+        q *= 0.5 * (3.0 - x) * sqrt(x);
+    }
+    return q;
+}
+
 /* Channel volumes [m^3] at bend angles theta. */
 static void channel_volumes(const Instance *inst, const double y[], double vol[2]) {
     double bend = 0.0;
@@ -528,6 +599,19 @@ static int accelerations(const Instance *inst, const double y[], const Sections 
     return 1;
 }
 
+/* The nozzle's and the vent's flows of channel `side` at its absolute pressure p and temperature
+ * T [kg/s]: from the supply into the channel, and from the channel to ambient. */
+static void flows(const Instance *inst, int side, double p, double T, double *in, double *out) {
+    const State *s = (const State *)inst->state;
+    const double gamma = V(inst, gamma), R = V(inst, R_gas);
+    const double CdA_in = side == 0 ? V(inst, CdA_in_a) : V(inst, CdA_in_b);
+    const double CdA_vent = side == 0 ? V(inst, CdA_vent_a) : V(inst, CdA_vent_b);
+    *in = nozzle_flow(CdA_in, V(inst, p_supply), V(inst, T_supply), p, T, gamma, R,
+                      s->dp_lin[side][0]);
+    *out = nozzle_flow(CdA_vent, p, T, V(inst, p_atm), V(inst, T_wall), gamma, R,
+                       s->dp_lin[side][1]);
+}
+
 int model_derivatives(const Instance *inst, const double y[], double dy[]) {
     const double gamma = V(inst, gamma), R = V(inst, R_gas);
     const double cv = R / (gamma - 1.0), cp = gamma * cv;
@@ -538,15 +622,17 @@ int model_derivatives(const Instance *inst, const double y[], double dy[]) {
     if (!channel_state(inst, y, &c)) return 0;
     /* gas */
     for (i = 0; i < N_PIECES; i++) bend_rate += piece_G(inst, i) * y[DQ_TH + i];
+    dy[VENTED] = dy[RETURNED] = 0.0;
     for (side = 0; side < 2; side++) {
-        const double in = side == 0 ? V(inst, mdot_in_a) : V(inst, mdot_in_b);
-        const double out = side == 0 ? V(inst, mdot_vent_a) : V(inst, mdot_vent_b);
-        const double T = c.T[side], T_in = in >= 0.0 ? V(inst, T_supply) : T;
-        const double T_out = out >= 0.0 ? T : V(inst, T_supply);
+        const double T = c.T[side], p = c.g[side] + V(inst, p_atm), m = y[M_A + 2 * side];
         const double vol_rate = side == 0 ? bend_rate : -bend_rate;
-        const double p = c.g[side] + V(inst, p_atm), m = y[M_A + 2 * side];
+        double in, out;
+        flows(inst, side, p, T, &in, &out);
+        dy[SUPPLIED_A + side] = in;
+        dy[out >= 0.0 ? VENTED : RETURNED] += fabs(out);
         dy[M_A + 2 * side] = in - out;
-        dy[U_A + 2 * side] = cp * T_in * in - cp * T_out * out - p * vol_rate -
+        dy[U_A + 2 * side] = cp * (in >= 0.0 ? V(inst, T_supply) : T) * in -
+                             cp * (out >= 0.0 ? T : V(inst, T_wall)) * out - p * vol_rate -
                              m * cv * (T - V(inst, T_wall)) / V(inst, tau_thermal);
     }
     dy[W_GAS] = (c.g[0] - c.g[1]) * bend_rate;
@@ -579,8 +665,7 @@ static double kinetic_energy(const Instance *inst, const double y[]) {
     return e;
 }
 
-/* The vented mass is the held input integrated exactly (no solver rounding beyond the sum). A
- * piece past its mechanical limit theta_max is put back on it and stopped (an inelastic stop);
+/* A piece past its mechanical limit theta_max is put back on it and stopped (an inelastic stop);
  * the gas does g dV on the volume change and whatever the stop removes from the elastic and
  * kinetic energy is counted as dissipated, so the energy balance stays exact. */
 void model_after_substep(Instance *inst, double dt) {
@@ -588,7 +673,7 @@ void model_after_substep(Instance *inst, double dt) {
     double *y = s->y;
     const double limit = V(inst, theta_max);
     int j, hit = 0;
-    s->m_vented += (V(inst, mdot_vent_a) + V(inst, mdot_vent_b)) * dt;
+    s->step_elapsed += dt;
     for (j = 0; j < N_PIECES; j++) hit |= fabs(y[Q_TH + j]) > limit;
     if (hit) {
         Channels c;
@@ -609,8 +694,52 @@ void model_after_substep(Instance *inst, double dt) {
     }
 }
 
+/* The linear bands dp_lin of the four nozzles for a substep of h / parts at the state y, and the
+ * parts (a power of two up to MAX_SPLIT) that keep each within LINEAR_BAND of the larger pressure
+ * (see the header); 0 if the channel state is not physical. */
+static int linear_bands(Instance *inst, const double y[]) {
+    State *s = (State *)inst->state;
+    const double gamma = V(inst, gamma), R = V(inst, R_gas), h = V(inst, substep);
+    double band[2][2], share = 0.0;
+    Channels c;
+    int side, k;
+    if (!channel_state(inst, y, &c)) return 0;
+    for (side = 0; side < 2; side++) {
+        const double p = c.g[side] + V(inst, p_atm), T = c.T[side];
+        const double ends[2][2] = {{V(inst, p_supply), V(inst, T_supply)},
+                                   {V(inst, p_atm), V(inst, T_wall)}};
+        const double CdA[2] = {side == 0 ? V(inst, CdA_in_a) : V(inst, CdA_in_b),
+                               side == 0 ? V(inst, CdA_vent_a) : V(inst, CdA_vent_b)};
+        for (k = 0; k < 2; k++) {
+            const double T_max = fmax(T, ends[k][1]);
+            const double rho = fmax(p / (R * T), ends[k][0] / (R * ends[k][1]));
+            const double K = gamma * R * T_max / c.vol[side];
+            const double rate_h = K * CdA[k] * h;
+            band[side][k] = 4.5 * rho * rate_h * rate_h;
+            share = fmax(share, band[side][k] / (LINEAR_BAND * fmax(p, ends[k][0])));
+        }
+    }
+    s->parts = 1;
+    while (s->parts < MAX_SPLIT && share > (double)s->parts * s->parts) s->parts *= 2;
+    for (side = 0; side < 2; side++)
+        for (k = 0; k < 2; k++) s->dp_lin[side][k] = band[side][k] / (s->parts * s->parts);
+    return 1;
+}
+
+static int split(const Instance *inst, double h) {
+    (void)h;
+    return ((const State *)inst->state)->parts;
+}
+
 fmi2Status model_step_start(Instance *inst) {
-    (void)inst;
+    State *s = (State *)inst->state;
+    s->step_elapsed = 0.0;
+    s->supplied_start[0] = s->y[SUPPLIED_A];
+    s->supplied_start[1] = s->y[SUPPLIED_B];
+    if (!linear_bands(inst, s->y)) {
+        log_message(inst, fmi2Error, "no physical channel state at t = %g", inst->time);
+        return fmi2Error;
+    }
     return fmi2OK;
 }
 
@@ -676,7 +805,13 @@ fmi2Status model_outputs(Instance *inst) {
     V(inst, m_b) = y[M_B];
     V(inst, v_a) = c.vol[0];
     V(inst, v_b) = c.vol[1];
-    V(inst, m_vented) = s->m_vented;
+    {
+        const double dt = s->step_elapsed;
+        V(inst, mdot_in_a) = dt > 0.0 ? (y[SUPPLIED_A] - s->supplied_start[0]) / dt : 0.0;
+        V(inst, mdot_in_b) = dt > 0.0 ? (y[SUPPLIED_B] - s->supplied_start[1]) / dt : 0.0;
+    }
+    V(inst, m_vented) = y[VENTED];
+    V(inst, m_vent_return) = y[RETURNED];
     V(inst, W_gas) = y[W_GAS];
     V(inst, E_elastic) = elastic_energy(inst, y);
     V(inst, E_kinetic) = kinetic_energy(inst, y);
@@ -782,9 +917,12 @@ fmi2Status model_initialize(Instance *inst, OdeSystem *ode) {
     s->y[Q_X] = V(inst, x_start);
     s->y[Q_Y] = V(inst, y_start);
     s->y[Q_PSI] = V(inst, yaw_start);
-    s->m_vented = 0.0;
+    s->step_elapsed = 0.0;
+    s->supplied_start[0] = s->supplied_start[1] = 0.0;
     ode->n = N_STATES;
     ode->y = s->y;
     ode->max_substep = V(inst, substep);
+    ode->parts = split;
+    if (!linear_bands(inst, s->y)) return fmi2Error; /* not reached: the start is physical */
     return model_outputs(inst);
 }

@@ -11,9 +11,11 @@ task keys in `[robot]` (`start`, `side`, `turn_angle` [deg], `frequency`, `duty`
 open_time` [s] (so `hil sweep fish-escape --set valve.open_time=...` sweeps it): it goes to the
 controller, never to the FMUs; 0 or absent takes it from the calibration for `turn_angle`.
 
-Invariant: gas moves only through the valves' published flows (the three FMUs conserve its mass
-to rounding, tests/test_fish_fmus.py); metrics are computed from the true signals, never from
-what the controller estimated.
+Invariant: gas moves only through the valves' nozzles and vents, whose flows FishBody integrates
+with the channels' gas (the valves publish their effective areas); the canister loses what the
+body reports drawn, a step later (the three FMUs conserve its mass to rounding,
+tests/test_fish_fmus.py); metrics are computed from the true signals, never from what the
+controller estimated.
 """
 
 from __future__ import annotations
@@ -246,7 +248,8 @@ class Fish:
     # ------------------------------------------------------------------ the rig
 
     def build(self, scenario: Scenario) -> Rig:
-        """GasSource -> two FishValves -> FishBody by pressures, temperatures and mass flows
+        """GasSource -> two FishValves -> FishBody: the valves' nozzle and vent areas and the supply
+        pressure and temperature into the body, the mass drawn back to the source
         (FishValve/model.c); the drivers set the valves' commands and read the channel and
         supply pressures; the canister monitor reads the source; the camera sees the nose, the
         joint and the tail tip (out of the camera's view: not seen)."""
@@ -331,16 +334,9 @@ class Fish:
             raise
         connections: dict[str, Connection] = {}
         links = [
-            ("valve1.mdot_in", "source.mdot_a"),
-            ("valve2.mdot_in", "source.mdot_b"),
-            ("body.T_a", "valve1.T_channel"),
-            ("body.T_b", "valve2.T_channel"),
-            ("body.p_a", "valve1.p_channel"),
-            ("body.p_b", "valve2.p_channel"),
-            ("valve1.mdot_in", "body.mdot_in_a"),
-            ("valve1.mdot_vent", "body.mdot_vent_a"),
-            ("valve2.mdot_in", "body.mdot_in_b"),
-            ("valve2.mdot_vent", "body.mdot_vent_b"),
+            ("body.mdot_in_a", "source.mdot_a"),
+            ("body.mdot_in_b", "source.mdot_b"),
+            ("source.p_supply", "body.p_supply"),
             ("source.T_supply", "body.T_supply"),
             ("source.p_canister", "canister.p_canister"),
             ("source.p_supply", "canister.p_supply"),
@@ -348,8 +344,8 @@ class Fish:
         ]
         for n, side in ((1, "a"), (2, "b")):
             links += [
-                ("source.p_supply", f"valve{n}.p_supply"),
-                ("source.T_supply", f"valve{n}.T_supply"),
+                (f"valve{n}.CdA_in", f"body.CdA_in_{side}"),
+                (f"valve{n}.CdA_vent", f"body.CdA_vent_{side}"),
                 (f"valve_driver{n}.open", f"valve{n}.open"),
                 (f"valve{n}.opening", f"valve_driver{n}.opening"),
                 (f"body.p_{side}", f"valve_driver{n}.p_channel"),
