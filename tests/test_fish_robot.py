@@ -394,3 +394,25 @@ def test_a_nozzle_beyond_the_lumped_channel_is_refused_with_its_range(tmp_path: 
     path = scenario_file(tmp_path, "fish-escape", {"open_time": "open_time = 0.06\nd_nozzle = 0.5"})
     with pytest.raises(ScenarioError, match=r"robot\.valve\.d_nozzle: .*\[1e-06, 0\.005\]$"):
         load_scenario(path)
+
+
+def test_a_swim_stroke_shorter_than_a_step_is_refused_naming_duty_and_frequency(
+    tmp_path: Path,
+) -> None:
+    """frequency = 100 with duty 0.1 opened the valve 0.5 ms a stroke: the driver, opening for
+    whole 1 ms steps, never opened it, and the fish-heading run reported success unmoved."""
+    for name in ("fish-swim", "fish-heading"):
+        path = scenario_file(
+            tmp_path, name, {"frequency": "frequency = 100.0", "duty": "duty = 0.1"}
+        )
+        with pytest.raises(ScenarioError) as error:
+            load_scenario(path)
+        assert str(error.value).endswith(
+            ": robot.duty: a stroke opens the valve for duty / (2 frequency) = 0.5 ms, less than "
+            "one step of 1 ms, so no valve would open; raise robot.duty (got 0.1) or lower "
+            "robot.frequency (got 100 Hz)"
+        ), str(error.value)
+        path = scenario_file(
+            tmp_path, name, {"frequency": "frequency = 50.0", "duty": "duty = 0.1"}
+        )
+        assert load_scenario(path).robot.frequency == 50.0  # 1 ms: one step, the limit

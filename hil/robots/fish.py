@@ -202,6 +202,17 @@ class Fish:
                 f"must be in (0, {highest:g}] Hz (a half beat of at least two control periods "
                 f"of {s.timing.control_period:g} s), got {r.frequency:g}",
             )
+        stroke = r.duty * 0.5 / r.frequency  # a swim stroke's valve-open time [s]
+        if s.task.kind in ("swim", "heading") and stroke < s.timing.step - 1e-12:
+            # the valve driver opens for whole steps: a shorter stroke never opens it
+            raise fail(
+                file,
+                "robot.duty",
+                f"a stroke opens the valve for duty / (2 frequency) = {stroke * 1e3:.3g} ms, "
+                f"less than one step of {s.timing.step * 1e3:g} ms, so no valve would open; "
+                f"raise robot.duty (got {r.duty:g}) or lower robot.frequency "
+                f"(got {r.frequency:g} Hz)",
+            )
         if not 0.0 <= r.start < s.duration:
             raise fail(file, "robot.start", "must be within the run")
         if not 0.0 < r.turn_angle <= math.degrees(CALIBRATION[-1][1]):
