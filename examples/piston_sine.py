@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import sys
 import time
 from pathlib import Path
@@ -24,7 +25,11 @@ from pathlib import Path
 import can
 import cantools
 
-DBC = Path(__file__).resolve().parents[1] / "controllers" / "softhil.dbc"
+# the protocol: what hil run gives its programs (SOFTHIL_DBC, also the {dbc} placeholder), or
+# the checkout's when run by hand beside it
+DBC = (
+    os.environ.get("SOFTHIL_DBC") or Path(__file__).resolve().parents[1] / "controllers/softhil.dbc"
+)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -34,7 +39,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--channel", default="softhil")
     parser.add_argument("--host", default="127.0.0.1")
     parser.add_argument("--port", type=int, default=29536)
-    parser.add_argument("--dbc", type=Path, default=DBC)
+    parser.add_argument("--dbc", type=Path, default=DBC, help="the DBC file (default: %(default)s)")
     parser.add_argument("--amplitude", type=float, default=0.4, help="of the half stroke")
     parser.add_argument("--offset", type=float, default=0.0, help="of the half stroke")
     parser.add_argument("--frequency", type=float, default=1.0, help="[Hz]")

@@ -13,11 +13,13 @@
   ``hil controller --bus`` takes); ``{interface}``, ``{channel}``, ``{host}``, ``{port}`` the
   same bus as python-can's arguments (for the run's own hub: python-can's ``socketcand``
   interface, which the hub speaks on the same port; an empty host and port off the hub);
-  ``{realtime}`` ``1`` if the run is paced by the wall clock, else ``0``.
+  ``{realtime}`` ``1`` if the run is paced by the wall clock, else ``0``; ``{dbc}`` the protocol's
+  DBC file (softhil's ``controllers/softhil.dbc``), for a program that decodes with it.
   ``{{`` and ``}}`` are literal braces; nothing else goes inside braces (no format specs, no
   indexing). Paths are absolute. The same values are in the program's environment as
   ``SOFTHIL_CONFIG``, ``SOFTHIL_REPORT``, ``SOFTHIL_BUS``, ``SOFTHIL_INTERFACE``,
-  ``SOFTHIL_CHANNEL``, ``SOFTHIL_HOST``, ``SOFTHIL_PORT`` and ``SOFTHIL_REALTIME``.
+  ``SOFTHIL_CHANNEL``, ``SOFTHIL_HOST``, ``SOFTHIL_PORT``, ``SOFTHIL_REALTIME`` and
+  ``SOFTHIL_DBC``.
 """
 
 from __future__ import annotations
@@ -35,12 +37,23 @@ from pathlib import Path
 from typing import IO
 
 from controllers.canbus import HUB_KINDS, BusSpec
+from controllers.protocol import DBC_PATH
 from hil.errors import HilError
 
 SOFTHIL = "softhil"
 USER_LINGER = 5.0  # [s] a user's program has after the final SYNC to exit, before it is stopped
 EXTERNAL = "external"
-PLACEHOLDERS = ("config", "report", "bus", "interface", "channel", "host", "port", "realtime")
+PLACEHOLDERS = (
+    "config",
+    "report",
+    "bus",
+    "interface",
+    "channel",
+    "host",
+    "port",
+    "realtime",
+    "dbc",
+)
 
 
 def softhil_command(config: Path, bus: BusSpec, report: Path | None, realtime: bool) -> list[str]:
@@ -70,6 +83,7 @@ def placeholder_values(
         "host": host,
         "port": port,
         "realtime": "1" if realtime else "0",
+        "dbc": str(DBC_PATH.resolve()),
     }
 
 

@@ -14,6 +14,7 @@ import json
 import os
 import re
 import shlex
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -22,6 +23,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from controllers.protocol import DBC_PATH
 from hil.cli import main as hil_main
 from hil.run import RunOptions, run_scenario
 from hil.scenario import SCENARIO_FOLDER, load_scenario
@@ -290,12 +292,18 @@ def test_your_own_python_can_controller_drives_the_six_drives_and_replays(
     """The example speaks only python-can (socketcand to the run's hub), cantools and the DBC.
     Its commands reach every drive: each setpoint is its sine, to the DBC's 2 um resolution,
     and each piston follows it. Its recorded run replays against it with no divergence, and a
-    changed amplitude diverges at the first command."""
+    changed amplitude diverges at the first command. It runs as a copy outside the checkout,
+    as a user's would: the DBC comes from the run (SOFTHIL_DBC)."""
     text = (SCENARIO_FOLDER / "planar-point-to-point.toml").read_text()
     path = tmp_path / "p.toml"
     path.write_text(text.replace("duration = 40.0", "duration = 0.6"))
     out = tmp_path / "run"
-    summary = _run(path, out, controller=EXAMPLE_COMMAND)
+    mine = tmp_path / "mine" / "piston_sine.py"
+    mine.parent.mkdir()
+    shutil.copy(EXAMPLE, mine)
+    command = EXAMPLE_COMMAND.replace(shlex.quote(str(EXAMPLE)), shlex.quote(str(mine)))
+    assert command != EXAMPLE_COMMAND
+    summary = _run(path, out, controller=command)
     assert summary["status"] == "completed" and summary["frames"]["emcy"] == 0
     assert summary["controller_process"] == "process" and summary["controller"] == {}
     config = json.loads((out / "controller.json").read_text())
@@ -309,9 +317,9 @@ def test_your_own_python_can_controller_drives_the_six_drives_and_replays(
         lag = np.abs(signals[f"x_{i + 1}"] - signals[f"x_ref_{i + 1}"])[t > 0.2]
         assert lag.max() < 0.25 * (high - low) / 2, i  # the drive follows it
     log = str(out / "can.log")
-    assert hil_main(["replay", log, "--controller", EXAMPLE_COMMAND]) == 0
+    assert hil_main(["replay", log, "--controller", command]) == 0
     assert "61 cycles, 360 controller frames compared, 0 divergence(s)" in capsys.readouterr().out
-    changed = EXAMPLE_COMMAND + " --amplitude 0.41"
+    changed = command + " --amplitude 0.41"
     assert hil_main(["replay", log, "--controller", changed]) == 1
     shown = capsys.readouterr().out
     assert "first divergence: cycle 0 (t = 0.000 s): DriveCommand1.piston_setpoint" in shown
@@ -422,6 +430,7 @@ def test_the_program_gets_the_placeholders_in_its_environment_and_its_report_is_
     assert env["SOFTHIL_INTERFACE"] == "socketcand" and env["SOFTHIL_CHANNEL"] == "softhil"
     assert env["SOFTHIL_HOST"] == "127.0.0.1" and f":{env['SOFTHIL_PORT']}," in summary["bus"]
     assert env["SOFTHIL_REALTIME"] == "0"
+    assert env["SOFTHIL_DBC"] == str(DBC_PATH.resolve()) and Path(env["SOFTHIL_DBC"]).is_file()
     assert summary["controller"] == {"mine": 7}
     assert summary["intrusions"] == {"count": 0, "first": None}
     err = capsys.readouterr().err

@@ -64,7 +64,7 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
         help="the controller program: softhil's own; none (external: one you start on the "
         "run's bus, which sends SYNC(0) within --wait); or your command line, split as a shell "
         "would, with {config} {report} {bus} {interface} {channel} {host} {port} {realtime} "
-        "replaced (also as SOFTHIL_CONFIG, ... in its environment; README: Your controller)",
+        "{dbc} replaced (also as SOFTHIL_CONFIG, ... in its environment; README: Your controller)",
     )
     parser.add_argument(
         "--wait",
