@@ -287,6 +287,8 @@ def resolve_scenario(name_or_path: str | Path) -> Path:
     if str(name_or_path) in builtin:
         return builtin[str(name_or_path)].path
     known = ", ".join(builtin) or "none"
+    if path.is_dir():
+        raise ScenarioError(f"{name_or_path}: is a folder; name a scenario file (.toml) in it")
     raise ScenarioError(
         f"{name_or_path}: no such scenario file or built-in scenario (built-in: {known}; "
         "`hil scenarios` lists them)"

@@ -340,6 +340,16 @@ def test_a_failed_report_is_a_warning_and_the_run_stands(
     assert "no estimation report: run/can.log: made unreadable" in s["warnings"]
 
 
+def test_hil_estimate_of_a_file_names_its_folder(
+    short_run, capsys: pytest.CaptureFixture[str]
+) -> None:  # noqa: ANN001
+    log = short_run.out / "can.log"
+    code, lines = hil_estimate(capsys, str(log))
+    assert code == 1 and lines == [
+        f"hil: error: {log}: is a file; give the results folder of a run ({short_run.out})"
+    ]
+
+
 @pytest.mark.parametrize("name", ["estimation.json", "estimation.png"])
 def test_hil_estimate_into_a_folder_in_the_way_is_one_line(
     short_run, tmp_path: Path, capsys: pytest.CaptureFixture[str], name: str

@@ -16,7 +16,13 @@ import pytest
 
 from hil.errors import HilError
 from hil.fmu.build import build_fmu
-from hil.scenario import DEFAULT_SCENARIO, Scenario, ScenarioError, load_scenario
+from hil.scenario import (
+    DEFAULT_SCENARIO,
+    Scenario,
+    ScenarioError,
+    load_scenario,
+    resolve_scenario,
+)
 
 MINIMAL = 'name = "t"\nseed = 1\nduration = 1.0\n'
 
@@ -281,6 +287,10 @@ def test_nonexistent_scenario_file(tmp_path: Path) -> None:
 def test_a_directory_is_not_a_scenario_file(tmp_path: Path) -> None:
     message = error_line(tmp_path)
     assert message.startswith(f"{tmp_path}: cannot read: ")
+    # as hil run's argument: said to be a folder (it was "no such scenario file")
+    with pytest.raises(ScenarioError) as error:
+        resolve_scenario(tmp_path)
+    assert str(error.value) == f"{tmp_path}: is a folder; name a scenario file (.toml) in it"
 
 
 def test_scenario_is_frozen() -> None:

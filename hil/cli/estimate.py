@@ -42,6 +42,10 @@ def _estimate(args: argparse.Namespace) -> int:
     from hil.estimation import check_estimable, estimation_report, read_run
     from hil.results import ESTIMATE_FILES, list_in_manifest, locked, write_file
 
+    if args.run.is_file():
+        raise HilError(
+            f"{args.run}: is a file; give the results folder of a run ({args.run.parent})"
+        )
     if not args.run.is_dir():
         raise HilError(f"{args.run}: no such results folder")
     check_estimable(args.run)  # robot kind, CSV log: refused before the folder is locked
