@@ -396,3 +396,16 @@ def test_the_default_scenario_shows_every_section() -> None:
     assert "recording" in tables and "task" in tables
     for name in tables:
         assert f"\n[{name}]" in text or f"\n# [{name}]" in text, name
+
+
+@pytest.mark.parametrize("where", ["before", "after"])
+def test_debug_shows_the_trace_before_or_after_the_command(tmp_path: Path, where: str) -> None:
+    """`hil --debug run x` and `hil run x --debug` (it was an unrecognised argument) both raise
+    the error with its trace; without it the error is one line."""
+    from hil.cli import main
+
+    absent = str(tmp_path / "absent.toml")
+    argv = ["--debug", "run", absent] if where == "before" else ["run", absent, "--debug"]
+    with pytest.raises(ScenarioError, match="no such scenario file"):
+        main(argv)
+    assert main(["run", absent]) == 1

@@ -97,6 +97,9 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args, extra = parser.parse_known_args(argv)
+    if "--debug" in extra:  # after the command too (`hil run x --debug`), as users type it
+        args.debug = True
+        extra = [word for word in extra if word != "--debug"]
     if extra:  # in the usage of the command they were given to, not hil's
         (getattr(args, "command_parser", None) or parser).error(
             f"unrecognized arguments: {' '.join(extra)}"
