@@ -305,6 +305,8 @@ def _run(
     if failure is not None:
         summary["warnings"].append(failure)
         raise HilError(failure)
+    if peer.failure is not None:  # every cycle recorded and scored; the program still failed
+        raise HilError(peer.failure)
     _write_summary(folder, summary)
     return RunResult(out, summary)
 
@@ -502,6 +504,7 @@ class _Peer:
         self.log: Path | None = None
         self.user = False  # a user's program (its report is optional and checked)
         self.warnings: list[str] = []  # for summary.json
+        self.failure: str | None = None  # a program that exited non-zero after the final SYNC
         self.hub: HostedBus | None = None  # the hub the plant hosts, watching the SYNC sender
         self._closed_since: float | None = None
 
@@ -574,8 +577,11 @@ class _Peer:
                     )
             if self.log is not None:
                 self.log.with_name("controller.pid").unlink(missing_ok=True)
-            if code != 0:
-                raise HilError(f"the controller failed with code {code}{self._last_words()}")
+            if code != 0:  # after the final SYNC: the run is whole, scored, and then failed
+                self.failure = (
+                    f"the controller failed with code {code} after the final SYNC"
+                    f"{self._last_words()}"
+                )
             report_path = self.log.with_name("controller_report.json") if self.log else None
             if report_path and report_path.is_file() and report_path.stat().st_size:
                 size = report_path.stat().st_size

@@ -753,3 +753,26 @@ def test_replay_waits_for_a_slow_starting_program_and_wait_bounds_it(
     assert err == [
         "hil: error: no SYNC(0) from the controller within 0.5 s of the start; the replay stopped"
     ]
+
+
+def test_a_program_failing_after_the_final_sync_fails_a_run_that_is_scored_whole(
+    default_run: tuple[Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Every cycle was served and recorded: the run writes its metrics and plots as ever, and
+    then fails on the program's exit code (it failed without metrics or plots)."""
+    path, reference = default_run
+    out = tmp_path / "run"
+    program = f"{PYTHON} -m controllers --config {{config}} --bus {{bus}}; echo bye; exit 5"
+    argv = ["run", str(path), "--out", str(out), "--no-progress"]
+    assert hil_main([*argv, "--controller", f"sh -c {shlex.quote(program)}"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    line = "the controller failed with code 5 after the final SYNC (bye)"
+    assert err == [f"hil: error: {line}"]
+    _same_run(reference, out)
+    summary = json.loads((out / "summary.json").read_text())
+    expected = json.loads((reference / "summary.json").read_text())
+    assert summary["status"] == "failed" and summary["error"] == line
+    assert summary["rms_tracking_error"] == expected["rms_tracking_error"]
+    assert (out / "curvature.png").is_file()
+    for name in ("raw", "kf", "ukf"):  # scored too (its update times are wall-clock)
+        assert summary["estimation"][name]["rms"] == expected["estimation"][name]["rms"]
