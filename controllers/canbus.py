@@ -183,7 +183,7 @@ def _probe_hub(spec: BusSpec, timeout: float) -> None:
     except ConnectionRefusedError as exc:
         raise BusOpenError(
             f"cannot open CAN bus {spec}: nothing listens on {spec.host}:{spec.port}; start a "
-            "hub with 'hil bus serve', or leave out --bus and hil run serves its own"
+            "hub with 'hil bus serve' (hil run without --bus serves its own)"
         ) from exc
     except TimeoutError as exc:
         raise BusOpenError(

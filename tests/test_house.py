@@ -336,7 +336,7 @@ def test_a_bus_that_cannot_be_opened_leaves_no_results_folder(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     """hil run --bus at a hub that is not there (or a spec that cannot be) is one line before
-    the results folder is made: the retry the line suggests (leave out --bus) then runs there;
+    the results folder is made: the retry the line suggests (hil run without --bus) then runs there;
     it was refused, the folder holding a failed run's files."""
     import socket
 
@@ -351,6 +351,8 @@ def test_a_bus_that_cannot_be_opened_leaves_no_results_folder(
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and err[0].startswith("hil: error: cannot open CAN bus"), err
         assert not out.exists()
+        if bus.startswith("loopback"):
+            assert err[0].endswith(" (hil run without --bus serves its own)"), err
     assert main(["run", str(scenario), "--out", str(out), "--no-progress"]) == 0
 
 
