@@ -934,7 +934,7 @@ def test_load_from_a_log_per_message(run_log: Path, capsys: pytest.CaptureFixtur
     assert report.load == pytest.approx(total / span / 500_000)
     assert main(["bus", "load", "--log", str(run_log), "--bitrate", "500000"]) == 0
     out = capsys.readouterr().out
-    assert out.startswith(f"bus load {100 * report.load:.1f} % at 500000 bit/s")
+    assert out.startswith(f"bus load {100 * report.load:.1f} % at 500 kbit/s")
     sync_row = next(x for x in out.splitlines() if x.startswith("SYNC "))
     assert sync_row.split() == [
         "SYNC",

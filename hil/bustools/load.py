@@ -48,8 +48,8 @@ class LoadReport:
     def lines(self) -> list[str]:
         total_bits = sum(r.bits for r in self.rows) or 1
         out = [
-            f"bus load {100 * self.load:.1f} % at {self.bitrate} bit/s over {self.span:g} s "
-            f"(worst-case bit stuffing), {sum(r.frames for r in self.rows)} frames",
+            f"bus load {100 * self.load:.1f} % at {self.bitrate / 1000:g} kbit/s over "
+            f"{self.span:g} s (worst-case bit stuffing), {sum(r.frames for r in self.rows)} frames",
             f"{'message':<18} {'id':>10} {'frames':>8} {'rate Hz':>9} {'share %':>8}",
         ]
         for r in sorted(self.rows, key=lambda r: (r.extended, r.frame_id)):

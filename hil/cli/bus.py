@@ -238,7 +238,7 @@ def _load(args: argparse.Namespace) -> int:
         scenario = replace(scenario, bus=replace(scenario.bus, bitrate=args.bitrate))
     load = bus_load_of(scenario, Protocol())
     print(
-        f"{scenario.name}: bus load {100 * load:.1f} % at {scenario.bus.bitrate} bit/s "
+        f"{scenario.name}: bus load {100 * load:.1f} % at {scenario.bus.bitrate / 1000:g} kbit/s "
         "(worst-case bit stuffing)"
     )
     if load > BUS_LOAD_WARNING:

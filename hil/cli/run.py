@@ -142,7 +142,7 @@ def _run(args: argparse.Namespace) -> int:
     print(f"  {task_line(s)}")
     f = s["frames"]
     print(
-        f"  bus load {100 * s['bus_load']:.1f} % at {s['bitrate'] // 1000} kbit/s; frames sent "
+        f"  bus load {100 * s['bus_load']:.1f} % at {s['bitrate'] / 1000:g} kbit/s; frames sent "
         f"{f['sent']}, received {f['received']}, missed {f['missed']}"
     )
     controller = s.get("controller", {})
