@@ -409,6 +409,52 @@ def test_an_object_placed_into_a_wall_is_pushed_out_along_its_normal(environment
         assert env.get("E_kinetic") < env.get("W_objects") < stored
 
 
+@pytest.mark.parametrize("k_contact", [300.0, 1000.0])
+@pytest.mark.parametrize("offset", [0.0, 1e-16, 1e-3])
+def test_an_object_started_deep_in_the_arm_leaves_with_at_most_the_penalty_energy(
+    environment_fmu, k_contact: float, offset: float
+) -> None:
+    """A 5 g disk placed 20 mm deep in a straight arm held at rest (its centre `offset` off the
+    backbone; six sample points reach it): the penetrations' elastic energy is all the
+    environment holds, so the disk can take at most that as kinetic energy. The objects'
+    substeps are explicit in the Hunt-Crossley damping: at this depth it was 12 times what a
+    substep resolves, and the disk left at 700 m/s (thousands of joules) from 0.15 J."""
+    params = {
+        "n_segments": 6,
+        "n_objects": 1,
+        "object_x0_1": 0.05,
+        "object_y0_1": offset,
+        "object_radius_1": 0.0125,
+        "object_mass_1": 0.005,
+        "k_contact": k_contact,
+    }
+    kinetic = []
+    with FmuSlave(environment_fmu, "env", params) as env:
+        stored = env.get("E_contact")
+        assert stored > 0.1 * k_contact / 300.0  # deep: about 0.15 J at 300 N/m
+        for k in range(100):
+            env.do_step(k * H, H)
+            kinetic.append(env.get("E_kinetic"))
+            assert env.get("E_contact") + kinetic[-1] <= stored, f"step {k}"
+        assert env.get("W_arm") == 0.0  # the arm is held: the penetration is the only source
+    assert max(kinetic) <= stored
+
+
+def test_an_arm_started_deep_in_a_wall_gets_at_most_the_penalty_energy(
+    environment_fmu, segment_fmu
+) -> None:
+    """The arm's side of a deep start: a straight six-segment arm with a frictionless wall 9 mm
+    deep across four segments. The implicit coupling pushes it out; the work of the torques on
+    the arm never exceeds the elastic energy the penetration held."""
+    params: dict[str, float] = {"mu_table": 0.0, "mu_arm": 0.0}
+    with_wall(params, 1, [(0.1, 0.001), (0.3, 0.001)])
+    r = coupled_run(environment_fmu, segment_fmu, 6, params, None, 0.3)
+    stored = r["E_contact"][0]
+    assert stored > 1.0  # deep: 1.1 J
+    assert np.max(r["W_arm"]) <= stored
+    assert np.max(r["penetration"][-1]) < 1e-3  # out of the wall
+
+
 # ------------------------------------------------------------------ FMU, spec, estimates
 
 

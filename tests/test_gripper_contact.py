@@ -100,10 +100,11 @@ def test_finger_torques_are_the_virtual_work_of_their_contact(environment_fmu) -
         assert out["tau"][i] == pytest.approx(-(up - down) / (2 * delta), rel=1e-5, abs=1e-9)
 
 
-def swing(fmu: BuiltFmu, theta: float) -> tuple[float, float]:
+def swing(fmu: BuiltFmu, theta: float) -> tuple[float, float, float]:
     """A one-segment arm holding a disk at its grasp point swings 0.4 rad out and back (its
-    motion prescribed); returns how far the disk travelled from its start at the far end and its
-    distance from the grasp point at the end."""
+    motion prescribed); returns how far the disk travelled from its start at the far end, its
+    distance from the grasp point at the end, and how far it moved in the hand (the tip's frame)
+    between the far end and the end."""
     tip0 = tuple(kinematics.forward([0.0], [LENGTH], (0.0, 0.0, 0.0))[-1])
     centre = grasp_point(GEOMETRY, tip0)
     params = gripper_params(
@@ -116,6 +117,7 @@ def swing(fmu: BuiltFmu, theta: float) -> tuple[float, float]:
     )
     rate, period = 1.0, 0.8  # rad/s; out for half the period, back for the other half
     farthest = 0.0
+    in_hand = []
     with FmuSlave(fmu, "env", {**params, "gripper_theta": theta}) as env:
         for k in range(round(period / H)):
             t = k * H
@@ -126,17 +128,25 @@ def swing(fmu: BuiltFmu, theta: float) -> tuple[float, float]:
             env.do_step(t, H)
             at = np.array([env.get("object_x_1"), env.get("object_y_1")])
             farthest = max(farthest, float(np.linalg.norm(at - centre)))
+            x, y, heading = kinematics.forward([bend / LENGTH], [LENGTH], (0.0, 0.0, 0.0))[-1]
+            c, s = math.cos(heading), math.sin(heading)
+            offset = at - np.array([x, y])
+            in_hand.append((c * offset[0] + s * offset[1], -s * offset[0] + c * offset[1]))
         end = np.linalg.norm(at - grasp_point(GEOMETRY, tip0))
-    return farthest, float(end)
+    drift = float(np.linalg.norm(np.subtract(in_hand[-1], in_hand[len(in_hand) // 2])))
+    return farthest, float(end), drift
 
 
 def test_closed_fingers_hold_an_object_through_contact_and_open_ones_do_not(
     environment_fmu,
 ) -> None:
-    carried, held_end = swing(environment_fmu, GEOMETRY.theta_closed)
+    carried, held_end, drift = swing(environment_fmu, GEOMETRY.theta_closed)
     assert carried > 0.015  # it went out with the arm (the grasp point moves ~30 mm)
-    assert held_end < 2e-3  # and came back with it: both fingers enclose it
-    pushed, left_end = swing(environment_fmu, GEOMETRY.theta_open)
+    # and came back with it, keeping its place in the hand: both fingers enclose it. The closed
+    # fingers overlap the 15 mm disk by 14 mm at the grasp point, so the contact squeezes it
+    # 14.5 mm back into the pocket at the fingers' roots (as resolved substeps of 1 us do too)
+    assert drift < 2e-3 and held_end < 0.02
+    pushed, left_end, _ = swing(environment_fmu, GEOMETRY.theta_open)
     assert left_end > 5e-3  # open fingers pushed it out and left it there
 
 

@@ -257,7 +257,7 @@ class PlanarArm:
         if gripper.present(s):
             self._check_gripper(s, protocol)
         if environment.present(s):
-            self.environment_parameters(s)
+            self._check_placements(s, self.environment_parameters(s))
         self._check_task(s)
 
     def _check_gripper(self, s: Scenario, protocol: Protocol) -> None:
@@ -278,7 +278,18 @@ class PlanarArm:
                 if name == "segment" and key in SEGMENT_GEOMETRY:
                     raise fail(file, f"robot.gripper.segment.{key}", "set it in the cylinder")
                 check_parameter(file, f"robot.gripper.{name}.{key}", interface, key, value)
-        self.gripper_model(s).reachable_curvature()
+        lo, hi = self.gripper_model(s).reachable_curvature()
+        g = gripper.geometry(s)
+        for name in ("theta_open", "theta_closed"):
+            theta = getattr(g, name)
+            if not lo * g.finger_length <= theta <= hi * g.finger_length:
+                raise fail(
+                    file,
+                    f"robot.gripper.{name}",
+                    f"{theta:g} rad is outside the fingers' reachable bend "
+                    f"[{lo * g.finger_length:.4g}, {hi * g.finger_length:.4g}] rad (their static "
+                    "equilibrium at either end of the stroke, within theta_max)",
+                )
 
     def environment_parameters(self, s: Scenario) -> dict[str, float]:
         """The Environment FMU's parameters: `[robot.environment]`, the arm's segments, the
@@ -292,6 +303,95 @@ class PlanarArm:
             d_bend = gripper.segment_values(s)["d_bend"]
             values["arm_mobility"] = max(values["arm_mobility"], 1.0 / max(d_bend, 1e-12))
         return values
+
+    def _check_placements(self, s: Scenario, values: Mapping[str, float]) -> None:
+        """Every object's start (Environment parameters `values`) clear of the arm's start pose
+        (its backbone capsules from the base, and the fingers both at their start bend and open)
+        and of the other objects; a grasp task's place clear of the base and of the other
+        objects. An object started inside the arm holds the penalty energy of that overlap and
+        is pushed out by it, where none was meant: ScenarioError naming the key, as a drawn
+        layout is kept clear by construction (controllers.grasp.draw_grasp_task)."""
+        from hil.scenario import fail
+
+        file, task = s.source, s.task
+        count = int(values["n_objects"])
+        centres = [
+            np.array([values[f"object_x0_{o}"], values[f"object_y0_{o}"]])
+            for o in range(1, count + 1)
+        ]
+        radii = [values[f"object_radius_{o}"] for o in range(1, count + 1)]
+        grasping = task.kind == "grasp"
+
+        def key(o: int) -> str:
+            if grasping and o == 0:
+                return "task.pick" if task.pick is not None else "task (the drawn object)"
+            return f"robot.environment.objects[{o}]"
+
+        kappas = np.array(
+            [p.get("theta_start", 0.0) / p["length"] for p in self.parameters(s, "segment")]
+        )
+        lengths = [p["length"] for p in self.parameters(s, "segment")]
+        widths = [values[f"width_{i}"] for i in range(1, len(lengths) + 1)]
+        # the backbone finely sampled: its chords lie within (L / 64)^2 |kappa| / 8 of the arcs
+        samples = 64
+        poses = kinematics.backbone(kappas, lengths, s.robot.base, per_segment=samples)
+        sag = np.repeat(
+            [(L / samples) ** 2 * abs(k) / 8.0 for L, k in zip(lengths, kappas, strict=True)],
+            samples,
+        )
+        bodies = [
+            ("the arm's start pose", poses[:, :2], np.repeat(np.array(widths) / 2, samples) + sag)
+        ]
+        if gripper.present(s):
+            from controllers.gripper import finger_points
+
+            geometry = gripper.geometry(s)
+            start = gripper.segment_values(s).get("theta_start", 0.0)
+            for theta, state in ((start, "at their start"), (geometry.theta_open, "open")):
+                for finger in finger_points(geometry, tuple(poses[-1]), theta, samples):
+                    bodies.append(
+                        (
+                            f"the fingers {state}",
+                            finger,
+                            np.full(samples, geometry.finger_width / 2),
+                        )
+                    )
+        for o, (centre, radius) in enumerate(zip(centres, radii, strict=True)):
+            where = f"({centre[0]:.4g}, {centre[1]:.4g}) m"
+            for what, points, reach in bodies:
+                overlap = radius + reach - _segment_distances(points, centre)
+                if np.max(overlap) > 0.0:
+                    raise fail(
+                        file,
+                        key(o),
+                        f"an object of radius {radius:g} m at {where} overlaps {what} by "
+                        f"{1e3 * float(np.max(overlap)):.1f} mm: it would start inside the arm "
+                        "and be pushed out by the contact; place it clear of the arm",
+                    )
+            for other in range(o):
+                gap = float(np.linalg.norm(centre - centres[other])) - radius - radii[other]
+                if gap < 0.0:
+                    raise fail(
+                        file,
+                        key(o),
+                        f"an object at {where} overlaps {key(other)} by {-1e3 * gap:.1f} mm",
+                    )
+        if grasping and task.place is not None:
+            place = np.array(task.place)
+            where = f"({place[0]:.4g}, {place[1]:.4g}) m"
+            base_gap = float(np.linalg.norm(place - poses[0, :2])) - radii[0] - widths[0] / 2
+            if base_gap < 0.0:
+                raise fail(
+                    file,
+                    "task.place",
+                    f"{where} overlaps the arm's base by {-1e3 * base_gap:.1f} mm",
+                )
+            for other in range(1, count):
+                gap = float(np.linalg.norm(place - centres[other])) - radii[0] - radii[other]
+                if gap < 0.0:
+                    raise fail(
+                        file, "task.place", f"{where} overlaps {key(other)} by {-1e3 * gap:.1f} mm"
+                    )
 
     def _placed(self, s: Scenario) -> dict[int, tuple[float, float]]:
         """Objects the task places: a grasp task's object, from the seed unless given."""
@@ -1012,6 +1112,16 @@ class PlanarArm:
 
             return task_space_metrics(self, scenario, signals)
         return curvature_metrics(scenario, signals)
+
+
+def _segment_distances(points: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """Distance [m] from `centre` to each piece of the polyline `points` (shape (k, 2))."""
+    a, b = points[:-1], points[1:]
+    ab = b - a
+    t = np.clip(
+        np.sum((centre - a) * ab, axis=1) / np.maximum(np.sum(ab * ab, axis=1), 1e-300), 0.0, 1.0
+    )
+    return np.asarray(np.linalg.norm(centre - (a + t[:, None] * ab), axis=1))
 
 
 def _defaults(scenario: Scenario, key: str, fmu: str) -> dict[str, float]:

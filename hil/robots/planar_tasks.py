@@ -24,6 +24,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from controllers import kinematics
+from controllers.grasp_control import LEGS
 from controllers.tasks import PHASE, point_to_segment
 
 if TYPE_CHECKING:
@@ -57,7 +58,14 @@ def task_space_metrics(
     if plan.kind == "pipe":
         return _pipe(plan.targets[0], scenario.robot.segments, t, tips, signals, task)
     if plan.kind == "grasp":
-        return _grasp(robot, scenario, t, signals, phase)
+        # settling phases that ended at max_time instead of on their condition (the arm, or
+        # the carried object, on target and at rest): summary.json counts and lists them
+        timeouts = settle_timeouts(t, index, phase, task.max_time, scenario.timing.control_period)
+        return {
+            **_grasp(robot, scenario, t, signals, phase),
+            "settle_timeouts": len(timeouts),
+            "settle_timeout_phases": timeouts,
+        }
     return _paths(plan.targets, plan.ends, t, tips, index, phase, task)
 
 
@@ -102,6 +110,34 @@ def _grasp(
         "pick": [float(v) for v in pick],
         "place": [float(v) for v in place],
     }
+
+
+def settle_timeouts(
+    t: np.ndarray, leg: np.ndarray, phase: np.ndarray, max_time: float, period: float
+) -> list[dict[str, Any]]:
+    """The grasp controller's settling phases that ended by `max_time` [s] instead of their
+    condition, from its recorded TaskState (leg in `target_index`, `phase`): each a stretch of
+    `settling` rows on one leg that a change ended after at least max_time (half a control
+    `period` [s] of slack for the recording's rows); a stretch still running when the
+    recording ends is not counted. Each: {"leg": its name, "start", "end" [s]}."""
+    settling = phase == PHASE["settling"]
+    timeouts = []
+    start: int | None = None
+    for row in range(len(t)):
+        if start is not None and not (settling[row] and leg[row] == leg[start]):
+            if t[row] - t[start] >= max_time - 0.5 * period:
+                code = int(leg[start])
+                timeouts.append(
+                    {
+                        "leg": LEGS[code] if 0 <= code < len(LEGS) else str(code),
+                        "start": float(t[start]),
+                        "end": float(t[row]),
+                    }
+                )
+            start = None
+        if settling[row] and start is None:
+            start = row
+    return timeouts
 
 
 def _pipe(
