@@ -126,3 +126,29 @@ def test_hil_run_says_so_in_one_line_without_a_traceback(
     lines = err.strip().splitlines()
     assert len(lines) == 1 and "robot.gripper.theta_closed: 1.7 rad is outside" in lines[0], err
     assert not (tmp_path / "run" / "signals.csv").exists()  # refused before the run
+
+
+@pytest.mark.parametrize(
+    ("old", "new", "reason"),
+    [
+        (  # an arm 0.5 m wide in a 50 mm pipe (it started 233 mm into the walls)
+            "[robot.environment]",
+            "[robot.environment]\nwidth = 0.5",
+            r"robot\.environment\.walls\[0\]: the arm's start pose overlaps the wall by 232\.8 mm",
+        ),
+        (  # bent back through the bay's wall
+            "theta_start = [0.948, 0, -0.948, -0.948, 0, 0.948]",
+            "theta_start = [1.2, 1.2, 0.0, 0.0, 0.0, 0.0]",
+            r"robot\.environment\.walls\[0\]: the arm's start pose overlaps the wall by 7\.9 mm",
+        ),
+    ],
+)
+def test_an_arm_started_in_a_wall_is_refused_naming_the_wall(
+    tmp_path: Path, old: str, new: str, reason: str
+) -> None:
+    """The walls' penalty would have thrown the arm out of them at the first step."""
+    text = resolve_scenario("planar-pipe-1").read_text()
+    assert old in text
+    load_scenario(write(tmp_path, text))  # the shipped start: clear
+    with pytest.raises(ScenarioError, match=reason + r" at \(.*\) m: start the arm clear"):
+        load_scenario(write(tmp_path, text.replace(old, new, 1)))

@@ -356,6 +356,25 @@ class PlanarArm:
                             np.full(samples, geometry.finger_width / 2),
                         )
                     )
+        for w in range(1, int(values["n_walls"]) + 1):  # the arm starts clear of the walls
+            wall = np.array(
+                [
+                    [values[f"wall{w}_x_{v}"], values[f"wall{w}_y_{v}"]]
+                    for v in range(1, int(values[f"wall{w}_n"]) + 1)
+                ]
+            )
+            for what, points, reach in bodies:
+                at = np.append(reach, reach[-1])  # each point's: its piece's (the last, its own)
+                overlap = at - np.array([np.min(_segment_distances(wall, p)) for p in points])
+                worst = int(np.argmax(overlap))
+                if overlap[worst] > 0.0:
+                    raise fail(
+                        file,
+                        f"robot.environment.walls[{w - 1}]",
+                        f"{what} overlaps the wall by {1e3 * overlap[worst]:.1f} mm at "
+                        f"({points[worst][0]:.4g}, {points[worst][1]:.4g}) m: start the arm clear "
+                        "of it (robot.base, robot.segment.theta_start, robot.environment.width)",
+                    )
         for o, (centre, radius) in enumerate(zip(centres, radii, strict=True)):
             where = f"({centre[0]:.4g}, {centre[1]:.4g}) m"
             for what, points, reach in bodies:
