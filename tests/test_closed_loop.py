@@ -571,7 +571,7 @@ def test_bus_load_above_70_percent_is_a_warning(tmp_path: Path) -> None:
         text=True,
         timeout=60,
     )
-    assert "bus load 161.1 % at 50000 bit/s" in cli.stdout
+    assert "bus load 161.1 % at 50 kbit/s" in cli.stdout
     assert "warning: above 70 %" in cli.stdout
 
 
