@@ -55,7 +55,8 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--inprocess",
         action="store_true",
-        help="run the controller in this process over the virtual bus",
+        help="run softhil's controller in this thread over a direct in-process bus (with "
+        "--bus virtual[:CHANNEL]: in a thread, over python-can's virtual bus)",
     )
     parser.add_argument(
         "--controller",
