@@ -676,6 +676,7 @@ def connect(address: str) -> Any:
             "--scheduler: needs dask.distributed (pip install 'dask[distributed]')"
         ) from None
     _check_address(address)
+    _check_listening(address)
     try:
         # the connect timeout is dask's (distributed.comm.timeouts.connect, 30 s by default)
         client = Client(address, set_as_default=False)
@@ -700,6 +701,29 @@ def _check_address(address: str) -> None:
             f"--scheduler {address}: not a scheduler address ({_one_line(exc)}); "
             "give one as tcp://HOST:PORT"
         ) from None
+
+
+def _check_listening(address: str) -> None:
+    """A tcp:// scheduler whose host refuses the connection is one line at once: dask retries a
+    refused connection until its connect timeout (30 s) runs out."""
+    import socket
+
+    from distributed.comm import parse_address
+    from distributed.comm.addressing import parse_host_port
+
+    scheme, location = parse_address(address)
+    if scheme != "tcp":
+        return
+    host, port = parse_host_port(location)
+    try:
+        socket.create_connection((host, port), timeout=5.0).close()
+    except ConnectionRefusedError:
+        raise HilError(
+            f"--scheduler {address}: nothing listens on {host}:{port} (is the dask scheduler "
+            "running there?)"
+        ) from None
+    except OSError:
+        return  # unreachable, slow, or a name dask resolves otherwise: dask's timeout says so
 
 
 def _run_dask(

@@ -371,6 +371,13 @@ def test_an_unreachable_scheduler_is_one_line(
                            "--scheduler", "tcp://127.0.0.1:1", "--no-progress")  # fmt: skip
     assert code == 1 and len(err) == 1 and "--scheduler tcp://127.0.0.1:1" in err[0]
     assert not (tmp_path / "x").exists()
+    # refused at once, not after dask's connect timeout (30 s by default)
+    code, _, err = hil(capsys, "batch", "short", "--trials", 1, "--out", tmp_path / "x",
+                       "--scheduler", "tcp://127.0.0.1:1", "--no-progress")  # fmt: skip
+    assert code == 1 and err == [
+        "hil: error: --scheduler tcp://127.0.0.1:1: nothing listens on 127.0.0.1:1 (is the dask "
+        "scheduler running there?)"
+    ]
 
 
 @pytest.mark.parametrize("address", ["garbage", "tcp://host:x"])
