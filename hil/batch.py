@@ -522,7 +522,7 @@ def execute(
         total=len(specs),
         unit="trial",
         file=sys.stderr,
-        disable=not execution.progress,
+        disable=None if execution.progress else True,  # None: off where stderr is no TTY
         dynamic_ncols=True,
     ) as bar:
 
