@@ -707,3 +707,13 @@ def test_run_name_resolves_builtins_files_first_and_lists_the_known(
     assert code == 1 and len(err) == 1 and "nonesuch" in err[0] and "broken, short" in err[0]
     with pytest.raises(ScenarioError, match="built-in: broken, short"):
         resolve_scenario("nonesuch.toml")
+
+
+def test_no_progress_bar_where_stderr_is_not_a_terminal(
+    builtins: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """As hil run: tqdm's bar is for a terminal, not for a log that stderr is redirected to."""
+    code, _, err = hil(capsys, "batch", "short", "--trials", 1, "--workers", 1,
+                       "--out", tmp_path / "b")  # fmt: skip
+    assert code == 0
+    assert not any("trial/s" in line or "it/s" in line or "\r" in line for line in err), err
