@@ -227,3 +227,15 @@ def test_pipe_metrics_from_the_recorded_truth() -> None:
     assert short["goal_error"] == pytest.approx(5e-3)
     left = np.array(goal) + np.where(t[:, None] < 2.0, 0.0, 0.01) * np.array([1.0, 0.0])
     assert _pipe(goal, 2, t, left, signals, task)["goal_reached"] is False  # reached, then left
+
+
+def test_an_environment_key_error_names_the_scenario_key(tmp_path: Path) -> None:
+    """A key the scenario gave is named as written (robot.environment.k_contact), not as the
+    FMU's parameter in parentheses."""
+    from hil.errors import ScenarioError
+    from hil.scenario import resolve_scenario
+
+    text = resolve_scenario("planar-pipe-1").read_text()
+    text = text.replace("[robot.environment]", "[robot.environment]\nk_contact = -5.0", 1)
+    with pytest.raises(ScenarioError, match=r": robot\.environment\.k_contact: -5 is outside"):
+        load_scenario(write(tmp_path, text))

@@ -416,3 +416,22 @@ def test_a_swim_stroke_shorter_than_a_step_is_refused_naming_duty_and_frequency(
             tmp_path, name, {"frequency": "frequency = 50.0", "duty": "duty = 0.1"}
         )
         assert load_scenario(path).robot.frequency == 50.0  # 1 ms: one step, the limit
+
+
+@pytest.mark.parametrize(
+    ("replace", "ending"),
+    [
+        ({"start": "start = 0.5"}, "robot.start: must be in [0, 0.4) s (the run), got 0.5"),
+        ({"side": "side = 1\nturn_angle = 500.0"}, "(the calibration), got 500"),
+        (
+            {"side": "side = 1\nheading = 200.0"},
+            "robot.heading: must be in [-180, 180] deg, got 200",
+        ),
+    ],
+)
+def test_task_key_errors_give_the_range_and_the_value(
+    tmp_path: Path, replace: dict[str, str], ending: str
+) -> None:
+    with pytest.raises(ScenarioError) as error:
+        load_scenario(scenario_file(tmp_path, "fish-escape", replace))
+    assert str(error.value).endswith(ending), str(error.value)

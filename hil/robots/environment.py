@@ -106,7 +106,8 @@ def parameters(
             raise fail(file, key, "set by the robot, not by the scenario")
         values[name] = number
     for name, value in values.items():
-        check_parameter(file, f"robot.environment ({name})", interface, name, value)
+        key = f"robot.environment.{name}" if name in raw else f"robot.environment ({name})"
+        check_parameter(file, key, interface, name, value)
     return values
 
 

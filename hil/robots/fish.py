@@ -214,15 +214,18 @@ class Fish:
                 f"(got {r.frequency:g} Hz)",
             )
         if not 0.0 <= r.start < s.duration:
-            raise fail(file, "robot.start", "must be within the run")
+            raise fail(
+                file, "robot.start", f"must be in [0, {s.duration:g}) s (the run), got {r.start:g}"
+            )
         if not 0.0 < r.turn_angle <= math.degrees(CALIBRATION[-1][1]):
             raise fail(
                 file,
                 "robot.turn_angle",
-                f"must be in (0, {math.degrees(CALIBRATION[-1][1]):.0f}] deg (the calibration)",
+                f"must be in (0, {math.degrees(CALIBRATION[-1][1]):.0f}] deg (the calibration), "
+                f"got {r.turn_angle:g}",
             )
         if not -180.0 <= r.heading <= 180.0:
-            raise fail(file, "robot.heading", "must be in [-180, 180] deg")
+            raise fail(file, "robot.heading", f"must be in [-180, 180] deg, got {r.heading:g}")
         if r.max_channel_pressure <= 0:
             raise fail(file, "robot.max_channel_pressure", "must be positive")
         if s.timing.step > 1e-3 + 1e-12:

@@ -1084,7 +1084,7 @@ class PlanarArm:
             if task.grasp_time <= 0:
                 raise fail(file, "task.grasp_time", "must be positive")
         if task.kind == "path" and task.path_length <= 0:
-            raise fail(file, "task.path_length", "must be positive")
+            raise fail(file, "task.path_length", f"must be positive, got {task.path_length:g} m")
         from controllers.ik import solve_ik
 
         lower, upper, _ = self.curvature_limits(s)
