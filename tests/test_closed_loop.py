@@ -573,6 +573,14 @@ def test_bus_load_above_70_percent_is_a_warning(tmp_path: Path) -> None:
     )
     assert "bus load 161.1 % at 50 kbit/s" in cli.stdout
     assert "warning: above 70 %" in cli.stdout
+    # hil run says the same, in kbit/s to the bit (83333 bit/s: not 83)
+    path = shortened(tmp_path, 0.2, ("bitrate = 1000000", "bitrate = 83333"), name="odd.toml")
+    run = subprocess.run(
+        [sys.executable, "-m", "hil", "run", str(path), "--inprocess", "--no-progress",
+         "--out", str(tmp_path / "odd")],
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert "  bus load 96.7 % at 83.333 kbit/s; frames sent" in run.stdout, run.stdout
 
 
 def test_a_run_without_steps_reports_null_metrics_as_strict_json(tmp_path: Path) -> None:
