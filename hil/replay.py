@@ -458,7 +458,8 @@ def replay(
 
 def _stopped_early(log: Path) -> str | None:
     """What summary.json beside `log` says stopped its run, if the run recorded `log` and did
-    not complete ("interrupted: interrupted (SIGINT)"); None otherwise."""
+    not complete ("interrupted (SIGINT) at t = 12.220 s (after SYNC 1222 of 4000)", "failed:
+    ..."); None otherwise."""
     try:
         summary = json.loads((log.parent / "summary.json").read_text())
         status, can_log = summary["status"], summary.get("can_log", log.name)
