@@ -164,7 +164,9 @@ def run_scenario(scenario: Scenario, options: RunOptions) -> RunResult:
 def _on_another_channel(exc: ProtocolError, bus: object, cycle: int) -> ProtocolError:
     """A controller that never sent SYNC(0) to the hub the plant hosts may have joined another
     channel of it: `exc` saying which, if one did."""
-    others = bus.elsewhere() if isinstance(bus, HostedBus) and cycle < 0 else []
+    if not isinstance(bus, HostedBus) or cycle >= 0:
+        return exc
+    others = bus.elsewhere()
     if not others:
         return exc
     names = ", ".join(repr(name) for name in others)
