@@ -59,7 +59,8 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
         action="append",
         required=True,
         metavar="SECTION.KEY=V1,V2,...",
-        help="a swept key (dotted TOML path; a key not at the top level is a [robot] key) and "
+        help="a swept key (dotted TOML path; one whose first part is not a top-level scenario "
+        "key is a [robot] key: valve.open_time is robot.valve.open_time) and "
         "its values as TOML (numbers, true/false, quoted strings; a bare word is a string); "
         "repeat for a grid, the cartesian product of all",
     )

@@ -36,7 +36,7 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     serve = example_parser(
         sub,
         "serve",
-        "serve the loopback CAN hub (socketcand protocol) until Ctrl-C",
+        "serve the loopback CAN hub (socketcand and softhil's binary records) until Ctrl-C",
         "  hil bus serve --port 29536\n"
         "  python -c \"import can; can.Bus(interface='socketcand', channel='softhil', "
         "host='127.0.0.1', port=29536)\"\n",
@@ -72,7 +72,9 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
         "  hil bus load --log runs/default-1/can.log\n"
         "  hil bus load --bus loopback --seconds 5\n",
     )
-    load.add_argument("scenario", nargs="?", help="scenario NAME or FILE (default: built-in)")
+    load.add_argument(
+        "scenario", nargs="?", metavar="NAME|FILE", help="scenario NAME or FILE (default: built-in)"
+    )
     load.add_argument(
         "--bitrate",
         type=int,

@@ -32,6 +32,7 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
         "scenario",
         nargs="?",
         type=Path,
+        metavar="NAME|FILE",
         help="scenario NAME or FILE (default: built-in)",
     )
     tune.add_argument("--out", help="Bode plot PNG (default: tune-NAME.png)")
