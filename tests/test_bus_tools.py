@@ -372,7 +372,8 @@ def test_dump_decodes_a_run_log_with_units_and_counts_unknown_ids(
     assert len(lines) == len(softhil_frames()) + 2
     assert lines[0] == "(0.000000) can0 080#00 R  SYNC counter=0"
     status = next(x for x in lines if " 182#" in x and "counter=3" in x)
-    assert "DriveStatus2 piston_position=0.0253 m p_a=2000 Pa p_b=-500 Pa fault=0" in status
+    # a value the DBC names is shown with its name (as cantools decode shows it)
+    assert "DriveStatus2 piston_position=0.0253 m p_a=2000 Pa p_b=-500 Pa fault=0 (ok)" in status
     assert status.startswith("(0.030000) can0 182#")
     assert "ControllerState1 kappa_ref=1.5 1/m kappa_est=1.25 1/m counter=0" in captured.out
     assert "18FF1234#0102 R  ?" in captured.out

@@ -39,7 +39,12 @@ def describe(database: Database, msg: can.Message) -> tuple[str, bool]:
     parts = []
     for signal in message.signals:
         unit = f" {signal.unit}" if signal.unit else ""
-        parts.append(f"{signal.name}={_value_text(values[signal.name])}{unit}")
+        value = values[signal.name]
+        # the DBC's name for the value, as cantools decode shows it (a bit field's other values
+        # have none): nmt_state=5 (operational)
+        named = signal.choices.get(value) if signal.choices and value == int(value) else None
+        text = f"{_value_text(value)} ({named})" if named is not None else _value_text(value)
+        parts.append(f"{signal.name}={text}{unit}")
     return f"{message.name} " + " ".join(parts), True
 
 
