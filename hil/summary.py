@@ -174,9 +174,10 @@ def summarise(
     signals = read_signals(signals_path)
     t = signals["time"]
     metrics = robot_kind(scenario.robot.kind).task_metrics(scenario, signals)
+    task_warnings = metrics.pop("task_warnings", [])  # what the task's scoring found
     duration = float(t[-1] - t[0]) if t.size > 1 else 0.0
     load = bus_load_of(scenario, protocol)
-    warnings = []
+    warnings = list(task_warnings)
     if load > BUS_LOAD_WARNING:
         warnings.append(f"bus load {100 * load:.0f} % exceeds {100 * BUS_LOAD_WARNING:.0f} %")
     if stats.emcy_sent:

@@ -435,3 +435,25 @@ def test_task_key_errors_give_the_range_and_the_value(
     with pytest.raises(ScenarioError) as error:
         load_scenario(scenario_file(tmp_path, "fish-escape", replace))
     assert str(error.value).endswith(ending), str(error.value)
+
+
+def test_a_fish_that_leaves_the_camera_s_view_before_its_hold_is_a_warning(
+    tmp_path: Path,
+) -> None:
+    """heading = -60 from the default start swims the nose out of the camera's view before
+    the hold: the run is scored from the true signals, and says the controller was blind."""
+    path = scenario_file(
+        tmp_path, "fish-heading", {"heading": "heading = -60.0", "duration": "duration = 0.6"}
+    )
+    s = run(path, tmp_path / "blind")
+    left = s["nose_out_of_view_at"]
+    assert left is not None and left < s["hold_start"]
+    assert s["warnings"] == [
+        f"the nose left the camera's view at t = {left:.3f} s, before the hold "
+        f"({s['hold_start']:.3f} s): the controller glided without a heading estimate; the "
+        "heading is scored from the true signals"
+    ]
+    signals = np.genfromtxt(tmp_path / "blind" / "signals.csv", delimiter=",", names=True)
+    nose = np.abs(np.c_[signals["nose_x"], signals["nose_y"]]).max(axis=1)
+    k = int(np.argmax(signals["time"] >= left))
+    assert nose[k] > 0.55 and nose[:k].max() <= nose[k]  # the first sample out of view

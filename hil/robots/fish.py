@@ -161,6 +161,16 @@ class Fish:
         value = scenario.robot.valve.get("open_time", 0.0)
         return float(value)
 
+    def camera_view(self, scenario: Scenario, protocol: Protocol | None = None) -> float:
+        """Half the side of the square the camera sees [m]: the DBC's marker range less the
+        camera's noise and outlier margin, so that what is seen stays within the range."""
+        view = (protocol or Protocol()).signal_range("CameraMarker0", "x")[1]
+        return (
+            view
+            - 5.0 * scenario.camera.noise
+            - (scenario.camera.outlier_distance if scenario.camera.outlier_rate else 0.0)
+        )
+
     def body_length(self, scenario: Scenario) -> float:
         body = self.parameters(scenario, "body")
         return float(body["L_head"] + body["L_1"] + body["L_2"] + body["L_3"])
@@ -295,16 +305,12 @@ class Fish:
                 for name in ("p_canister", "p_supply", "gas_left")
             }
         )
-        view = protocol.signal_range("CameraMarker0", "x")[1]
-        margin = 5.0 * scenario.camera.noise + (
-            scenario.camera.outlier_distance if scenario.camera.outlier_rate else 0.0
-        )
+        seen = self.camera_view(scenario, protocol)
 
         def markers(values: list[float]) -> np.ndarray:
-            # a marker beyond the camera's field of view (less its noise and outlier margin,
-            # so that what is seen stays within the DBC's range) is not seen
+            # a marker beyond the camera's field of view is not seen
             points = np.array(values, dtype=float).reshape(len(CAMERA_MARKERS), 2)
-            points[np.abs(points).max(axis=1) > view - margin] = np.nan
+            points[np.abs(points).max(axis=1) > seen] = np.nan
             return points
 
         camera_inputs = [f"{m}_{c}" for m in ("nose", "joint", "tip") for c in "xy"]

@@ -138,6 +138,10 @@ def fish_metrics(robot: Fish, scenario: Scenario, signals: Mapping[str, Any]) ->
             1 for m in manoeuvres if m["elastic"] + m["resistive"] > m["gas_work"] + 1e-9
         ),
     }
+    seen = robot.camera_view(scenario)
+    gone = np.abs(np.c_[signals["nose_x"], signals["nose_y"]]).max(axis=1) > seen
+    metrics["nose_out_of_view_at"] = float(t[int(np.argmax(gone))]) if gone.any() else None
+    warnings: list[str] = []
     kind = scenario.task.kind
     if kind == "escape":
         success = metrics["heading_change"] is not None and len(starts) >= 1
@@ -157,6 +161,13 @@ def fish_metrics(robot: Fish, scenario: Scenario, signals: Mapping[str, Any]) ->
             metrics["heading_error_max"] = float(held.max())
             metrics["heading_error_mean"] = float(held.mean())
             success = bool(held.max() <= math.degrees(scenario_tolerance()))
+            left = metrics["nose_out_of_view_at"]
+            if left is not None and left < metrics["hold_start"]:
+                warnings.append(
+                    f"the nose left the camera's view at t = {left:.3f} s, before the hold "
+                    f"({metrics['hold_start']:.3f} s): the controller glided without a "
+                    "heading estimate; the heading is scored from the true signals"
+                )
         else:
             metrics["hold_start"] = metrics["heading_error_max"] = None
             metrics["heading_error_mean"] = None
@@ -178,6 +189,7 @@ def fish_metrics(robot: Fish, scenario: Scenario, signals: Mapping[str, Any]) ->
         metrics["end_reason"] = f"the {kind} task ran its {scenario.duration:g} s"
         metrics["gas_exhausted"] = False
     metrics["success"] = bool(success)
+    metrics["task_warnings"] = warnings  # summary.json's warnings, not a metric of its own
     return metrics
 
 
