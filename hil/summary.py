@@ -207,14 +207,6 @@ def summarise(
     notes = controller_report.get("notes", [])
     if isinstance(notes, list):  # a program's report may hold anything (hil.run checks it)
         warnings.extend(f"controller: {n}" for n in notes if isinstance(n, str))
-    timeouts = metrics.get("settle_timeout_phases") or []
-    if timeouts:
-        first = timeouts[0]
-        warnings.append(
-            f"{len(timeouts)} settling phase(s) ended at max_time ({scenario.task.max_time:g} s), "
-            f"not on target and at rest; first: the {first['leg']} leg's, "
-            f"{first['start']:.2f}-{first['end']:.2f} s"
-        )
     if metrics.get("settling_time") is not None and math.isinf(metrics["settling_time"]):
         warnings.append("a step never settled within its hold (settling_time is null)")
     return {

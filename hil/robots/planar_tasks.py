@@ -61,10 +61,17 @@ def task_space_metrics(
         # settling phases that ended at max_time instead of on their condition (the arm, or
         # the carried object, on target and at rest): summary.json counts and lists them
         timeouts = settle_timeouts(t, index, phase, task.max_time, scenario.timing.control_period)
+        warned = [
+            f"{len(timeouts)} settling phase(s) ended at max_time ({task.max_time:g} s), not on "
+            f"target and at rest; first: the {first['leg']} leg's, "
+            f"{first['start']:.2f}-{first['end']:.2f} s"
+            for first in timeouts[:1]
+        ]
         return {
             **_grasp(robot, scenario, t, signals, phase),
             "settle_timeouts": len(timeouts),
             "settle_timeout_phases": timeouts,
+            "task_warnings": warned,  # summary.json's warnings
         }
     return _paths(plan.targets, plan.ends, t, tips, index, phase, task)
 
