@@ -214,6 +214,15 @@ def _point_to_point(
     errors = np.array([e["error"] for e in reached])
     settle_times = [e["time_to_settle"] for e in reached if e["time_to_settle"] is not None]
     settled = sum(1 for e in reached if e["settled"])
+    never = [k for k, e in enumerate(per_target) if not e["reached"]]
+    warned = (
+        [
+            f"{len(never)} of {len(targets)} targets never reached (the first of them: number "
+            f"{never[0] + 1}): the run ended first; lengthen duration or give fewer targets"
+        ]
+        if never
+        else []
+    )
     return {
         "tip_error_mean": float(np.mean(errors)) if errors.size else None,
         "tip_error_std": float(np.std(errors)) if errors.size else None,
@@ -226,6 +235,7 @@ def _point_to_point(
         "targets_settled": settled,
         "success": settled == len(targets),
         "per_target": per_target,
+        "task_warnings": warned,  # summary.json's warnings
     }
 
 
