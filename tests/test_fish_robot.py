@@ -422,6 +422,7 @@ def test_a_swim_stroke_shorter_than_a_step_is_refused_naming_duty_and_frequency(
     ("replace", "ending"),
     [
         ({"start": "start = 0.5"}, "robot.start: must be in [0, 0.4) s (the run), got 0.5"),
+        ({"start": "start = 0.4"}, "robot.start: must be in [0, 0.4) s (the run), got 0.4"),
         ({"side": "side = 1\nturn_angle = 500.0"}, "(the calibration), got 500"),
         (
             {"side": "side = 1\nheading = 200.0"},
