@@ -15,7 +15,9 @@ of the pure-C loop. Then the closed loop on the default task for 1, 2, 4 and 6 s
   hil run --inprocess             plant and controller in one thread, direct bus
   hil run (separate process)      controller as a separate process over the loopback hub
 with the kernel (and, for 1 segment, with SOFTHIL_KERNEL=0), as real-time factors and ratios
-to the pure-C loop of the same segments. The separate process speaks softhil's binary records
+to the pure-C loop of the same segments. In-process the FMUs step to the next SYNC on the
+kernel's worker thread while the controller computes; row "FMUs in turn" runs them one after the
+other (SOFTHIL_KERNEL_THREAD=0). The separate process speaks softhil's binary records
 to the hub the plant hosts in its own thread (the default); rows "hub process" and "hub thread"
 run the hub as a child process (SOFTHIL_HUB=process) or a thread of the plant
 (SOFTHIL_HUB=thread) instead, the alternatives it was chosen over; row "no busy poll" runs the
@@ -31,9 +33,10 @@ separate-process target meets with a controller that costs nothing.
 
 Last, the per-SYNC budget by layer: the 6-segment closed loop in-process, once plain and once
 instrumented, its wall time per SYNC split into layers (`BUDGET_LAYERS`): the FMUs in C (the
-kernel), the master's bookkeeping, the camera model, the DBC codec (both sides), the direct bus,
-the recording, the controller's estimator and control law, the plant's and the controller's
-node logic (dispatch, device firmware, frame collection), and the rest of the loop (other).
+kernel: with its worker thread, what the loop waits for it, not what it computes), the
+master's bookkeeping, the camera model, the DBC codec (both sides), the direct bus, the
+recording, the controller's estimator and control law, the plant's and the controller's node
+logic (dispatch, device firmware, frame collection), and the rest of the loop (other).
 Instrumentation: perf_counter accumulators with exclusive attribution (`LayerBudget`): the bench
 wraps the methods that enter a layer (`budget_wrappers`) for the instrumented run only and
 restores them after, so the code under test holds no timing hooks and costs nothing when not
@@ -222,10 +225,13 @@ def full_run(
     hub: str = "plant",
     busy_poll: str | None = None,
     controller: str = "softhil",
+    kernel_thread: str | None = None,
 ) -> float:
     settings = {"SOFTHIL_KERNEL": "1" if kernel else "0", "SOFTHIL_HUB": hub}
     if busy_poll is not None:
         settings["SOFTHIL_BUSY_POLL"] = busy_poll
+    if kernel_thread is not None:
+        settings["SOFTHIL_KERNEL_THREAD"] = kernel_thread
     # the environment as it was afterwards, a user's own settings included
     with mock.patch.dict(os.environ, settings), tempfile.TemporaryDirectory() as out:
         result = run_scenario(
@@ -439,7 +445,7 @@ def budget_wrappers(budget: LayerBudget) -> None:
     from hil.recording import CanLogger, SignalRecorder
 
     for owner, names, layer in (
-        (Kernel, ("advance",), "FMUs (kernel)"),
+        (Kernel, ("advance", "start", "finish"), "FMUs (kernel)"),
         (FmuParticipant, ("step", "set_inputs", "get_outputs"), "FMUs (kernel)"),
         (Master, ("advance_to", "publish", "inputs_of"), "master"),
         (CameraNode, ("step", "act"), "camera"),
@@ -630,9 +636,11 @@ def main() -> int:
         for n in SEGMENTS:
             arm = budget_scenario(scenario, args.seconds, n)
             base = rows[str(n)]["pure C"]["wall_time"] / ticks  # per macro step, n segments
-            # (in-process, hub, kernel, estimator, SOFTHIL_BUSY_POLL)
+            # (in-process, hub, kernel, estimator, SOFTHIL_BUSY_POLL or, in-process,
+            # SOFTHIL_KERNEL_THREAD)
             variants: list[tuple[bool, str, bool, str | None, str | None]]
-            variants = [(True, "plant", True, None, None), (False, "plant", True, None, None)]
+            variants = [(True, "plant", True, None, None), (True, "plant", True, None, "0")]
+            variants += [(False, "plant", True, None, None)]
             variants += [(False, "plant", False, None, None)] if n == 1 else []
             variants += [(False, "plant", True, None, "0")]
             variants += [(False, "process", True, None, None), (False, "thread", True, None, None)]
@@ -641,19 +649,26 @@ def main() -> int:
             # the plant's side alone across processes: a controller that only commands a sine
             # (examples/piston_sine.py: no estimator, python-can's socketcand client)
             variants += [(False, "plant", True, "piston_sine", None)]
-            for inprocess, hub, kernel, estimator, busy_poll in variants:
+            for inprocess, hub, kernel, estimator, switch in variants:
                 name = "hil run --inprocess" if inprocess else "hil run (separate process)"
                 name += "" if kernel else " SOFTHIL_KERNEL=0"
                 name += "" if hub == "plant" or inprocess else f", hub {hub}"
                 name += f", estimator {estimator}" if estimator else ""
-                name += ", no busy poll" if busy_poll == "0" else ""
+                if inprocess:
+                    busy_poll, kernel_thread = None, switch
+                    name += ", FMUs in turn" if switch == "0" else ""
+                else:
+                    busy_poll, kernel_thread = switch, None
+                    name += ", no busy poll" if switch == "0" else ""
                 run, program = arm, "softhil"
                 if estimator == "piston_sine":
                     name = "hil run --controller examples/piston_sine.py"
                     program = EXAMPLE_CONTROLLER
                 elif estimator:
                     run = replace(arm, controller=replace(arm.controller, estimator=estimator))
-                case = functools.partial(full_run, run, inprocess, kernel, hub, busy_poll, program)
+                case = functools.partial(
+                    full_run, run, inprocess, kernel, hub, busy_poll, program, kernel_thread
+                )
                 wall = median(args.repeat, case)
                 ratio = wall / (base * round(duration / h))
                 closed[f"{name} / {n}"] = {

@@ -9,6 +9,12 @@ import os
 from hil.errors import HilError
 
 KERNEL = "SOFTHIL_KERNEL"  # "0": step FMUs in Python; "1" (the default): the C kernel
+# "1": a run with plant and controller in one thread steps the FMUs on the kernel's worker thread
+# while the controller computes; "0": in that thread, in turn; unset: "1" where two cores are free
+KERNEL_THREAD = "SOFTHIL_KERNEL_THREAD"
+# [s] how long the plant waiting for the worker polls before it sleeps: a job takes 0.1-0.3 ms,
+# waking a sleeping thread costs hundreds of microseconds on a virtual machine
+KERNEL_THREAD_SPIN = 0.002
 
 
 def kernel_enabled() -> bool:
@@ -22,11 +28,27 @@ def kernel_enabled() -> bool:
     return value == "1"
 
 
+def kernel_thread() -> bool:
+    """SOFTHIL_KERNEL_THREAD as a switch: "1" on, "0" off, unset on where this process may use
+    two cores or more; HilError for any other value."""
+    value = os.environ.get(KERNEL_THREAD)
+    if value is None:
+        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None
+        return (cores or os.cpu_count() or 1) >= 2
+    if value.strip() not in ("0", "1"):
+        raise HilError(
+            f"{KERNEL_THREAD}={value!r}: must be 1 (step the FMUs on a thread of their own while "
+            "the controller computes in this one) or 0 (in turn)"
+        )
+    return value.strip() == "1"
+
+
 def check() -> None:
     """HilError naming the first softhil variable whose value is not one softhil reads."""
     from controllers import ccodec
 
     kernel_enabled()
+    kernel_thread()
     try:
         ccodec.setting()
     except ValueError as exc:

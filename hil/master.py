@@ -12,12 +12,21 @@ Between two events nothing crosses the bus, so the FMU participants are stepped 
 ticks; with observers registered every tick runs in Python. `kernel=False` or SOFTHIL_KERNEL=0
 keeps everything in Python (the reference).
 
+`start_advance` begins the same stepping on the kernel's worker thread and returns at once, so
+that the caller (the plant in one thread with the controller) computes while the FMUs step; the
+next call that needs the state (`advance_to`, `publish`, `inputs_of`, `set_input`) waits for it.
+It applies where the Python participants due inside the interval have no outputs (samplers, such
+as the camera: they are stepped afterwards from the values sampled at their ticks) and those due
+at its first tick keep their outputs (device nodes between SYNCs); elsewhere it steps that tick
+first, or declines. Either way the FMI calls and every value are those of `advance_to`.
+
 Invariant: within a tick every participant reads the inputs computed from the outputs at the
 start of the tick (Jacobi), so the result does not depend on the order of participants.
 """
 
 from __future__ import annotations
 
+import contextlib
 import operator
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -26,7 +35,7 @@ from typing import Any, Protocol
 
 from hil import kernel as kernel_module
 from hil.environment import kernel_enabled
-from hil.errors import BuildError, HilError
+from hil.errors import BuildError, FmuError, HilError
 from hil.fmu.slave import FmuSlave
 
 
@@ -175,6 +184,8 @@ class Master:
         self._view = MappingProxyType(self.values)  # what observers get: read-only
         self._kernel: kernel_module.Kernel | None = None
         self._kernel_synced = False
+        # a started `start_advance`: its last tick and the samplers due inside it, by tick
+        self._ahead: tuple[int, list[tuple[int, list[Participant]]]] | None = None
         self._initialise()
         if kernel is None:
             kernel = kernel_enabled()
@@ -290,6 +301,8 @@ class Master:
     def publish(self, participant: str) -> None:
         """Refresh a participant's outputs after an event changed them between ticks (a device
         node latching a command at SYNC), so the next tick transfers the new values."""
+        if self._ahead is not None:
+            self._finish_ahead()
         self._publish(self._participant(participant))
 
     def _participant(self, name: str) -> Participant:
@@ -300,6 +313,8 @@ class Master:
 
     def inputs_of(self, participant: str) -> dict[str, float]:
         """The inputs `participant` would receive now: externals and connected outputs."""
+        if self._ahead is not None:
+            self._finish_ahead()
         self._participant(participant)
         values = dict(self._externals[participant])
         for variable, source, gain, offset in self._connections[participant]:
@@ -312,6 +327,8 @@ class Master:
 
     def set_input(self, participant: str, variable: str, value: float) -> None:
         """An external value (a device node's output) held until changed."""
+        if self._ahead is not None:
+            self._finish_ahead()
         key = f"{participant}.{variable}"
         if key in self._driven:
             raise HilError(f"{key} is driven by a connection and cannot be set externally")
@@ -322,11 +339,15 @@ class Master:
             self._kernel.set_external(participant, variable, value)
 
     def add_observer(self, observer: Observer) -> None:
+        if self._ahead is not None:
+            self._finish_ahead()
         self.observers.append(observer)
         observer.observe(self.tick, self._view)
 
     def advance_to(self, tick: int) -> None:
         """Step all participants until simulation tick `tick`."""
+        if self._ahead is not None:
+            self._finish_ahead()
         if self._kernel is not None and not self.observers:
             self._advance_in_kernel(tick)
             return
@@ -337,13 +358,7 @@ class Master:
         """The FMUs in C up to the next tick where a Python participant is due; at that tick
         the Python participants read their inputs from the values at its start (Jacobi), the
         kernel steps the FMUs one tick, then the Python participants step and publish."""
-        kernel = self._kernel
-        assert kernel is not None
-        if not self._kernel_synced:  # the Python path stepped last: take over its state
-            kernel.load_last_inputs([p._last_inputs for p in self._fast])
-            for key, slot in self._slots.items():
-                kernel.values[slot] = self.values[key]
-            self._kernel_synced = True
+        self._take_over()
         slow = self._slow
         while self.tick < tick:
             k = self.tick
@@ -358,6 +373,95 @@ class Master:
             self._step_participants(k, due, inputs)
             self.tick = k + 1
 
+    def _take_over(self) -> None:
+        """The kernel takes over the Python path's state, if the Python path stepped last."""
+        kernel = self._kernel
+        assert kernel is not None
+        if not self._kernel_synced:
+            kernel.load_last_inputs([p._last_inputs for p in self._fast])
+            for key, slot in self._slots.items():
+                kernel.values[slot] = self.values[key]
+            self._kernel_synced = True
+
+    def start_advance(self, tick: int, spin: float = 0.0) -> bool:
+        """Begin stepping to `tick` on the kernel's worker thread and return: True if it began
+        (or is done), False if the interval needs Python between its ticks (no kernel, an
+        observer, a participant with outputs due after the first tick), when nothing was done.
+        `spin` [s]: how long the worker and the waiting caller poll before they sleep."""
+        if self._ahead is not None:
+            self._finish_ahead()
+        k = self.tick
+        if self._kernel is None or self.observers or tick <= k:
+            return False
+        due: dict[int, list[Participant]] = {}
+        for p in self._slow:
+            d = p.decimation
+            for e in range(-(-k // d) * d, tick, d):
+                if e > k and p.output_names():
+                    return False  # its outputs would feed the FMUs inside the interval
+                due.setdefault(e, []).append(p)
+        self._take_over()
+        begin = k
+        first = due.pop(k, [])
+        if first:  # read at the tick's start (Jacobi) and stepped now; published after tick k
+            self._step_participants(k, first, [self.inputs_of(p.name) for p in first], False)
+            if not all(self._unchanged(p) for p in first):
+                self._kernel_advance(k, k + 1)
+                for p in first:
+                    self._publish(p)
+                begin = k + 1
+        if begin >= tick:
+            self.tick = tick
+            return True
+        samplers = sorted(due.items())
+        self._kernel.start(begin, tick, [e for e, _ in samplers], spin)
+        self._ahead = (tick, samplers)
+        return True
+
+    def _unchanged(self, participant: Participant) -> bool:
+        """Whether a participant's outputs are those already published."""
+        keys, values = self._output_keys[participant.name], self.values
+        return all(
+            keys.get(name) in values and values[keys[name]] == value
+            for name, value in participant.get_outputs().items()
+        )
+
+    def _finish_ahead(self) -> None:
+        """Wait for `start_advance`'s job, then step the samplers due inside it from the values
+        sampled at their ticks (Jacobi: the start of the tick), up to a failing tick; raise the
+        FmuError `advance_to` would have raised."""
+        assert self._ahead is not None and self._kernel is not None
+        tick, samplers = self._ahead
+        self._ahead = None
+        kernel = self._kernel
+        rows, error = kernel.finish(len(samplers))
+        self.values.update(zip(self._fast_keys, self._fresh(kernel.values), strict=True))
+        done = kernel.ticks_done
+        slots = self._slots
+        for (e, due), row in zip(samplers, rows, strict=True):
+            if e >= done:
+                break
+            inputs = []
+            for p in due:
+                values = dict(self._externals[p.name])
+                for variable, source, gain, offset in self._connections[p.name]:
+                    values[variable] = gain * row[slots[source]] + offset
+                inputs.append(values)
+            self._step_participants(e, due, inputs)
+        self.tick = done
+        if error is not None:
+            raise error
+
+    def settle(self) -> None:
+        """Wait for a job `start_advance` began (its FmuError dropped: the caller is stopping)
+        and stop the kernel's worker thread, so that the process may fork; `start_advance`
+        starts a new one."""
+        if self._ahead is not None:
+            with contextlib.suppress(FmuError):
+                self._finish_ahead()
+        if self._kernel is not None:
+            self._kernel.stop()
+
     def _kernel_advance(self, k_begin: int, k_end: int) -> None:
         kernel = self._kernel
         assert kernel is not None
@@ -368,16 +472,17 @@ class Master:
             self.tick = kernel.ticks_done
 
     def _step_participants(
-        self, k: int, due: list[Participant], inputs: list[dict[str, float]]
+        self, k: int, due: list[Participant], inputs: list[dict[str, float]], publish: bool = True
     ) -> None:
         """Tick k of the participants due (Jacobi: `inputs` were read at the tick's start),
-        then their outputs published."""
+        then their outputs published (unless `publish` is False)."""
         for p, values in zip(due, inputs, strict=True):
             if values:
                 p.set_inputs(values)
             p.step(k * self.step, p.decimation * self.step)
-        for p in due:
-            self._publish(p)
+        if publish:
+            for p in due:
+                self._publish(p)
 
     def _step_once(self) -> None:
         if self._kernel_synced:  # the kernel stepped last: hand its state back to Python

@@ -103,6 +103,8 @@ class Plant:
         self._heard: set[tuple[int, int]] = set()  # (CAN id, counter) received this period
         # what stepping ahead (`_step_ahead`) raised, reported when that period's SYNC comes
         self._ahead_error: FmuError | None = None
+        # run_driven on the kernel's worker thread: how long it polls [s]; None: not at all
+        self._overlap: float | None = None
 
     def run(
         self,
@@ -174,12 +176,19 @@ class Plant:
         return {"time": self.sim_time, "cycle": self.cycle, "cycles": self.scenario.cycles}
 
     def run_driven(
-        self, driver: Callable[[], object], progress: Callable[[int], None] | None = None
+        self,
+        driver: Callable[[], object],
+        progress: Callable[[int], None] | None = None,
+        overlap: float | None = None,
     ) -> PlantStats:
         """Serve a controller that drives the run from this thread (the direct in-process bus):
-        each frame it sends reaches `handle` synchronously; `driver` returns when it is done."""
+        each frame it sends reaches `handle` synchronously; `driver` returns when it is done.
+        With `overlap` (seconds the threads poll before they sleep) the FMUs step to the next
+        SYNC on the kernel's worker thread while the controller computes in this one (its
+        commands act from that SYNC on, so nothing changes by a bit)."""
         started = time.perf_counter()
         self._progress = progress
+        self._overlap = overlap
         try:
             driver()
             if self.cycle < self.scenario.cycles:
@@ -187,6 +196,8 @@ class Plant:
                     f"the controller stopped after SYNC {self.cycle} of {self.scenario.cycles}"
                 )
         finally:
+            self._overlap = None
+            self.master.settle()  # no FMU steps on after the run, nor into a forked child
             self.stats.wall_time = time.perf_counter() - started
             self.signals.end_row()
             self.can_log.flush(force=True)
@@ -228,6 +239,8 @@ class Plant:
             self._on_sync(self.cycle)
             if progress is not None:
                 progress(self.cycle)
+            if self._overlap is not None:
+                self._start_ahead(self._overlap)
             return
         self.can_log.log(message, self.sim_time, received=True)
         if isinstance(frame, PLANT_FRAMES):
@@ -308,6 +321,17 @@ class Plant:
             return
         try:
             self.master.advance_to((self.cycle + 1) * self.scenario.control_ticks)
+        except FmuError as exc:
+            self._ahead_error = exc
+
+    def _start_ahead(self, spin: float) -> None:
+        """`_step_ahead` on the kernel's worker thread: the FMUs step while the controller, in
+        this thread, computes; the next SYNC's `advance_to` waits for them. Where the master
+        cannot (Python participants with outputs inside the period), the SYNC steps as before."""
+        if self.cycle < 0 or self.cycle >= self.scenario.cycles:
+            return
+        try:
+            self.master.start_advance((self.cycle + 1) * self.scenario.control_ticks, spin)
         except FmuError as exc:
             self._ahead_error = exc
 

@@ -30,6 +30,8 @@ from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
+from threadpoolctl import threadpool_limits
+
 from controllers.canbus import HUB_KINDS, BusOpenError, BusSpec, open_bus
 from controllers.node import (
     ControllerConfig,
@@ -45,6 +47,7 @@ from hil.bus.direct import direct_pair
 from hil.bus.hosted import HostedBus
 from hil.bus.loopback import HubProcess, LoopbackHub
 from hil.devices import HEARTBEAT_PERIOD
+from hil.environment import KERNEL_THREAD_SPIN, kernel_thread
 from hil.errors import BusError, HilError, ProtocolError, Terminated
 from hil.plant import STARTUP_TIMEOUT, Plant, when
 from hil.program import (
@@ -237,7 +240,12 @@ def _run(
                     RealtimeClock(config.control_period) if options.realtime else LockstepClock()
                 )
                 node = ControllerNode(config, controller_bus, clock, protocol)
-                stats = plant.run_driven(node.run, progress)
+                overlap = KERNEL_THREAD_SPIN if kernel_thread() and not options.realtime else None
+                # numpy's BLAS on one thread, as in a controller program (hil.program): on the
+                # controller's small matrices more threads only spin, on the core that the FMUs'
+                # worker thread steps on
+                with threadpool_limits(limits=1, user_api="blas"):
+                    stats = plant.run_driven(node.run, progress, overlap)
                 report = asdict(node.report)
             else:
                 peer = _start_controller(config, controller_spec, options, folder, stack)

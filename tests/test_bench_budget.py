@@ -137,6 +137,7 @@ def test_a_closed_loop_row_leaves_the_environment_as_it_found_it(
     monkeypatch.setenv("SOFTHIL_BUSY_POLL", "0.001")
     monkeypatch.delenv("SOFTHIL_HUB", raising=False)
     monkeypatch.delenv("SOFTHIL_KERNEL", raising=False)
+    monkeypatch.delenv("SOFTHIL_KERNEL_THREAD", raising=False)
     seen: dict[str, str | None] = {}
 
     import bench.bench_run as bench_module
@@ -144,12 +145,14 @@ def test_a_closed_loop_row_leaves_the_environment_as_it_found_it(
     real = bench_module.run_scenario
 
     def spy(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202 - run_scenario's own signature
-        seen.update({k: os.environ.get(k) for k in ("SOFTHIL_BUSY_POLL", "SOFTHIL_HUB")})
+        names = ("SOFTHIL_BUSY_POLL", "SOFTHIL_HUB", "SOFTHIL_KERNEL_THREAD")
+        seen.update({k: os.environ.get(k) for k in names})
         return real(*args, **kwargs)
 
     monkeypatch.setattr(bench_module, "run_scenario", spy)
     scenario = budget_scenario(load_scenario(DEFAULT_SCENARIO), 0.05, 1)
-    assert full_run(scenario, True, True, "thread", "0") > 0.0
-    assert seen == {"SOFTHIL_BUSY_POLL": "0", "SOFTHIL_HUB": "thread"}
+    assert full_run(scenario, True, True, "thread", "0", "softhil", "0") > 0.0
+    assert seen == {"SOFTHIL_BUSY_POLL": "0", "SOFTHIL_HUB": "thread", "SOFTHIL_KERNEL_THREAD": "0"}
     assert os.environ.get("SOFTHIL_BUSY_POLL") == "0.001"
     assert "SOFTHIL_HUB" not in os.environ and "SOFTHIL_KERNEL" not in os.environ
+    assert "SOFTHIL_KERNEL_THREAD" not in os.environ

@@ -9,12 +9,14 @@ runs once per path; every value must be bit-identical at every comparison point.
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Callable, Mapping
 from dataclasses import replace
 from pathlib import Path
 
 import pytest
 
+from hil.environment import kernel_thread
 from hil.errors import FmuError, HilError
 from hil.fmu.build import BuiltFmu
 from hil.fmu.slave import FmuSlave
@@ -85,9 +87,45 @@ def setpoint(sync: int) -> float:
     return (0.025, 0.035, 0.015, 0.03)[(sync // 8) % 4]
 
 
+class Sampler:
+    """A Python participant with no outputs (as the camera): it records what it reads at its
+    ticks, at decimation 3, so it is due inside every SYNC period."""
+
+    name = "sampler"
+    decimation = 3
+
+    def __init__(self) -> None:
+        self.inputs: dict[str, float] = {}
+        self.received: list[tuple[float, dict[str, float]]] = []
+
+    def input_names(self) -> list[str]:
+        return ["x", "kappa"]
+
+    def output_names(self) -> list[str]:
+        return []
+
+    def set_inputs(self, values: Mapping[str, float]) -> None:
+        self.inputs = dict(values)
+
+    def step(self, time: float, step: float) -> None:
+        self.received.append((time, self.inputs))
+
+    def get_outputs(self) -> dict[str, float]:
+        return {}
+
+
 def coupled(
-    cylinder: BuiltFmu, segment: BuiltFmu, kernel: bool
+    cylinder: BuiltFmu,
+    segment: BuiltFmu,
+    kernel: bool,
+    firmware_decimation: int = 1,
+    probe_decimation: int = 10,
+    piston_offset: float = 0.0,
 ) -> tuple[Master, Probe, Firmware, list[FmuSlave]]:
+    """The coupled rig; `firmware_decimation` SYNC_TICKS (the device nodes' own) lets the
+    worker thread step whole periods, 1 keeps it off (outputs due at every tick);
+    `piston_offset` [m] shifts what segment 1 is told of its piston (far enough, and the
+    piston's move drives it out of the stroke: an FMU error inside a period)."""
     slaves = []
     participants: list = []
     for n in (1, 2):
@@ -96,8 +134,12 @@ def coupled(
         slaves += [c, s]
         participants += [FmuParticipant(c), FmuParticipant(s, decimation=2 if n == 1 else 1)]
     probe, firmware = Probe(), Firmware()
-    participants += [probe, firmware]
+    probe.decimation = probe_decimation
+    firmware.decimation = firmware_decimation
+    participants += [probe, firmware, Sampler()]
     connections = [
+        Connection("cylinder2.x", "sampler.x"),
+        Connection("segment1.kappa", "sampler.kappa", gain=-2.0, offset=0.5),
         Connection("drive.x_ref", "cylinder1.x_ref"),
         Connection("cylinder1.x", "drive.x"),
         Connection("cylinder1.x", "probe.x"),
@@ -107,7 +149,7 @@ def coupled(
     ]
     for n in (1, 2):
         connections += [
-            Connection(f"cylinder{n}.x", f"segment{n}.x_piston"),
+            Connection(f"cylinder{n}.x", f"segment{n}.x_piston", offset=piston_offset * (n == 1)),
             Connection(f"segment{n}.p_a", f"cylinder{n}.p_a"),
         ]
     connections.append(Connection("segment2.p_b", "cylinder2.p_b"))
@@ -122,8 +164,10 @@ def run_syncs(
     kernel: bool,
     syncs: int,
     advance: Callable[[Master, int], None] | None = None,
+    firmware_decimation: int = 1,
+    after_sync: Callable[[Master, int], None] | None = None,
 ) -> tuple[list[dict[str, float]], Probe, bool]:
-    master, probe, firmware, slaves = coupled(cylinder, segment, kernel)
+    master, probe, firmware, slaves = coupled(cylinder, segment, kernel, firmware_decimation)
     history = []
     try:
         for sync in range(1, syncs + 1):
@@ -136,8 +180,12 @@ def run_syncs(
             master.publish("drive")
             if sync == syncs // 2:
                 master.set_input("segment2", "tau_ext", -0.001)
+            if after_sync is not None:
+                after_sync(master, sync * SYNC_TICKS)
         used = master.uses_kernel
+        probe.sampled = master.participants["sampler"].received  # type: ignore[attr-defined]
     finally:
+        master.settle()
         for slave in slaves:
             slave.close()
     return history, probe, used
@@ -152,6 +200,7 @@ def test_kernel_and_python_master_are_bit_identical_at_every_sync(
     assert used
     assert kernel == python  # == on floats: bit-identical (no NaN here)
     assert kernel_probe.received == python_probe.received
+    assert kernel_probe.sampled == python_probe.sampled  # type: ignore[attr-defined]
     # the comparison means something: the pistons and pressures moved
     for key in ("cylinder1.x", "cylinder2.x", "segment1.p_b", "segment2.kappa"):
         assert len({row[key] for row in python}) > 20, key
@@ -276,10 +325,204 @@ def test_closed_loop_files_are_identical_with_and_without_the_kernel(
     scenario = load_scenario()
     scenario = replace(scenario, duration=1.0, robot=replace(scenario.robot, segments=2), seed=3)
     files = {}
-    for flag in ("0", "1"):
-        monkeypatch.setenv("SOFTHIL_KERNEL", flag)
-        out = tmp_path / flag
+    threads = os_threads()
+    # the Python path, the kernel in turn with the controller, the kernel on its worker thread
+    for kernel, worker in (("0", "0"), ("1", "0"), ("1", "1")):
+        monkeypatch.setenv("SOFTHIL_KERNEL", kernel)
+        monkeypatch.setenv("SOFTHIL_KERNEL_THREAD", worker)
+        out = tmp_path / f"{kernel}{worker}"
         run_scenario(scenario, RunOptions(out=out, inprocess=True, progress=False))
-        files[flag] = {name: (out / name).read_bytes() for name in ("can.log", "signals.csv")}
+        files[kernel + worker] = {
+            name: (out / name).read_bytes() for name in ("can.log", "signals.csv")
+        }
+        assert os_threads() == threads  # the worker thread ends with the run
+    assert files["11"] == files["10"] == files["00"]
+    assert len(files["11"]["signals.csv"].splitlines()) > 90
+
+
+def test_a_camera_with_jitter_steps_every_tick_and_the_files_stay_identical(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """With exposure jitter the camera is due at every tick (decimation 1): the worker samples
+    every tick of the period for it."""
+    scenario = load_scenario()
+    camera = replace(scenario.camera, jitter=0.0005)
+    scenario = replace(scenario, duration=0.5, camera=camera, seed=5)
+    files = {}
+    for worker in ("0", "1"):
+        monkeypatch.setenv("SOFTHIL_KERNEL_THREAD", worker)
+        out = tmp_path / worker
+        run_scenario(scenario, RunOptions(out=out, inprocess=True, progress=False))
+        files[worker] = {name: (out / name).read_bytes() for name in ("can.log", "signals.csv")}
     assert files["1"] == files["0"]
-    assert len(files["1"]["signals.csv"].splitlines()) > 90
+    assert files["1"]["can.log"].count(b" 281#") > 40  # camera frames were sent
+
+
+def os_threads() -> int:
+    """This process's threads as the kernel counts them (the worker is a C thread, which
+    `threading` does not list)."""
+    return len(os.listdir("/proc/self/task"))
+
+
+@pytest.mark.parametrize("firmware_decimation", [SYNC_TICKS, 1])
+def test_stepping_ahead_on_the_worker_thread_is_bit_identical(
+    drive_cylinder_fmu: BuiltFmu, fea_segment_fmu: BuiltFmu, firmware_decimation: int
+) -> None:
+    """start_advance at every SYNC, then the SYNC's own calls (publish, inputs_of) wait for it:
+    every value, what the probe read at its ticks and what the sampler read inside each period
+    (from the values the worker sampled) as in the Python master. With a device node due at
+    every tick (firmware decimation 1) it declines and nothing changes."""
+    started = []
+
+    def ahead(master: Master, tick: int) -> None:
+        # after the SYNC's work (publish, set_input): the next period on the worker thread;
+        # the next SYNC's advance_to waits for it (none after the last SYNC, as in the plant)
+        if tick == 40 * SYNC_TICKS:
+            return
+        started.append(master.start_advance(tick + SYNC_TICKS, 0.0))
+        if not started[-1]:
+            assert master.tick == tick  # declined: nothing stepped
+
+    python, python_probe, _ = run_syncs(
+        drive_cylinder_fmu, fea_segment_fmu, False, 40, firmware_decimation=firmware_decimation
+    )
+    kernel, kernel_probe, used = run_syncs(
+        drive_cylinder_fmu, fea_segment_fmu, True, 40, None, firmware_decimation, ahead
+    )
+    assert used
+    assert all(started) if firmware_decimation == SYNC_TICKS else not any(started)
+    assert kernel == python
+    assert kernel_probe.received == python_probe.received
+    assert kernel_probe.sampled == python_probe.sampled  # type: ignore[attr-defined]
+    assert [t for t, _ in python_probe.sampled] == [k * H for k in range(0, 400, 3)]  # type: ignore[attr-defined]
+    assert len({inputs["kappa"] for _, inputs in python_probe.sampled}) > 50  # type: ignore[attr-defined]
+
+
+def test_stepping_ahead_fails_as_the_python_path_fails(
+    drive_cylinder_fmu: BuiltFmu, fea_segment_fmu: BuiltFmu
+) -> None:
+    """An FMU error on the worker thread is raised where advance_to would raise it, with the
+    same message and the same tick reached; the samplers due before it were stepped."""
+
+    def failing(ahead: bool) -> tuple[str, int, list[tuple[float, dict[str, float]]]]:
+        master, _, _, slaves = coupled(
+            drive_cylinder_fmu, fea_segment_fmu, True, SYNC_TICKS, probe_decimation=40
+        )
+        try:
+            master.advance_to(20)
+            master.set_input("segment2", "tau_ext", math.nan)
+            if ahead:
+                assert master.start_advance(30, 0.0)
+            with pytest.raises(FmuError) as info:
+                master.advance_to(30)
+            return str(info.value), master.tick, master.participants["sampler"].received  # type: ignore[attr-defined]
+        finally:
+            master.settle()
+            for slave in slaves:
+                slave.close()
+
+    assert failing(True) == failing(False)
+    message, tick, sampled = failing(True)
+    assert tick == 20
+    assert message.startswith("segment2 (FeaSegment): fmi2SetReal failed: ")
+    assert [t for t, _ in sampled][-1] == 18 * H
+
+
+def test_an_fmu_error_inside_a_period_on_the_worker_thread_is_the_python_paths(
+    drive_cylinder_fmu: BuiltFmu, fea_segment_fmu: BuiltFmu
+) -> None:
+    """Segment 1 told its piston 24.5 mm further out fails when the piston's move takes it past
+    the stroke, at a tick inside a period: the same message, tick and sampler readings (the
+    sampler due at every tick, those before the failing tick stepped) as in turn."""
+
+    def failing(ahead: bool) -> tuple[str, int, list[tuple[float, dict[str, float]]]]:
+        master, _, firmware, slaves = coupled(
+            drive_cylinder_fmu, fea_segment_fmu, True, SYNC_TICKS, 1000, piston_offset=0.0245
+        )
+        sampler = master.participants["sampler"]
+        sampler.decimation = 1  # type: ignore[misc]
+        try:
+            with pytest.raises(FmuError) as info:
+                for sync in range(1, 100):
+                    master.advance_to(sync * SYNC_TICKS)
+                    firmware.setpoint = setpoint(sync)
+                    master.publish("drive")
+                    if ahead:
+                        assert master.start_advance((sync + 1) * SYNC_TICKS, 0.0)
+            return str(info.value), master.tick, sampler.received  # type: ignore[attr-defined]
+        finally:
+            master.settle()
+            for slave in slaves:
+                slave.close()
+
+    message, tick, sampled = failing(True)
+    assert (message, tick, sampled) == failing(False)
+    assert tick % SYNC_TICKS not in (0, 1)  # inside a period
+    assert "x_piston" in message, message
+    assert [t for t, _ in sampled][-1] == pytest.approx((tick - 1) * H)
+
+
+def test_a_participant_with_outputs_due_inside_the_period_declines_the_worker(
+    drive_cylinder_fmu: BuiltFmu,
+) -> None:
+    """The probe (outputs feeding an FMU) at decimation 3: an interval holding one of its
+    ticks after the first is stepped in turn; one holding it at its first tick only is not."""
+    with FmuSlave(drive_cylinder_fmu, "cylinder2") as slave:
+        probe = Probe()
+        probe.decimation = 3
+        master = Master(
+            [FmuParticipant(slave), probe],
+            [Connection("probe.x_ref", "cylinder2.x_ref"), Connection("cylinder2.x", "probe.x")],
+            H,
+            kernel=True,
+        )
+        master.advance_to(2)
+        assert not master.start_advance(4, 0.0)  # probe due at 3
+        assert master.tick == 2
+        master.advance_to(3)
+        assert master.start_advance(6, 0.0)  # probe due at 3 only: stepped first, in turn
+        master.advance_to(6)
+        assert master.tick == 6
+        master.settle()
+
+
+def test_the_worker_thread_stops_when_settled(drive_cylinder_fmu: BuiltFmu) -> None:
+    with FmuSlave(drive_cylinder_fmu, "cylinder1") as slave:
+        master = Master([FmuParticipant(slave)], [], H, kernel=True)
+        before = os_threads()
+        assert master.start_advance(10, 0.0)
+        assert os_threads() == before + 1
+        master.advance_to(10)
+        assert master.tick == 10
+        assert master.start_advance(20, 0.0)  # the same thread: one job after the other
+        assert os_threads() == before + 1
+        master.settle()  # waits for the job, then stops the thread
+        assert master.tick == 20
+        assert os_threads() == before
+        assert not Master([FmuParticipant(slave)], [], H, kernel=False).start_advance(30)
+
+
+def test_kernel_thread_switch(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("SOFTHIL_KERNEL_THREAD", "0")
+    assert not kernel_thread()
+    monkeypatch.setenv("SOFTHIL_KERNEL_THREAD", "1")
+    assert kernel_thread()
+    monkeypatch.delenv("SOFTHIL_KERNEL_THREAD")
+    assert kernel_thread() == (len(os.sched_getaffinity(0)) >= 2)
+    for value in ("yes", "2", ""):
+        monkeypatch.setenv("SOFTHIL_KERNEL_THREAD", value)
+        with pytest.raises(HilError, match=rf"^SOFTHIL_KERNEL_THREAD='{value}': must be 1 "):
+            kernel_thread()
+
+
+def test_closing_an_instance_the_worker_steps_waits_for_it(drive_cylinder_fmu: BuiltFmu) -> None:
+    """A run that fails between starting the worker and waiting for it closes its FMUs while
+    the worker may be stepping them: closing waits for the job and stops the thread."""
+    slave = FmuSlave(drive_cylinder_fmu, "cylinder1")
+    master = Master([FmuParticipant(slave)], [], H, kernel=True)
+    before = os_threads()
+    assert master.start_advance(5000, 0.0)
+    assert os_threads() == before + 1
+    slave.close()
+    assert os_threads() == before
+    assert not slave.alive

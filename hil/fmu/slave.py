@@ -98,6 +98,9 @@ class FmuSlave:
         self._variables = {v.name: v for v in self.description.modelVariables}
         self.time = start_time
         self._alive = False
+        # the stepping kernel whose worker thread may step this instance (hil.kernel.Kernel):
+        # closing waits for it
+        self.stepped_by: Any = None
         try:
             if self.description.coSimulation is None:
                 raise FmuError(f"{instance_name}: {self.model_name} is not a co-simulation FMU")
@@ -266,6 +269,8 @@ class FmuSlave:
         """Terminate (if possible) and free the instance; idempotent."""
         if not self._alive:
             return
+        if self.stepped_by is not None:  # a kernel's worker thread may be stepping it: wait
+            self.stepped_by.stop()
         self._alive = False
         with contextlib.suppress(Exception):  # an instance in error may refuse; free it anyway
             self._fmu.terminate()

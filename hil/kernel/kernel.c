@@ -11,8 +11,22 @@
  * Time is (double)k * h and the step (double)d * h, as `k * self.step` in Python. The build
  * passes -ffp-contract=off so that gain * v + offset is rounded twice, as in Python.
  * No global state: everything is in the Plan the caller owns.
+ *
+ * A Worker steps the same way on a thread of its own (softhil_worker_*), so that the caller can
+ * compute while the FMUs step: the caller starts a job and later waits for it; while a job runs,
+ * the caller touches neither the plan, nor the values, nor the FMU instances. At each sample tick
+ * the job copies values[] as it stands at the start of that tick (what a participant stepped in
+ * Python at that tick reads), so the caller can step those participants afterwards. Both sides
+ * poll for a while, yielding the core at each poll, before they sleep: waking a sleeping thread
+ * costs hundreds of microseconds on a virtual machine, more than a job takes.
  */
+#define _POSIX_C_SOURCE 200809L
+#include <pthread.h>
+#include <sched.h>
 #include <stddef.h>
+#include <stdlib.h>
+#include <string.h>
+#include <time.h>
 
 #define EXPORT __attribute__((visibility("default")))
 
@@ -149,12 +163,19 @@ static int get_outputs(const Plan *plan, int f, double *values, long long k, Fai
     return 0;
 }
 
-/* Step ticks k_begin .. k_end - 1. Returns 0, or 1 with *failure filled and *ticks_done the
- * failing tick (values[] then holds the outputs published at the start of that tick). */
-EXPORT int softhil_advance(const Plan *plan, double *values, long long k_begin, long long k_end,
-                           double h, long long *ticks_done, Failure *failure) {
+/* Ticks k_begin .. k_end - 1; at each of the n_samples ascending sample_ticks, values[] (n_values)
+ * is copied into the next row of samples before that tick is stepped. */
+static int advance(const Plan *plan, double *values, long long k_begin, long long k_end, double h,
+                   const long long *sample_ticks, int n_samples, double *samples, int n_values,
+                   long long *ticks_done, Failure *failure) {
+    int sample = 0;
     for (long long k = k_begin; k < k_end; ++k) {
         *ticks_done = k;
+        if (sample < n_samples && sample_ticks[sample] == k) {
+            memcpy(samples + (size_t)sample * (size_t)n_values, values,
+                   (size_t)n_values * sizeof(double));
+            ++sample;
+        }
         for (int f = 0; f < plan->n_fmus; ++f) {
             const int d = plan->decimation[f];
             if (k % d != 0) continue;
@@ -170,4 +191,142 @@ EXPORT int softhil_advance(const Plan *plan, double *values, long long k_begin, 
     }
     *ticks_done = k_end;
     return 0;
+}
+
+/* Step ticks k_begin .. k_end - 1. Returns 0, or 1 with *failure filled and *ticks_done the
+ * failing tick (values[] then holds the outputs published at the start of that tick). */
+EXPORT int softhil_advance(const Plan *plan, double *values, long long k_begin, long long k_end,
+                           double h, long long *ticks_done, Failure *failure) {
+    return advance(plan, values, k_begin, k_end, h, NULL, 0, NULL, 0, ticks_done, failure);
+}
+
+/* The worker: its states, each written by one side only (the caller: IDLE, PENDING, QUIT; the
+ * thread: DONE), published with release and read with acquire ordering. */
+enum { IDLE = 0, PENDING = 1, DONE = 2, QUIT = 3 };
+
+typedef struct {
+    /* the job, written by the caller before it publishes PENDING */
+    const Plan *plan;
+    double *values;
+    long long k_begin, k_end;
+    double h;
+    const long long *sample_ticks;
+    int n_samples;
+    double *samples;
+    int n_values;
+    /* the outcome, valid once DONE */
+    int result;
+    long long ticks_done;
+    Failure failure;
+    int state;
+    double spin_worker; /* [s] the thread polls for a job before it sleeps */
+    double spin_caller; /* [s] the caller polls for the job's end before it sleeps */
+    pthread_mutex_t mutex;
+    pthread_cond_t changed;
+    pthread_t thread;
+} Worker;
+
+static int state_of(Worker *w) { return __atomic_load_n(&w->state, __ATOMIC_ACQUIRE); }
+
+static void publish(Worker *w, int state) {
+    pthread_mutex_lock(&w->mutex);
+    __atomic_store_n(&w->state, state, __ATOMIC_RELEASE);
+    pthread_cond_broadcast(&w->changed);
+    pthread_mutex_unlock(&w->mutex);
+}
+
+static double seconds(void) {
+    struct timespec now;
+    clock_gettime(CLOCK_MONOTONIC, &now);
+    return (double)now.tv_sec + 1e-9 * (double)now.tv_nsec;
+}
+
+/* Wait until the state is one of a or b: poll (yielding the core) for spin [s], then sleep. */
+static int await_state(Worker *w, int a, int b, double spin) {
+    int s = state_of(w);
+    if (s == a || s == b) return s;
+    if (spin > 0.0) {
+        const double until = seconds() + spin;
+        do {
+            sched_yield();
+            s = state_of(w);
+            if (s == a || s == b) return s;
+        } while (seconds() < until);
+    }
+    pthread_mutex_lock(&w->mutex);
+    while ((s = state_of(w)) != a && s != b) pthread_cond_wait(&w->changed, &w->mutex);
+    pthread_mutex_unlock(&w->mutex);
+    return s;
+}
+
+static void *work(void *arg) {
+    Worker *w = arg;
+    while (await_state(w, PENDING, QUIT, w->spin_worker) == PENDING) {
+        w->result = advance(w->plan, w->values, w->k_begin, w->k_end, w->h, w->sample_ticks,
+                            w->n_samples, w->samples, w->n_values, &w->ticks_done, &w->failure);
+        publish(w, DONE);
+    }
+    return NULL;
+}
+
+/* A worker thread, idle; NULL if no thread could be started. */
+EXPORT Worker *softhil_worker_new(double spin_worker, double spin_caller) {
+    Worker *w = calloc(1, sizeof(Worker));
+    if (w == NULL) return NULL;
+    w->spin_worker = spin_worker;
+    w->spin_caller = spin_caller;
+    w->state = IDLE;
+    if (pthread_mutex_init(&w->mutex, NULL) != 0) {
+        free(w);
+        return NULL;
+    }
+    if (pthread_cond_init(&w->changed, NULL) != 0) {
+        pthread_mutex_destroy(&w->mutex);
+        free(w);
+        return NULL;
+    }
+    if (pthread_create(&w->thread, NULL, work, w) != 0) {
+        pthread_cond_destroy(&w->changed);
+        pthread_mutex_destroy(&w->mutex);
+        free(w);
+        return NULL;
+    }
+    return w;
+}
+
+/* Start stepping ticks k_begin .. k_end - 1 as softhil_advance does, sampling values[] at the
+ * sample ticks (ascending, within the range) into samples (n_samples rows of n_values). The worker
+ * must be idle (no job, or the last one waited for). */
+EXPORT void softhil_worker_start(Worker *w, const Plan *plan, double *values, long long k_begin,
+                                 long long k_end, double h, const long long *sample_ticks,
+                                 int n_samples, double *samples, int n_values) {
+    w->plan = plan;
+    w->values = values;
+    w->k_begin = k_begin;
+    w->k_end = k_end;
+    w->h = h;
+    w->sample_ticks = sample_ticks;
+    w->n_samples = n_samples;
+    w->samples = samples;
+    w->n_values = n_values;
+    publish(w, PENDING);
+}
+
+/* Wait for the started job; its outcome as softhil_advance's. The worker is idle again. */
+EXPORT int softhil_worker_wait(Worker *w, long long *ticks_done, Failure *failure) {
+    await_state(w, DONE, DONE, w->spin_caller);
+    *ticks_done = w->ticks_done;
+    *failure = w->failure;
+    __atomic_store_n(&w->state, IDLE, __ATOMIC_RELEASE);
+    return w->result;
+}
+
+/* Stop the thread (an idle worker, or one whose job was waited for) and free the worker. */
+EXPORT void softhil_worker_free(Worker *w) {
+    if (w == NULL) return;
+    publish(w, QUIT);
+    pthread_join(w->thread, NULL);
+    pthread_cond_destroy(&w->changed);
+    pthread_mutex_destroy(&w->mutex);
+    free(w);
 }
