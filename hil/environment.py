@@ -10,7 +10,8 @@ from hil.errors import HilError
 
 KERNEL = "SOFTHIL_KERNEL"  # "0": step FMUs in Python; "1" (the default): the C kernel
 # "1": a run with plant and controller in one thread steps the FMUs on the kernel's worker thread
-# while the controller computes; "0": in that thread, in turn; unset: "1" where two cores are free
+# while the controller computes; "0": in that thread, in turn; unset: on the thread where two
+# cores are free and a period costs enough to step (hil.plant.OVERLAP_MIN_COST)
 KERNEL_THREAD = "SOFTHIL_KERNEL_THREAD"
 # [s] how long the plant waiting for the worker polls before it sleeps: a job takes 0.1-0.3 ms,
 # waking a sleeping thread costs hundreds of microseconds on a virtual machine
@@ -28,19 +29,24 @@ def kernel_enabled() -> bool:
     return value == "1"
 
 
-def kernel_thread() -> bool:
-    """SOFTHIL_KERNEL_THREAD as a switch: "1" on, "0" off, unset on where this process may use
-    two cores or more; HilError for any other value."""
+def kernel_thread() -> bool | None:
+    """SOFTHIL_KERNEL_THREAD as a switch: "1" True (always), "0" False (never), unset None
+    (where it pays: two cores free, a costly period); HilError for any other value."""
     value = os.environ.get(KERNEL_THREAD)
     if value is None:
-        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None
-        return (cores or os.cpu_count() or 1) >= 2
+        return None
     if value.strip() not in ("0", "1"):
         raise HilError(
             f"{KERNEL_THREAD}={value!r}: must be 1 (step the FMUs on a thread of their own while "
             "the controller computes in this one) or 0 (in turn)"
         )
     return value.strip() == "1"
+
+
+def two_cores() -> bool:
+    """Whether this process may use two cores or more."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None
+    return (cores or os.cpu_count() or 1) >= 2
 
 
 def check() -> None:

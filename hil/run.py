@@ -47,9 +47,9 @@ from hil.bus.direct import direct_pair
 from hil.bus.hosted import HostedBus
 from hil.bus.loopback import HubProcess, LoopbackHub
 from hil.devices import HEARTBEAT_PERIOD
-from hil.environment import KERNEL_THREAD_SPIN, kernel_thread
+from hil.environment import KERNEL_THREAD_SPIN, kernel_thread, two_cores
 from hil.errors import BusError, HilError, ProtocolError, Terminated
-from hil.plant import STARTUP_TIMEOUT, Plant, when
+from hil.plant import OVERLAP_MIN_COST, STARTUP_TIMEOUT, Plant, when
 from hil.program import (
     EXTERNAL,
     SOFTHIL,
@@ -240,12 +240,19 @@ def _run(
                     RealtimeClock(config.control_period) if options.realtime else LockstepClock()
                 )
                 node = ControllerNode(config, controller_bus, clock, protocol)
-                overlap = KERNEL_THREAD_SPIN if kernel_thread() and not options.realtime else None
+                # the FMUs on the kernel's worker thread: forced, off, or where it pays
+                thread = kernel_thread()
+                if thread is None:
+                    thread = two_cores() and not options.realtime
+                    min_cost = OVERLAP_MIN_COST
+                else:
+                    min_cost = 0.0
+                overlap = KERNEL_THREAD_SPIN if thread else None
                 # numpy's BLAS on one thread, as in a controller program (hil.program): on the
                 # controller's small matrices more threads only spin, on the core that the FMUs'
                 # worker thread steps on
                 with threadpool_limits(limits=1, user_api="blas"):
-                    stats = plant.run_driven(node.run, progress, overlap)
+                    stats = plant.run_driven(node.run, progress, overlap, min_cost)
                 report = asdict(node.report)
             else:
                 peer = _start_controller(config, controller_spec, options, folder, stack)
