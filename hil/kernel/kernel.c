@@ -20,7 +20,7 @@
  * poll for a while, yielding the core at each poll, before they sleep: waking a sleeping thread
  * costs hundreds of microseconds on a virtual machine, more than a job takes.
  */
-#define _POSIX_C_SOURCE 200809L
+#define _GNU_SOURCE /* pthread_setname_np */
 #include <pthread.h>
 #include <sched.h>
 #include <stddef.h>
@@ -291,6 +291,9 @@ EXPORT Worker *softhil_worker_new(double spin_worker, double spin_caller) {
         free(w);
         return NULL;
     }
+#ifdef __linux__
+    pthread_setname_np(w->thread, "softhil-kernel"); /* as ps and top show it */
+#endif
     return w;
 }
 
