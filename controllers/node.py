@@ -74,16 +74,21 @@ class ControllerError(RuntimeError):
 @dataclass(frozen=True)
 class CameraTiming:
     """When camera frames become available, in macro-step ticks: frame j is exposed at tick
-    j * period_ticks and available latency_ticks later; SYNC c is at tick c * control_ticks."""
+    j * period_ticks, up to delay_ticks later (exposure jitter), and available latency_ticks
+    after its exposure; SYNC c is at tick c * control_ticks. A frame is due at the first SYNC by
+    which it is available however late its exposure: waiting for it earlier would wait on a
+    frame the camera has not taken yet (the count, not the order of arrival, decides)."""
 
     period_ticks: int
     latency_ticks: int
     control_ticks: int
     markers: int
+    delay_ticks: int = 0  # the latest an exposure falls after its nominal tick (jitter)
 
     def frames_due(self, cycle: int) -> int:
-        """How many frames (0, 1, ... j) are available by SYNC `cycle`."""
-        tick = cycle * self.control_ticks - self.latency_ticks
+        """How many frames (0, 1, ... j) are available by SYNC `cycle`, however late their
+        exposure."""
+        tick = cycle * self.control_ticks - self.latency_ticks - self.delay_ticks
         return 0 if tick < 0 else tick // self.period_ticks + 1
 
 
@@ -210,6 +215,10 @@ def _check_ranges(config: ControllerConfig) -> None:
     timing = config.camera_timing
     if min(timing.period_ticks, timing.control_ticks) < 1 or timing.latency_ticks < 0:
         raise ValueError("camera_timing: period_ticks and control_ticks must be at least 1")
+    if not 0 <= timing.delay_ticks < timing.period_ticks:
+        raise ValueError(
+            f"camera_timing.delay_ticks: {timing.delay_ticks} is outside 0..period_ticks - 1"
+        )
     if config.torque_std is not None and not config.torque_std > 0:
         raise ValueError(f"torque_std: must be positive, got {config.torque_std}")
     if config.objects < 0:

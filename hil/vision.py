@@ -116,6 +116,13 @@ class Picture:
         return ~(self.dropped | self.occluded)
 
 
+def exposure_delay_bound(jitter: float, period_ticks: int) -> int:
+    """The latest a camera's exposure falls after its nominal tick [ticks]: the jitter [s] is
+    clamped below the frame period, so that pictures stay in order; 0 without jitter. The
+    controller waits for each frame as if it were that late (CameraTiming.delay_ticks)."""
+    return period_ticks - 1 if jitter > 0.0 else 0
+
+
 class Camera:
     """The camera's imperfection model: takes pictures of true marker positions.
 
@@ -168,10 +175,15 @@ class Camera:
                 f"camera frame {frame_index} out of order: the next frame is {self._next_frame}"
             )
         draw = float(self._rng_jitter.normal(0.0, 1.0)) * self.effects.jitter
-        ticks = min(max(round(draw / self.macro_step), 0), self.period_ticks - 1)
+        ticks = min(max(round(draw / self.macro_step), 0), self.max_delay_ticks)
         self._jitter_ticks[frame_index] = ticks
         self._next_frame += 1
         return ticks
+
+    @property
+    def max_delay_ticks(self) -> int:
+        """The latest an exposure falls after its nominal tick [ticks] (`exposure_delay_bound`)."""
+        return exposure_delay_bound(self.effects.jitter, self.period_ticks)
 
     def exposure_tick(self, frame_index: int, nominal_tick: int) -> int:
         """The tick at which frame `frame_index`, nominally exposed at `nominal_tick`, is taken:

@@ -32,21 +32,36 @@ from controllers.protocol import CameraFrame, CameraMarker, DriveStatus, Frame, 
 
 
 def brute_force_due(timing: CameraTiming, cycle: int) -> int:
-    """Frames j with exposure j * period + latency at or before SYNC cycle's tick."""
+    """Frames j whose latest exposure j * period + delay, plus the latency, is at or before SYNC
+    cycle's tick."""
     sync_tick = cycle * timing.control_ticks
     return sum(
-        1 for j in range(10_000) if j * timing.period_ticks + timing.latency_ticks <= sync_tick
+        1
+        for j in range(10_000)
+        if j * timing.period_ticks + timing.delay_ticks + timing.latency_ticks <= sync_tick
     )
 
 
 @pytest.mark.parametrize(
-    ("period", "latency", "control"),
-    [(10, 6, 10), (10, 10, 10), (10, 0, 10), (5, 6, 10), (20, 6, 10), (10, 16, 10), (3, 7, 4)],
+    ("period", "latency", "control", "delay"),
+    [
+        (10, 6, 10, 0),
+        (10, 10, 10, 0),
+        (10, 0, 10, 0),
+        (5, 6, 10, 0),
+        (20, 6, 10, 0),
+        (10, 16, 10, 0),
+        (3, 7, 4, 0),
+        (10, 6, 10, 9),
+        (10, 6, 10, 4),
+        (5, 6, 10, 4),
+        (3, 7, 4, 2),
+    ],
 )
 def test_frames_due_counts_every_frame_available_by_the_sync(
-    period: int, latency: int, control: int
+    period: int, latency: int, control: int, delay: int
 ) -> None:
-    timing = CameraTiming(period, latency, control, markers=2)
+    timing = CameraTiming(period, latency, control, markers=2, delay_ticks=delay)
     for cycle in range(60):
         assert timing.frames_due(cycle) == brute_force_due(timing, cycle), cycle
 

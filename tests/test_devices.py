@@ -381,8 +381,11 @@ def marker_model(values) -> np.ndarray:
     return np.array([[k * 1e-3, -k * 1e-3], [0.1, k * 2e-3]])
 
 
-def camera(period: int, latency: int, noise: float = 0.0, seed: int = 0) -> CameraNode:
-    model = Camera(CameraEffects(noise=noise), np.random.default_rng(seed), period * 1e-3, 1e-3)
+def camera(
+    period: int, latency: int, noise: float = 0.0, seed: int = 0, jitter: float = 0.0
+) -> CameraNode:
+    effects = CameraEffects(noise=noise, jitter=jitter)
+    model = Camera(effects, np.random.default_rng(seed), period * 1e-3, 1e-3)
     return CameraNode(["kappa_1"], marker_model, latency, model)
 
 
@@ -451,6 +454,30 @@ def test_the_camera_delivers_what_the_controller_expects(
     for cycle, (_, markers) in enumerate(delivered):
         count += len({m.frame_index for m in markers})
         assert count == timing.frames_due(cycle), cycle
+
+
+@pytest.mark.parametrize(
+    ("period", "latency", "control", "jitter"),
+    [(10, 6, 10, 5e-3), (10, 6, 10, 9e-3), (5, 3, 10, 4e-3), (4, 7, 6, 3e-3)],
+)
+def test_a_jittered_camera_delivers_every_frame_the_controller_waits_for(
+    period: int, latency: int, control: int, jitter: float
+) -> None:
+    """With exposure jitter a picture comes up to period - 1 ticks late: the controller, told
+    the bound (delay_ticks), waits for no frame before the plant can have sent it (it waited
+    for frames the camera had not taken yet, and a strict run failed after its timeout), and
+    for every frame by the SYNC its latest exposure allows."""
+    node = camera(period, latency, jitter=jitter, seed=7)
+    assert node.camera.max_delay_ticks == period - 1
+    timing = CameraTiming(period, latency, control, markers=2, delay_ticks=period - 1)
+    delivered = run_camera(node, ticks=60 * control, ticks_per_sync=control)
+    count = 0
+    late = 0
+    for cycle, (_, markers) in enumerate(delivered):
+        count += len({m.frame_index for m in markers})
+        assert count >= timing.frames_due(cycle), cycle
+        late += count < CameraTiming(period, latency, control, markers=2).frames_due(cycle)
+    assert late > 0  # the jitter-free count would have waited on frames not yet sent
 
 
 def test_frame_indices_count_on_past_255_and_wrap_on_the_wire() -> None:

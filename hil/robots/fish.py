@@ -35,6 +35,7 @@ from hil.devices import HEARTBEAT_PERIOD, CameraNode
 from hil.master import Connection, FmuParticipant, Participant
 from hil.robots import PlotSpec, Rig, SignalSpec, fmu_ref, scenario_camera
 from hil.robots.fish_devices import CanisterNode, ValveNode
+from hil.vision import exposure_delay_bound
 
 if TYPE_CHECKING:
     from hil.scenario import Scenario
@@ -464,6 +465,7 @@ class Fish:
                 period_ticks=scenario.camera_ticks,
                 latency_ticks=scenario.latency_ticks,
                 control_ticks=scenario.control_ticks,
+                delay_ticks=exposure_delay_bound(scenario.camera.jitter, scenario.camera_ticks),
                 markers=len(CAMERA_MARKERS),
             ),
             task=scenario.task.kind,

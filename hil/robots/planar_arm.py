@@ -27,6 +27,7 @@ from controllers.tasks import TASK_KINDS, TaskPlan, draw_paths, draw_targets
 from hil.devices import HEARTBEAT_PERIOD, CameraNode, DriveNode
 from hil.master import Connection, FmuParticipant, Participant
 from hil.robots import PlotSpec, Rig, SignalSpec, environment, fmu_ref, gripper, scenario_camera
+from hil.vision import exposure_delay_bound
 
 if TYPE_CHECKING:
     from hil.scenario import Scenario
@@ -928,6 +929,7 @@ class PlanarArm:
                 period_ticks=scenario.camera_ticks,
                 latency_ticks=scenario.latency_ticks,
                 control_ticks=scenario.control_ticks,
+                delay_ticks=exposure_delay_bound(scenario.camera.jitter, scenario.camera_ticks),
                 markers=self.markers(scenario),
             ),
             objects=self.markers(scenario) - scenario.robot.segments - 1,
