@@ -106,37 +106,25 @@ def load_kernel() -> ctypes.CDLL:
     global _library  # noqa: PLW0603 - the loaded library is immutable code, loaded once
     if _library is None:
         library = ctypes.CDLL(str(build_kernel()))
+        # what a stretch of stepping takes: plan, values, k_begin, k_end, h
+        stretch = [_P(_Plan), _DOUBLES, ctypes.c_longlong, ctypes.c_longlong, ctypes.c_double]
+        # and what it gives back: the first tick not done, the failure
+        outcome = [_P(ctypes.c_longlong), _P(_Failure)]
         library.softhil_advance.restype = ctypes.c_int
-        library.softhil_advance.argtypes = [
-            _P(_Plan),
-            _DOUBLES,
-            ctypes.c_longlong,
-            ctypes.c_longlong,
-            ctypes.c_double,
-            _P(ctypes.c_longlong),
-            _P(_Failure),
-        ]
+        library.softhil_advance.argtypes = [*stretch, *outcome]
         library.softhil_worker_new.restype = ctypes.c_void_p
         library.softhil_worker_new.argtypes = [ctypes.c_double, ctypes.c_double]
         library.softhil_worker_start.restype = None
         library.softhil_worker_start.argtypes = [
             ctypes.c_void_p,
-            _P(_Plan),
-            _DOUBLES,
-            ctypes.c_longlong,
-            ctypes.c_longlong,
-            ctypes.c_double,
-            _P(ctypes.c_longlong),
+            *stretch,
+            _P(ctypes.c_longlong),  # sample ticks
             ctypes.c_int,
-            _DOUBLES,
+            _DOUBLES,  # samples
             ctypes.c_int,
         ]
         library.softhil_worker_wait.restype = ctypes.c_int
-        library.softhil_worker_wait.argtypes = [
-            ctypes.c_void_p,
-            _P(ctypes.c_longlong),
-            _P(_Failure),
-        ]
+        library.softhil_worker_wait.argtypes = [ctypes.c_void_p, *outcome]
         library.softhil_worker_free.restype = None
         library.softhil_worker_free.argtypes = [ctypes.c_void_p]
         _library = library
