@@ -18,7 +18,7 @@ import math
 from collections import deque
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Protocol
+from typing import ClassVar, Protocol
 
 import numpy as np
 
@@ -111,6 +111,9 @@ class DriveNode:
     servo_fault: int = 0
     decimation: int = 1  # ticks between master steps: its outputs change only at SYNC
     setpoint: float = field(init=False)
+    # its step never changes its outputs (they change in `act`, which the plant publishes): the
+    # master may step it after the FMUs' tick (hil.master.start_advance)
+    outputs_hold: ClassVar[bool] = True
 
     def __post_init__(self) -> None:
         self.active_setpoint = self.x_start

@@ -15,10 +15,13 @@ keeps everything in Python (the reference).
 `start_advance` begins the same stepping on the kernel's worker thread and returns at once, so
 that the caller (the plant in one thread with the controller) computes while the FMUs step; the
 next call that needs the state (`advance_to`, `publish`, `inputs_of`, `set_input`) waits for it.
-It applies where the Python participants due inside the interval have no outputs (samplers, such
-as the camera: they are stepped afterwards from the values sampled at their ticks) and those due
-at its first tick keep their outputs (device nodes between SYNCs); elsewhere it steps that tick
-first, or declines. Either way the FMI calls and every value are those of `advance_to`.
+The Python participants due in the interval are stepped afterwards, from the values the thread
+sampled at the start of their ticks, where that changes nothing the FMUs read: they have no
+outputs (samplers, such as the camera) or declare that their step never changes them
+(`outputs_hold`: device nodes, whose outputs change at SYNC, published). Any other participant
+due at the interval's first tick has that tick stepped in turn first; one due inside it declines
+the thread. Either way the FMI calls, the participants' steps and every value are those of
+`advance_to`, an FMU failing on the thread included.
 
 Invariant: within a tick every participant reads the inputs computed from the outputs at the
 start of the tick (Jacobi), so the result does not depend on the order of participants.
@@ -186,6 +189,7 @@ class Master:
         self._kernel_synced = False
         # a started `start_advance`: its last tick and the samplers due inside it, by tick
         self._ahead: tuple[int, list[tuple[int, list[Participant]]]] | None = None
+        self._no_thread = False  # the kernel could not start its worker thread
         self._initialise()
         if kernel is None:
             kernel = kernel_enabled()
@@ -386,45 +390,41 @@ class Master:
     def start_advance(self, tick: int, spin: float = 0.0) -> bool:
         """Begin stepping to `tick` on the kernel's worker thread and return: True if it began
         (or is done), False if the interval needs Python between its ticks (no kernel, an
-        observer, a participant with outputs due after the first tick), when nothing was done.
-        `spin` [s]: how long the worker and the waiting caller poll before they sleep."""
+        observer, a participant whose step may change its outputs due after the first tick, no
+        thread to be had), when nothing was done. `spin` [s]: how long the waiting caller polls
+        before it sleeps."""
         if self._ahead is not None:
             self._finish_ahead()
         k = self.tick
-        if self._kernel is None or self.observers or tick <= k:
+        if self._kernel is None or self.observers or tick <= k or self._no_thread:
             return False
         due: dict[int, list[Participant]] = {}
         for p in self._slow:
             d = p.decimation
             for e in range(-(-k // d) * d, tick, d):
-                if e > k and p.output_names():
-                    return False  # its outputs would feed the FMUs inside the interval
+                if e > k and not _deferrable(p):
+                    return False  # its outputs may feed the FMUs inside the interval
                 due.setdefault(e, []).append(p)
         self._take_over()
         begin = k
-        first = due.pop(k, [])
-        if first:  # read at the tick's start (Jacobi) and stepped now; published after tick k
-            self._step_participants(k, first, [self.inputs_of(p.name) for p in first], False)
-            if not all(self._unchanged(p) for p in first):
-                self._kernel_advance(k, k + 1)
-                for p in first:
-                    self._publish(p)
-                begin = k + 1
-        if begin >= tick:
-            self.tick = tick
+        first = due.get(k, [])
+        if not all(_deferrable(p) for p in first):  # tick k in turn, as advance_to steps it
+            inputs = [self.inputs_of(p.name) for p in first]
+            self._kernel_advance(k, k + 1)
+            self._step_participants(k, first, inputs)
+            self.tick = begin = k + 1
+            del due[k]
+            if begin >= tick:
+                return True
+        samplers = sorted(due.items())  # stepped after the worker, from the values sampled
+        try:
+            self._kernel.start(begin, tick, [e for e, _ in samplers], spin)
+        except HilError:  # no thread to be had: in turn, now and from here on
+            self._no_thread = True
+            self.advance_to(tick)
             return True
-        samplers = sorted(due.items())
-        self._kernel.start(begin, tick, [e for e, _ in samplers], spin)
         self._ahead = (tick, samplers)
         return True
-
-    def _unchanged(self, participant: Participant) -> bool:
-        """Whether a participant's outputs are those already published."""
-        keys, values = self._output_keys[participant.name], self.values
-        return all(
-            keys.get(name) in values and values[keys[name]] == value
-            for name, value in participant.get_outputs().items()
-        )
 
     def _finish_ahead(self) -> None:
         """Wait for `start_advance`'s job, then step the samplers due inside it from the values
@@ -454,13 +454,15 @@ class Master:
 
     def settle(self) -> None:
         """Wait for a job `start_advance` began (its FmuError dropped: the caller is stopping)
-        and stop the kernel's worker thread, so that the process may fork; `start_advance`
-        starts a new one."""
-        if self._ahead is not None:
-            with contextlib.suppress(FmuError):
-                self._finish_ahead()
-        if self._kernel is not None:
-            self._kernel.stop()
+        and stop the kernel's worker thread whatever else is raised, so that the process may
+        fork; `start_advance` starts a new one."""
+        try:
+            if self._ahead is not None:
+                with contextlib.suppress(FmuError):
+                    self._finish_ahead()
+        finally:
+            if self._kernel is not None:
+                self._kernel.stop()
 
     def _kernel_advance(self, k_begin: int, k_end: int) -> None:
         kernel = self._kernel
@@ -495,6 +497,13 @@ class Master:
         self.tick = k + 1
         for observer in self.observers:
             observer.observe(self.tick, self._view)
+
+
+def _deferrable(participant: Participant) -> bool:
+    """Whether stepping `participant` later than the FMUs' ticks changes nothing they read: it
+    has no outputs (a sampler, such as the camera), or its step never changes them (they
+    change only by events, published: `outputs_hold`, as a device node's between SYNCs)."""
+    return not participant.output_names() or getattr(participant, "outputs_hold", False)
 
 
 def _items(slots: Sequence[int]) -> Callable[[Any], Sequence[float]]:

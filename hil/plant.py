@@ -206,10 +206,12 @@ class Plant:
                 )
         finally:
             self._overlap = None
-            self.master.settle()  # no FMU steps on after the run, nor into a forked child
-            self.stats.wall_time = time.perf_counter() - started
-            self.signals.end_row()
-            self.can_log.flush(force=True)
+            try:
+                self.master.settle()  # no FMU steps on after the run, nor into a forked child
+            finally:
+                self.stats.wall_time = time.perf_counter() - started
+                self.signals.end_row()
+                self.can_log.flush(force=True)
         return self.stats
 
     def handle(self, message: can.Message) -> None:

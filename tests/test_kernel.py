@@ -10,7 +10,8 @@ from __future__ import annotations
 
 import contextlib
 import math
-import os
+import subprocess
+import sys
 from collections.abc import Callable, Mapping
 from dataclasses import replace
 from pathlib import Path
@@ -63,6 +64,7 @@ class Firmware:
 
     name = "drive"
     decimation = 1
+    outputs_hold = True  # its step never changes its outputs (the master may step it late)
 
     def __init__(self) -> None:
         self.setpoint = 0.025
@@ -167,8 +169,11 @@ def run_syncs(
     advance: Callable[[Master, int], None] | None = None,
     firmware_decimation: int = 1,
     after_sync: Callable[[Master, int], None] | None = None,
+    probe_decimation: int = 10,
 ) -> tuple[list[dict[str, float]], Probe, bool]:
-    master, probe, firmware, slaves = coupled(cylinder, segment, kernel, firmware_decimation)
+    master, probe, firmware, slaves = coupled(
+        cylinder, segment, kernel, firmware_decimation, probe_decimation
+    )
     history = []
     try:
         for sync in range(1, syncs + 1):
@@ -327,12 +332,23 @@ def test_closed_loop_files_are_identical_with_and_without_the_kernel(
     scenario = replace(scenario, duration=1.0, robot=replace(scenario.robot, segments=2), seed=3)
     files = {}
     threads = os_threads()
+    started: list[bool] = []
+    real = Master.start_advance
+
+    def spy(self: Master, tick: int, spin: float = 0.0) -> bool:
+        started.append(real(self, tick, spin))
+        return started[-1]
+
+    monkeypatch.setattr(Master, "start_advance", spy)
     # the Python path, the kernel in turn with the controller, the kernel on its worker thread
     for kernel, worker in (("0", "0"), ("1", "0"), ("1", "1")):
         monkeypatch.setenv("SOFTHIL_KERNEL", kernel)
         monkeypatch.setenv("SOFTHIL_KERNEL_THREAD", worker)
         out = tmp_path / f"{kernel}{worker}"
+        started.clear()
         run_scenario(scenario, RunOptions(out=out, inprocess=True, progress=False))
+        # every period (after SYNC 0 .. after the last SYNC but one) on the thread, where on
+        assert started == ([True] * scenario.cycles if worker == "1" else []), worker
         files[kernel + worker] = {
             name: (out / name).read_bytes() for name in ("can.log", "signals.csv")
         }
@@ -369,14 +385,23 @@ def os_threads() -> int:
     return count
 
 
-@pytest.mark.parametrize("firmware_decimation", [SYNC_TICKS, 1])
+@pytest.mark.parametrize(
+    ("firmware_decimation", "probe_decimation", "thread"),
+    [(SYNC_TICKS, SYNC_TICKS, True), (1, SYNC_TICKS, True), (SYNC_TICKS, 5, False)],
+)
 def test_stepping_ahead_on_the_worker_thread_is_bit_identical(
-    drive_cylinder_fmu: BuiltFmu, fea_segment_fmu: BuiltFmu, firmware_decimation: int
+    drive_cylinder_fmu: BuiltFmu,
+    fea_segment_fmu: BuiltFmu,
+    firmware_decimation: int,
+    probe_decimation: int,
+    thread: bool,
 ) -> None:
     """start_advance at every SYNC, then the SYNC's own calls (publish, inputs_of) wait for it:
-    every value, what the probe read at its ticks and what the sampler read inside each period
-    (from the values the worker sampled) as in the Python master. With a device node due at
-    every tick (firmware decimation 1) it declines and nothing changes."""
+    every value, what the probe read at its ticks (its first tick stepped in turn: its step
+    changes its outputs) and what the sampler and the firmware read inside each period (from
+    the values the worker sampled) as in the Python master. The firmware holds its outputs, so
+    it may be stepped late even at every tick; the probe, due inside a period (decimation 5),
+    declines the thread and nothing changes."""
     started = []
 
     def ahead(master: Master, tick: int) -> None:
@@ -389,15 +414,28 @@ def test_stepping_ahead_on_the_worker_thread_is_bit_identical(
             assert master.tick == tick  # declined: nothing stepped
 
     python, python_probe, _ = run_syncs(
-        drive_cylinder_fmu, fea_segment_fmu, False, 40, firmware_decimation=firmware_decimation
+        drive_cylinder_fmu,
+        fea_segment_fmu,
+        False,
+        40,
+        firmware_decimation=firmware_decimation,
+        probe_decimation=probe_decimation,
     )
     kernel, kernel_probe, used = run_syncs(
-        drive_cylinder_fmu, fea_segment_fmu, True, 40, None, firmware_decimation, ahead
+        drive_cylinder_fmu,
+        fea_segment_fmu,
+        True,
+        40,
+        None,
+        firmware_decimation,
+        ahead,
+        probe_decimation,
     )
     assert used
-    assert all(started) if firmware_decimation == SYNC_TICKS else not any(started)
+    assert all(started) if thread else not any(started)
     assert kernel == python
     assert kernel_probe.received == python_probe.received
+    assert len(python_probe.received) == 400 // probe_decimation
     assert kernel_probe.sampled == python_probe.sampled  # type: ignore[attr-defined]
     assert [t for t, _ in python_probe.sampled] == [k * H for k in range(0, 400, 3)]  # type: ignore[attr-defined]
     assert len({inputs["kappa"] for _, inputs in python_probe.sampled}) > 50  # type: ignore[attr-defined]
@@ -431,6 +469,64 @@ def test_stepping_ahead_fails_as_the_python_path_fails(
     assert tick == 20
     assert message.startswith("segment2 (FeaSegment): fmi2SetReal failed: ")
     assert [t for t, _ in sampled][-1] == 18 * H
+
+
+def test_an_fmu_error_at_a_periods_first_tick_steps_no_participant_early(
+    drive_cylinder_fmu: BuiltFmu, fea_segment_fmu: BuiltFmu
+) -> None:
+    """The probe (its step changes its outputs) is due at the period's first tick, where an FMU
+    fails: start_advance steps that tick in turn, FMUs first, so the probe is not stepped on
+    the failing tick, as in advance_to (a review found it stepped before the FMUs)."""
+
+    def failing(ahead: bool) -> tuple[str, int, list[tuple[float, dict[str, float]]], list]:
+        master, probe, _, slaves = coupled(drive_cylinder_fmu, fea_segment_fmu, True, SYNC_TICKS)
+        try:
+            master.advance_to(20)
+            master.set_input("segment2", "tau_ext", math.nan)
+            with pytest.raises(FmuError) as info:
+                if ahead:
+                    master.start_advance(30, 0.0)
+                master.advance_to(30)
+            sampled = master.participants["sampler"].received  # type: ignore[attr-defined]
+            return str(info.value), master.tick, probe.received, sampled
+        finally:
+            master.settle()
+            for slave in slaves:
+                slave.close()
+
+    ahead = failing(True)
+    assert ahead == failing(False)
+    assert ahead[1] == 20
+    assert [t for t, _ in ahead[2]] == [0.0, 0.01]
+
+
+def test_stopping_the_worker_during_a_job_waits_for_it() -> None:
+    """An interrupt between starting a job and waiting for it leaves the job to `stop` (from
+    settle, or closing an FMU): it waits for the job and ends the thread instead of hanging
+    (the job's end overwrote the stop, and the thread waited for ever). In a child process,
+    so that a hang fails the test instead of the suite."""
+    script = """
+import time
+from hil.fmu.build import build_fmu
+from hil.fmu.slave import FmuSlave
+from hil.master import FmuParticipant, Master
+
+slave = FmuSlave(build_fmu("DriveCylinder"), "cylinder1")
+master = Master([FmuParticipant(slave)], [], 1e-3, kernel=True)
+assert master.start_advance(2_000_000, 0.0)
+time.sleep(0.2)  # the worker has taken the job (a stop before that ends the thread at once)
+master._kernel.stop()  # as after an interrupt: no finish
+slave.close()
+print("stopped")
+"""
+    result = subprocess.run(
+        [sys.executable, "-c", script],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=Path(__file__).parent.parent,
+    )
+    assert result.stdout.strip() == "stopped", result.stderr[-2000:]
 
 
 def test_an_fmu_error_inside_a_period_on_the_worker_thread_is_the_python_paths(

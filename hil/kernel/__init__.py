@@ -19,6 +19,7 @@ thread makes the same calls as `advance`, only on another thread.
 from __future__ import annotations
 
 import ctypes
+import weakref
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -107,9 +108,15 @@ def load_kernel() -> ctypes.CDLL:
     if _library is None:
         library = ctypes.CDLL(str(build_kernel()))
         # what a stretch of stepping takes: plan, values, k_begin, k_end, h
-        stretch = [_P(_Plan), _DOUBLES, ctypes.c_longlong, ctypes.c_longlong, ctypes.c_double]
+        stretch: list[Any] = [
+            _P(_Plan),
+            _DOUBLES,
+            ctypes.c_longlong,
+            ctypes.c_longlong,
+            ctypes.c_double,
+        ]
         # and what it gives back: the first tick not done, the failure
-        outcome = [_P(ctypes.c_longlong), _P(_Failure)]
+        outcome: list[Any] = [_P(ctypes.c_longlong), _P(_Failure)]
         library.softhil_advance.restype = ctypes.c_int
         library.softhil_advance.argtypes = [*stretch, *outcome]
         library.softhil_worker_new.restype = ctypes.c_void_p
@@ -138,6 +145,22 @@ FmuPlan = tuple[str, FmuSlave, int, list[tuple[str, str]], list[tuple[str, str, 
 def _array(ctype: Any, values: Sequence[Any]) -> Any:
     """A C array of `values` (at least one element, so that empty plans stay valid pointers)."""
     return (ctype * max(1, len(values)))(*values)
+
+
+class _WorkerHandle:
+    """The kernel's worker thread and what its jobs write into (kept alive while it may run):
+    `stop` waits for a job still running (softhil_worker_free does) and ends the thread."""
+
+    def __init__(self, library: ctypes.CDLL, arrays: tuple[Any, ...]) -> None:
+        self.library = library
+        self.arrays = arrays
+        self.buffers: tuple[Any, ...] = ()
+        self.worker: int | None = None
+
+    def stop(self) -> None:
+        if self.worker is not None:
+            worker, self.worker = self.worker, None
+            self.library.softhil_worker_free(worker)
 
 
 class Kernel:
@@ -238,10 +261,13 @@ class Kernel:
         self._plan_ref = ctypes.byref(self._plan)
         self._done = ctypes.c_longlong(0)
         self._failure = _Failure()
-        self._worker: int | None = None  # the worker thread (C), made on first use
         self._job: tuple[int, int, list[int]] | None = None  # (k_begin, k_end, message counts)
         self._sample_ticks = (ctypes.c_longlong * 1)()
         self._samples = (ctypes.c_double * 1)()
+        # the worker thread (C), made on first use; stopped with the kernel at the latest, the
+        # arrays a job writes kept alive until then
+        self._handle = _WorkerHandle(self._library, (self._keep, self.values, self._plan))
+        weakref.finalize(self, self._handle.stop)
 
     def set_external(self, participant: str, variable: str, value: float) -> None:
         i = self._input_index[(participant, variable)]
@@ -294,9 +320,10 @@ class Kernel:
         for slave in self.slaves:
             if not slave.alive:
                 raise FmuError(f"{slave.instance_name}: the FMU instance is closed")
-        if self._worker is None:
-            self._worker = self._library.softhil_worker_new(0.0, spin)
-            if not self._worker:
+        if self._handle.worker is None:
+            self._handle.worker = self._library.softhil_worker_new(0.0, spin)
+            if not self._handle.worker:
+                self._handle.worker = None
                 raise HilError("the kernel could not start its worker thread")
         n = len(sample_ticks)
         if len(self._sample_ticks) < n:
@@ -304,11 +331,12 @@ class Kernel:
         width = len(self.values)
         if len(self._samples) < n * width:
             self._samples = (ctypes.c_double * (n * width))()
+        self._handle.buffers = (self._sample_ticks, self._samples)
         for i, tick in enumerate(sample_ticks):
             self._sample_ticks[i] = tick
         self._job = (k_begin, k_end, [len(slave.messages) for slave in self.slaves])
         self._library.softhil_worker_start(
-            self._worker, self._plan_ref, self.values, k_begin, k_end, self.step,
+            self._handle.worker, self._plan_ref, self.values, k_begin, k_end, self.step,
             self._sample_ticks, n, self._samples, width,
         )  # fmt: skip
 
@@ -323,10 +351,10 @@ class Kernel:
         raised, or None. `ticks_done` is the first tick not completed."""
         assert self._job is not None, "finish without start"
         k_begin, k_end, before = self._job
-        self._job = None
         failed = self._library.softhil_worker_wait(
-            self._worker, ctypes.byref(self._done), ctypes.byref(self._failure)
+            self._handle.worker, ctypes.byref(self._done), ctypes.byref(self._failure)
         )
+        self._job = None  # only now: an interrupt before this leaves the job to `stop`
         width = len(self.values)
         rows = [self._samples[i * width : (i + 1) * width] for i in range(samples)]
         if failed:
@@ -340,11 +368,8 @@ class Kernel:
     def stop(self) -> None:
         """Stop the worker thread (after waiting for a job still running); `start` makes a new
         one. A process should not fork while the thread lives."""
-        if self._job is not None:
-            self.finish(0)
-        if self._worker is not None:
-            self._library.softhil_worker_free(self._worker)
-            self._worker = None
+        self._job = None
+        self._handle.stop()
 
     @property
     def ticks_done(self) -> int:

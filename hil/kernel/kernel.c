@@ -324,9 +324,11 @@ EXPORT int softhil_worker_wait(Worker *w, long long *ticks_done, Failure *failur
     return w->result;
 }
 
-/* Stop the thread (an idle worker, or one whose job was waited for) and free the worker. */
+/* Stop the thread and free the worker; a job still running is waited for first (its QUIT
+ * would otherwise be overwritten by the job's DONE, and the thread never end). */
 EXPORT void softhil_worker_free(Worker *w) {
     if (w == NULL) return;
+    if (state_of(w) == PENDING) await_state(w, DONE, DONE, 0.0);
     publish(w, QUIT);
     pthread_join(w->thread, NULL);
     pthread_cond_destroy(&w->changed);
