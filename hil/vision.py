@@ -116,11 +116,17 @@ class Picture:
         return ~(self.dropped | self.occluded)
 
 
-def exposure_delay_bound(jitter: float, period_ticks: int) -> int:
-    """The latest a camera's exposure falls after its nominal tick [ticks]: the jitter [s] is
-    clamped below the frame period, so that pictures stay in order; 0 without jitter. The
-    controller waits for each frame as if it were that late (CameraTiming.delay_ticks)."""
-    return period_ticks - 1 if jitter > 0.0 else 0
+JITTER_SIGMAS = 6.0  # a real camera's exposure jitter is bounded: a draw beyond 6 sigma (2e-9)
+
+
+def exposure_delay_bound(jitter: float, period_ticks: int, macro_step: float) -> int:
+    """The latest a camera's exposure falls after its nominal tick [ticks]: the jitter [s]
+    (standard deviation) is clamped at JITTER_SIGMAS of it, and below the frame period so that
+    pictures stay in order; 0 without jitter. The controller waits for each frame as if it were
+    that late (CameraTiming.delay_ticks): a small jitter costs it a few ticks, not a period."""
+    if jitter <= 0.0:
+        return 0
+    return min(period_ticks - 1, math.ceil(JITTER_SIGMAS * jitter / macro_step))
 
 
 class Camera:
@@ -183,7 +189,7 @@ class Camera:
     @property
     def max_delay_ticks(self) -> int:
         """The latest an exposure falls after its nominal tick [ticks] (`exposure_delay_bound`)."""
-        return exposure_delay_bound(self.effects.jitter, self.period_ticks)
+        return exposure_delay_bound(self.effects.jitter, self.period_ticks, self.macro_step)
 
     def exposure_tick(self, frame_index: int, nominal_tick: int) -> int:
         """The tick at which frame `frame_index`, nominally exposed at `nominal_tick`, is taken:

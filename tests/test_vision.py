@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from hil.vision import Camera, CameraEffects, Picture, check_effects
+from hil.vision import Camera, CameraEffects, Picture, check_effects, exposure_delay_bound
 
 H = 1e-3  # [s]
 PERIOD = 0.01  # [s]
@@ -132,6 +132,21 @@ def test_jitter_is_quantised_clamped_and_announced_before_the_picture() -> None:
     assert min(wide_offsets) == 0 and max(wide_offsets) == 9
     no_jitter = shoot(CameraEffects(), 50)
     assert [p.exposure_tick for p in no_jitter] == [10 * j for j in range(50)]
+
+
+def test_the_jitter_bound_is_six_sigma_below_the_period() -> None:
+    """What the controller waits for (CameraTiming.delay_ticks): the latest exposure delay the
+    camera can draw, 6 sigma rounded up to a tick, below the period; 0 without jitter."""
+    assert exposure_delay_bound(0.0, 10, H) == 0
+    assert exposure_delay_bound(1e-4, 10, H) == 1
+    assert exposure_delay_bound(0.5e-3, 10, H) == 3
+    assert exposure_delay_bound(1.5e-3, 10, H) == 9
+    assert exposure_delay_bound(2e-3, 10, H) == 9  # 12 ticks: below the period
+    assert exposure_delay_bound(2e-3, 40, H) == 12
+    small = Camera(CameraEffects(jitter=0.5e-3), np.random.default_rng(5), PERIOD, H)
+    assert small.max_delay_ticks == 3
+    offsets = [small.exposure_tick(j, 10 * j) - 10 * j for j in range(3000)]
+    assert max(offsets) <= 3 and max(offsets) >= 1
 
 
 def test_three_dimensional_markers() -> None:

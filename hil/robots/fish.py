@@ -465,7 +465,9 @@ class Fish:
                 period_ticks=scenario.camera_ticks,
                 latency_ticks=scenario.latency_ticks,
                 control_ticks=scenario.control_ticks,
-                delay_ticks=exposure_delay_bound(scenario.camera.jitter, scenario.camera_ticks),
+                delay_ticks=exposure_delay_bound(
+                    scenario.camera.jitter, scenario.camera_ticks, scenario.timing.step
+                ),
                 markers=len(CAMERA_MARKERS),
             ),
             task=scenario.task.kind,

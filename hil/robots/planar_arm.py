@@ -929,7 +929,9 @@ class PlanarArm:
                 period_ticks=scenario.camera_ticks,
                 latency_ticks=scenario.latency_ticks,
                 control_ticks=scenario.control_ticks,
-                delay_ticks=exposure_delay_bound(scenario.camera.jitter, scenario.camera_ticks),
+                delay_ticks=exposure_delay_bound(
+                    scenario.camera.jitter, scenario.camera_ticks, scenario.timing.step
+                ),
                 markers=self.markers(scenario),
             ),
             objects=self.markers(scenario) - scenario.robot.segments - 1,
