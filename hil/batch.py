@@ -39,6 +39,7 @@ from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
 
+from hil.environment import KERNEL_THREAD
 from hil.errors import HilError, ScenarioError, Terminated
 from hil.program import SOFTHIL, check_controller
 from hil.results import ResultsFolder, note, write_file
@@ -50,7 +51,10 @@ SECTIONS = frozenset(f.name for f in fields(Scenario) if f.name != "source")
 # summary.json values that measure the machine, not the run (two runs of one scenario differ
 # only in these: found by diffing the summaries of two identical runs); any later key naming
 # the wall clock is caught by WALL_CLOCK_WORDS
-WALL_CLOCK_KEYS = frozenset({"wall_time", "real_time_factor", "startup_time"})
+# (periods_on_kernel_thread: the run chooses the thread by timing its first periods)
+WALL_CLOCK_KEYS = frozenset(
+    {"wall_time", "real_time_factor", "startup_time", "periods_on_kernel_thread"}
+)
 WALL_CLOCK_WORDS = ("wall", "real_time", "startup", "lateness", "overrun")
 # summary.json values that echo the scenario's inputs rather than measure the run
 INPUT_KEYS = frozenset({"seed", "duration", "bitrate", "log_start"})
@@ -578,7 +582,7 @@ def _run_local(
         max_workers=min(workers, len(specs)),
         mp_context=context,
         initializer=_worker_start,
-        initargs=(stopping,),
+        initargs=(stopping, min(workers, len(specs)) > 1),
     )
     futures: dict[Future[dict[str, Any]], TrialSpec] = {}
     reported: set[Future[dict[str, Any]]] = set()
@@ -623,13 +627,16 @@ def _worker_trial(spec: TrialSpec) -> dict[str, Any]:
     return run_trial(spec)
 
 
-def _worker_start(stopping: Any) -> None:
+def _worker_start(stopping: Any, parallel: bool = False) -> None:
     """A worker's start: the batch's stop event, and its signals. A terminal's Ctrl-C reaches
     every process of the job, and the batch, not each worker, decides what it means (see
     _stop_pool); SIGTERM from the batch ends the running trial as a terminated `hil run` (files
-    closed, summary.json says so), and a second one the worker."""
+    closed, summary.json says so), and a second one the worker. With trials `parallel` on the
+    cores, a trial steps its FMUs in turn (SOFTHIL_KERNEL_THREAD=0, unless the user set it): the
+    kernel's worker thread pays only with a core to spare."""
     global _STOPPING
     _STOPPING = stopping
+    _share_cores(parallel)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
 
     def terminate(signum: int, frame: object) -> None:
@@ -637,6 +644,12 @@ def _worker_start(stopping: Any) -> None:
         raise Terminated
 
     signal.signal(signal.SIGTERM, terminate)
+
+
+def _share_cores(parallel: bool) -> None:
+    """In a worker whose trials run beside others: FMUs in turn, unless the user said."""
+    if parallel:
+        os.environ.setdefault(KERNEL_THREAD, "0")
 
 
 def _stop_pool(pool: ProcessPoolExecutor, futures: Iterable[Future[Any]]) -> None:

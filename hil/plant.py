@@ -74,6 +74,7 @@ class PlantStats:
     intrusions: int = 0  # frames that another node sent in a legitimate sender's name
     first_intrusion: str = ""
     wall_time: float = 0.0  # from the first SYNC to the last: the loop itself
+    periods_on_thread: int = 0  # periods the FMUs stepped on the kernel's worker thread
     startup_time: float = 0.0  # from serving to the controller's first SYNC (its start-up)
 
 
@@ -354,8 +355,8 @@ class Plant:
                 costs.append(time.perf_counter() - started)
             elif costs and sorted(costs)[len(costs) // 2] < self._overlap_min_cost:
                 self._overlap = None  # in turn from here on
-            else:
-                self.master.start_advance(target, spin)
+            elif self.master.start_advance(target, spin):
+                self.stats.periods_on_thread += 1
         except FmuError as exc:
             self._ahead_error = exc
 

@@ -274,6 +274,8 @@ def _run(
     summary.update(summarise(scenario, out / "signals.csv", stats, can_log, report, protocol))
     summary["bus"] = str(plant_spec)
     summary["hub"] = hub
+    # in one thread with the controller: the periods the FMUs stepped on the kernel's thread
+    summary["periods_on_kernel_thread"] = stats.periods_on_thread if direct else None
     if direct:
         summary["controller_process"] = "this thread"
     elif options.inprocess:

@@ -113,12 +113,31 @@ def test_batch_json_trials_seeds_and_aggregates(local_batch: Path) -> None:
     assert (local_batch / "batch.png").read_bytes()[:4] == b"\x89PNG"
 
 
+def test_parallel_trials_step_their_fmus_in_turn_unless_the_user_says(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Trials side by side on the cores leave no core to the kernel's worker thread: a worker
+    of a parallel batch sets SOFTHIL_KERNEL_THREAD=0, a user's own value stays, one worker alone
+    leaves it unset (each run decides)."""
+    from hil.batch import _share_cores
+
+    monkeypatch.delenv("SOFTHIL_KERNEL_THREAD", raising=False)
+    _share_cores(False)
+    assert "SOFTHIL_KERNEL_THREAD" not in os.environ
+    _share_cores(True)
+    assert os.environ["SOFTHIL_KERNEL_THREAD"] == "0"
+    monkeypatch.setenv("SOFTHIL_KERNEL_THREAD", "1")
+    _share_cores(True)
+    assert os.environ["SOFTHIL_KERNEL_THREAD"] == "1"
+
+
 def test_metrics_leave_out_the_wall_clock(local_batch: Path) -> None:
     summary = load(local_batch / "trial-000" / "summary.json")
-    assert {"wall_time", "real_time_factor", "startup_time"} <= summary.keys()
+    clock = {"wall_time", "real_time_factor", "startup_time", "periods_on_kernel_thread"}
+    assert clock <= summary.keys()
     names = set(batch.metrics(summary))
     assert "rms_tracking_error" in names and "bus_load" in names
-    assert not names & {"wall_time", "real_time_factor", "startup_time", "seed", "duration"}
+    assert not names & {*clock, "seed", "duration"}
     assert batch.metrics({"a": 1, "b": 2.5, "ok": True, "t": {"x": 1}, "s": "x", "n": None}) == {
         "a": 1,
         "b": 2.5,

@@ -9,6 +9,7 @@ runs once per path; every value must be bit-identical at every comparison point.
 from __future__ import annotations
 
 import contextlib
+import json
 import math
 import subprocess
 import sys
@@ -349,6 +350,8 @@ def test_closed_loop_files_are_identical_with_and_without_the_kernel(
         run_scenario(scenario, RunOptions(out=out, inprocess=True, progress=False))
         # every period (after SYNC 0 .. after the last SYNC but one) on the thread, where on
         assert started == ([True] * scenario.cycles if worker == "1" else []), worker
+        summary = json.loads((out / "summary.json").read_text())
+        assert summary["periods_on_kernel_thread"] == len(started)
         files[kernel + worker] = {
             name: (out / name).read_bytes() for name in ("can.log", "signals.csv")
         }
