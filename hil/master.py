@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import contextlib
 import operator
+import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from types import MappingProxyType
@@ -190,6 +191,9 @@ class Master:
         # a started `start_advance`: its last tick and the samplers due inside it, by tick
         self._ahead: tuple[int, list[tuple[int, list[Participant]]]] | None = None
         self._no_thread = False  # the kernel could not start its worker thread
+        # [s] of wall time in the kernel's stepping on this thread: what its worker could take
+        # over (the plant times its first periods by it)
+        self.kernel_seconds = 0.0
         self._initialise()
         if kernel is None:
             kernel = kernel_enabled()
@@ -467,9 +471,11 @@ class Master:
     def _kernel_advance(self, k_begin: int, k_end: int) -> None:
         kernel = self._kernel
         assert kernel is not None
+        started = time.perf_counter()
         try:
             kernel.advance(k_begin, k_end)
         finally:
+            self.kernel_seconds += time.perf_counter() - started
             self.values.update(zip(self._fast_keys, self._fresh(kernel.values), strict=True))
             self.tick = kernel.ticks_done
 

@@ -340,9 +340,10 @@ class Plant:
         """`_step_ahead` on the kernel's worker thread: the FMUs step while the controller, in
         this thread, computes; the next SYNC's `advance_to` waits for them. Where the master
         cannot (Python participants with outputs inside the period), the SYNC steps as before.
-        The first OVERLAP_PROBES periods are stepped ahead in turn and timed: a rig whose
-        period steps in less than OVERLAP_MIN_COST goes on in turn, since handing the work to
-        the thread and waking it costs more than it saves (1 segment: 22x real time in turn,
+        The first OVERLAP_PROBES periods are stepped ahead in turn, the kernel's stepping timed
+        (what the thread would take over): a rig whose period steps in less than
+        OVERLAP_MIN_COST goes on in turn, since handing the work to the thread and waking it
+        costs more than it saves (1 segment: 22x real time in turn,
         18x on the thread; 6 segments: 10.5x and 11.7x). Either way every value is the same."""
         if self.cycle < 0 or self.cycle >= self.scenario.cycles:
             return
@@ -350,9 +351,10 @@ class Plant:
         target = (self.cycle + 1) * self.scenario.control_ticks
         try:
             if self._overlap_min_cost > 0.0 and len(costs) < OVERLAP_PROBES:
-                started = time.perf_counter()
+                # the kernel's share only: Python participants (the camera) step here either way
+                before = self.master.kernel_seconds
                 self.master.advance_to(target)
-                costs.append(time.perf_counter() - started)
+                costs.append(self.master.kernel_seconds - before)
             elif costs and sorted(costs)[len(costs) // 2] < self._overlap_min_cost:
                 self._overlap = None  # in turn from here on
             elif self.master.start_advance(target, spin):

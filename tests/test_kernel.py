@@ -16,6 +16,7 @@ import sys
 from collections.abc import Callable, Mapping
 from dataclasses import replace
 from pathlib import Path
+from time import perf_counter
 
 import pytest
 
@@ -663,3 +664,56 @@ def test_unset_the_switch_times_the_first_periods_and_uses_the_thread_where_it_p
     run_scenario(scenario, RunOptions(out=tmp_path / "turn", inprocess=True, progress=False))
     for name in ("can.log", "signals.csv"):
         assert (tmp_path / "auto" / name).read_bytes() == (tmp_path / "turn" / name).read_bytes()
+
+
+def test_kernel_seconds_count_the_kernels_stepping_only(drive_cylinder_fmu: BuiltFmu) -> None:
+    """What an in-process run times in its first periods to choose the thread: the kernel's
+    stepping (what the thread would take over), not a Python participant's step (the camera
+    steps in Python either way; counting it sent a 1-segment arm onto the thread)."""
+
+    class Slow(Sampler):
+        def step(self, time: float, step: float) -> None:
+            super().step(time, step)
+            pause = perf_counter() + 0.005  # 5 ms of Python work at every step
+            while perf_counter() < pause:
+                pass
+
+    with FmuSlave(drive_cylinder_fmu, "cylinder2") as slave:
+        slow = Slow()
+        slow.decimation = 5
+        master = Master(
+            [FmuParticipant(slave), slow], [Connection("cylinder2.x", "sampler.x")], H, kernel=True
+        )
+        started = perf_counter()
+        master.advance_to(20)
+        wall = perf_counter() - started
+        assert len(slow.received) == 4
+        assert 0.0 < master.kernel_seconds < 0.005 < wall - master.kernel_seconds
+    with FmuSlave(drive_cylinder_fmu, "cylinder3") as slave:
+        python = Master([FmuParticipant(slave)], [], H, kernel=False)
+        python.advance_to(25)
+        assert python.kernel_seconds == 0.0
+
+
+@pytest.mark.parametrize(("min_cost", "on_thread"), [(60e-6, False), (30e-6, True)])
+def test_the_run_chooses_the_thread_by_the_kernels_stepping_time(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, min_cost: float, on_thread: bool
+) -> None:
+    """The first 12 periods timed by the master's kernel clock, here a fake one that gives each
+    kernel call 20 us (two a period: the camera splits it): 40 us a period stays in turn
+    against a threshold of 60 us and takes the thread against 30 us."""
+
+    class Clock:
+        now = 0.0
+
+        def perf_counter(self) -> float:
+            self.now += 20e-6  # read before and after a kernel call: 20 us each
+            return self.now
+
+    monkeypatch.delenv("SOFTHIL_KERNEL_THREAD", raising=False)
+    monkeypatch.setattr("hil.master.time", Clock())
+    monkeypatch.setattr("hil.run.OVERLAP_MIN_COST", min_cost)
+    monkeypatch.setattr("hil.run.two_cores", lambda: True)
+    scenario = replace(load_scenario(), duration=0.3, seed=3)
+    result = run_scenario(scenario, RunOptions(out=tmp_path, inprocess=True, progress=False))
+    assert result.summary["periods_on_kernel_thread"] == (30 - 12 if on_thread else 0)
