@@ -309,8 +309,7 @@ class Master:
     def publish(self, participant: str) -> None:
         """Refresh a participant's outputs after an event changed them between ticks (a device
         node latching a command at SYNC), so the next tick transfers the new values."""
-        if self._ahead is not None:
-            self._finish_ahead()
+        self._join()
         self._publish(self._participant(participant))
 
     def _participant(self, name: str) -> Participant:
@@ -321,12 +320,15 @@ class Master:
 
     def inputs_of(self, participant: str) -> dict[str, float]:
         """The inputs `participant` would receive now: externals and connected outputs."""
-        if self._ahead is not None:
-            self._finish_ahead()
+        self._join()
         self._participant(participant)
+        return self._inputs(participant, self.values)
+
+    def _inputs(self, participant: str, outputs: Mapping[str, float]) -> dict[str, float]:
+        """`participant`'s inputs from its externals and `outputs` (by "participant.output")."""
         values = dict(self._externals[participant])
         for variable, source, gain, offset in self._connections[participant]:
-            values[variable] = gain * self.values[source] + offset
+            values[variable] = gain * outputs[source] + offset
         return values
 
     @property
@@ -335,8 +337,7 @@ class Master:
 
     def set_input(self, participant: str, variable: str, value: float) -> None:
         """An external value (a device node's output) held until changed."""
-        if self._ahead is not None:
-            self._finish_ahead()
+        self._join()
         key = f"{participant}.{variable}"
         if key in self._driven:
             raise HilError(f"{key} is driven by a connection and cannot be set externally")
@@ -347,15 +348,13 @@ class Master:
             self._kernel.set_external(participant, variable, value)
 
     def add_observer(self, observer: Observer) -> None:
-        if self._ahead is not None:
-            self._finish_ahead()
+        self._join()
         self.observers.append(observer)
         observer.observe(self.tick, self._view)
 
     def advance_to(self, tick: int) -> None:
         """Step all participants until simulation tick `tick`."""
-        if self._ahead is not None:
-            self._finish_ahead()
+        self._join()
         if self._kernel is not None and not self.observers:
             self._advance_in_kernel(tick)
             return
@@ -397,8 +396,7 @@ class Master:
         observer, a participant whose step may change its outputs due after the first tick, no
         thread to be had), when nothing was done. `spin` [s]: how long the waiting caller polls
         before it sleeps."""
-        if self._ahead is not None:
-            self._finish_ahead()
+        self._join()
         k = self.tick
         if self._kernel is None or self.observers or tick <= k or self._no_thread:
             return False
@@ -430,6 +428,11 @@ class Master:
         self._ahead = (tick, samplers)
         return True
 
+    def _join(self) -> None:
+        """Wait for a job `start_advance` began, if any (every call that touches the state)."""
+        if self._ahead is not None:
+            self._finish_ahead()
+
     def _finish_ahead(self) -> None:
         """Wait for `start_advance`'s job, then step the samplers due inside it from the values
         sampled at their ticks (Jacobi: the start of the tick), up to a failing tick; raise the
@@ -441,17 +444,11 @@ class Master:
         rows, error = kernel.finish(len(samplers))
         self.values.update(zip(self._fast_keys, self._fresh(kernel.values), strict=True))
         done = kernel.ticks_done
-        slots = self._slots
         for (e, due), row in zip(samplers, rows, strict=True):
             if e >= done:
                 break
-            inputs = []
-            for p in due:
-                values = dict(self._externals[p.name])
-                for variable, source, gain, offset in self._connections[p.name]:
-                    values[variable] = gain * row[slots[source]] + offset
-                inputs.append(values)
-            self._step_participants(e, due, inputs)
+            sampled = _Row(row, self._slots)
+            self._step_participants(e, due, [self._inputs(p.name, sampled) for p in due])
         self.tick = done
         if error is not None:
             raise error
@@ -461,9 +458,8 @@ class Master:
         and stop the kernel's worker thread whatever else is raised, so that the process may
         fork; `start_advance` starts a new one."""
         try:
-            if self._ahead is not None:
-                with contextlib.suppress(FmuError):
-                    self._finish_ahead()
+            with contextlib.suppress(FmuError):
+                self._join()
         finally:
             if self._kernel is not None:
                 self._kernel.stop()
@@ -480,17 +476,16 @@ class Master:
             self.tick = kernel.ticks_done
 
     def _step_participants(
-        self, k: int, due: list[Participant], inputs: list[dict[str, float]], publish: bool = True
+        self, k: int, due: list[Participant], inputs: list[dict[str, float]]
     ) -> None:
         """Tick k of the participants due (Jacobi: `inputs` were read at the tick's start),
-        then their outputs published (unless `publish` is False)."""
+        then their outputs published."""
         for p, values in zip(due, inputs, strict=True):
             if values:
                 p.set_inputs(values)
             p.step(k * self.step, p.decimation * self.step)
-        if publish:
-            for p in due:
-                self._publish(p)
+        for p in due:
+            self._publish(p)
 
     def _step_once(self) -> None:
         if self._kernel_synced:  # the kernel stepped last: hand its state back to Python
@@ -503,6 +498,22 @@ class Master:
         self.tick = k + 1
         for observer in self.observers:
             observer.observe(self.tick, self._view)
+
+
+class _Row(Mapping[str, float]):
+    """A row of values the kernel sampled, read by "participant.output" as Master.values is."""
+
+    def __init__(self, row: Sequence[float], slots: Mapping[str, int]) -> None:
+        self._row, self._slots = row, slots
+
+    def __getitem__(self, key: str) -> float:
+        return self._row[self._slots[key]]
+
+    def __iter__(self) -> Any:
+        return iter(self._slots)
+
+    def __len__(self) -> int:
+        return len(self._slots)
 
 
 def _deferrable(participant: Participant) -> bool:

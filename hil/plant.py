@@ -343,8 +343,8 @@ class Plant:
         The first OVERLAP_PROBES periods are stepped ahead in turn, the kernel's stepping timed
         (what the thread would take over): a rig whose period steps in less than
         OVERLAP_MIN_COST goes on in turn, since handing the work to the thread and waking it
-        costs more than it saves (1 segment: 22x real time in turn,
-        18x on the thread; 6 segments: 10.5x and 11.7x). Either way every value is the same."""
+        costs more than it saves (1 segment: 22x real time in turn, 18x on the thread; 6
+        segments: 10.5x and 11.7x). Either way every value is the same."""
         if self.cycle < 0 or self.cycle >= self.scenario.cycles:
             return
         costs = self._stepping_costs
@@ -355,8 +355,10 @@ class Plant:
                 before = self.master.kernel_seconds
                 self.master.advance_to(target)
                 costs.append(self.master.kernel_seconds - before)
-            elif costs and sorted(costs)[len(costs) // 2] < self._overlap_min_cost:
-                self._overlap = None  # in turn from here on
+                if len(costs) == OVERLAP_PROBES and (
+                    sorted(costs)[len(costs) // 2] < self._overlap_min_cost
+                ):
+                    self._overlap = None  # in turn from here on
             elif self.master.start_advance(target, spin):
                 self.stats.periods_on_thread += 1
         except FmuError as exc:

@@ -486,8 +486,7 @@ def _busy_poll(mode: str, options: RunOptions) -> float:
             raise HilError(f"SOFTHIL_BUSY_POLL: {exc}") from None
     if mode != "plant" or options.realtime:
         return 0.0
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-    return BUSY_POLL if (cores or 1) >= 2 else 0.0
+    return BUSY_POLL if two_cores() else 0.0
 
 
 def _serve_hub(

@@ -120,7 +120,7 @@ def load_kernel() -> ctypes.CDLL:
         library.softhil_advance.restype = ctypes.c_int
         library.softhil_advance.argtypes = [*stretch, *outcome]
         library.softhil_worker_new.restype = ctypes.c_void_p
-        library.softhil_worker_new.argtypes = [ctypes.c_double, ctypes.c_double]
+        library.softhil_worker_new.argtypes = [ctypes.c_double]
         library.softhil_worker_start.restype = None
         library.softhil_worker_start.argtypes = [
             ctypes.c_void_p,
@@ -293,15 +293,22 @@ class Kernel:
     def advance(self, k_begin: int, k_end: int) -> None:
         """Step ticks k_begin .. k_end - 1; an FMU failure raises the FmuError the Python path
         would raise (instance, FMI function, what the FMU logged)."""
-        for slave in self.slaves:
-            if not slave.alive:
-                raise FmuError(f"{slave.instance_name}: the FMU instance is closed")
+        self._check_alive()
         before = [len(slave.messages) for slave in self.slaves]
         if self._library.softhil_advance(
             self._plan_ref, self.values, k_begin, k_end, self.step,
             ctypes.byref(self._done), ctypes.byref(self._failure),
         ):  # fmt: skip
             raise self._error(before)
+        self._stepped(k_begin, k_end)
+
+    def _check_alive(self) -> None:
+        for slave in self.slaves:
+            if not slave.alive:
+                raise FmuError(f"{slave.instance_name}: the FMU instance is closed")
+
+    def _stepped(self, k_begin: int, k_end: int) -> None:
+        """Each slave's time after ticks k_begin .. k_end - 1 (as FmuSlave.do_step keeps it)."""
         for slave, d in zip(self.slaves, self.decimations, strict=True):
             last = (k_end - 1) // d * d
             if last >= k_begin:
@@ -317,11 +324,9 @@ class Kernel:
         13.4x real time either way). HilError if no thread can be started."""
         if self._job is not None:
             raise HilError("the kernel's worker is busy: finish its job first")
-        for slave in self.slaves:
-            if not slave.alive:
-                raise FmuError(f"{slave.instance_name}: the FMU instance is closed")
+        self._check_alive()
         if self._handle.worker is None:
-            self._handle.worker = self._library.softhil_worker_new(0.0, spin)
+            self._handle.worker = self._library.softhil_worker_new(spin)
             if not self._handle.worker:
                 self._handle.worker = None
                 raise HilError("the kernel could not start its worker thread")
@@ -340,11 +345,6 @@ class Kernel:
             self._sample_ticks, n, self._samples, width,
         )  # fmt: skip
 
-    @property
-    def busy(self) -> bool:
-        """Whether a job was started and not yet finished."""
-        return self._job is not None
-
     def finish(self, samples: int) -> tuple[list[list[float]], FmuError | None]:
         """Wait for the started job: the first `samples` sampled value rows that the job reached
         (taken before its failing tick, if it failed) and the FmuError `advance` would have
@@ -359,10 +359,7 @@ class Kernel:
         rows = [self._samples[i * width : (i + 1) * width] for i in range(samples)]
         if failed:
             return rows, self._error(before)
-        for slave, d in zip(self.slaves, self.decimations, strict=True):
-            last = (k_end - 1) // d * d
-            if last >= k_begin:
-                slave.time = last * self.step + d * self.step
+        self._stepped(k_begin, k_end)
         return rows, None
 
     def stop(self) -> None:

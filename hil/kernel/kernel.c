@@ -219,8 +219,8 @@ typedef struct {
     long long ticks_done;
     Failure failure;
     int state;
-    double spin_worker; /* [s] the thread polls for a job before it sleeps */
-    double spin_caller; /* [s] the caller polls for the job's end before it sleeps */
+    double spin; /* [s] the caller polls for the job's end before it sleeps (the thread sleeps
+                  * between jobs: its wake-up is off the caller's path) */
     pthread_mutex_t mutex;
     pthread_cond_t changed;
     pthread_t thread;
@@ -261,7 +261,7 @@ static int await_state(Worker *w, int a, int b, double spin) {
 
 static void *work(void *arg) {
     Worker *w = arg;
-    while (await_state(w, PENDING, QUIT, w->spin_worker) == PENDING) {
+    while (await_state(w, PENDING, QUIT, 0.0) == PENDING) {
         w->result = advance(w->plan, w->values, w->k_begin, w->k_end, w->h, w->sample_ticks,
                             w->n_samples, w->samples, w->n_values, &w->ticks_done, &w->failure);
         publish(w, DONE);
@@ -270,11 +270,10 @@ static void *work(void *arg) {
 }
 
 /* A worker thread, idle; NULL if no thread could be started. */
-EXPORT Worker *softhil_worker_new(double spin_worker, double spin_caller) {
+EXPORT Worker *softhil_worker_new(double spin) {
     Worker *w = calloc(1, sizeof(Worker));
     if (w == NULL) return NULL;
-    w->spin_worker = spin_worker;
-    w->spin_caller = spin_caller;
+    w->spin = spin;
     w->state = IDLE;
     if (pthread_mutex_init(&w->mutex, NULL) != 0) {
         free(w);
@@ -317,7 +316,7 @@ EXPORT void softhil_worker_start(Worker *w, const Plan *plan, double *values, lo
 
 /* Wait for the started job; its outcome as softhil_advance's. The worker is idle again. */
 EXPORT int softhil_worker_wait(Worker *w, long long *ticks_done, Failure *failure) {
-    await_state(w, DONE, DONE, w->spin_caller);
+    await_state(w, DONE, DONE, w->spin);
     *ticks_done = w->ticks_done;
     *failure = w->failure;
     __atomic_store_n(&w->state, IDLE, __ATOMIC_RELEASE);
