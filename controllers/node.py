@@ -85,6 +85,15 @@ class CameraTiming:
     markers: int
     delay_ticks: int = 0  # the latest an exposure falls after its nominal tick (jitter)
 
+    def __post_init__(self) -> None:
+        """ValueError naming the key for timing no camera has (every robot's config)."""
+        if min(self.period_ticks, self.control_ticks) < 1 or self.latency_ticks < 0:
+            raise ValueError("camera_timing: period_ticks and control_ticks must be at least 1")
+        if not 0 <= self.delay_ticks < self.period_ticks:
+            raise ValueError(
+                f"camera_timing.delay_ticks: {self.delay_ticks} is outside 0..period_ticks - 1"
+            )
+
     def frames_due(self, cycle: int) -> int:
         """How many frames (0, 1, ... j) are available by SYNC `cycle`, however late their
         exposure."""
@@ -212,13 +221,7 @@ def _check_ranges(config: ControllerConfig) -> None:
             raise ValueError(
                 f"gains[{i}].Ki: {gains.Ki:g} is outside 0..{KP_MAX / config.control_period:g}"
             )
-    timing = config.camera_timing
-    if min(timing.period_ticks, timing.control_ticks) < 1 or timing.latency_ticks < 0:
-        raise ValueError("camera_timing: period_ticks and control_ticks must be at least 1")
-    if not 0 <= timing.delay_ticks < timing.period_ticks:
-        raise ValueError(
-            f"camera_timing.delay_ticks: {timing.delay_ticks} is outside 0..period_ticks - 1"
-        )
+    timing = config.camera_timing  # its own ranges: CameraTiming.__post_init__
     if config.torque_std is not None and not config.torque_std > 0:
         raise ValueError(f"torque_std: must be positive, got {config.torque_std}")
     if config.objects < 0:

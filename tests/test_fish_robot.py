@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import math
 import re
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -269,6 +270,22 @@ def test_controller_config_dispatches_on_the_robot(tmp_path: Path) -> None:
         read_config(json.dumps(bad))
     with pytest.raises(ValueError, match="duty"):
         read_config(json.dumps(json.loads(config.to_json()) | {"duty": 0.0}))
+
+
+def test_the_fish_controller_waits_for_a_jittered_cameras_latest_frame(tmp_path: Path) -> None:
+    """The fish's config carries the camera's jitter bound as the arm's does, and a written
+    one out of range is one line naming the key, for either robot."""
+    scenario = load_scenario(resolve_scenario("fish-escape"))
+    assert controller_config(scenario).camera_timing.delay_ticks == 0
+    jittered = replace(scenario, camera=replace(scenario.camera, jitter=0.0005))
+    config = controller_config(jittered)
+    assert config.camera_timing.delay_ticks == 3  # ceil(6 x 0.5 ms / 1 ms)
+    arm = controller_config(load_scenario(resolve_scenario("default")))
+    for text in (config.to_json(), arm.to_json()):
+        data = json.loads(text)
+        data["camera_timing"]["delay_ticks"] = data["camera_timing"]["period_ticks"]
+        with pytest.raises(ValueError, match=r"^camera_timing.delay_ticks: \d+ is outside 0"):
+            read_config(json.dumps(data))
 
 
 def test_calibration_is_monotonic_and_inverted_by_interpolation() -> None:

@@ -717,3 +717,21 @@ def test_the_run_chooses_the_thread_by_the_kernels_stepping_time(
     scenario = replace(load_scenario(), duration=0.3, seed=3)
     result = run_scenario(scenario, RunOptions(out=tmp_path, inprocess=True, progress=False))
     assert result.summary["periods_on_kernel_thread"] == (30 - 12 if on_thread else 0)
+
+
+def test_the_worker_keeps_each_instances_time_as_stepping_in_turn(
+    drive_cylinder_fmu: BuiltFmu,
+) -> None:
+    """FmuSlave.time after a period on the worker thread is the one stepping in turn (or in
+    Python, FmuSlave.do_step) leaves: the end of the last step taken, decimation included."""
+    times = []
+    for ahead in (True, False):
+        with FmuSlave(drive_cylinder_fmu, "a") as a, FmuSlave(drive_cylinder_fmu, "b") as b:
+            master = Master([FmuParticipant(a), FmuParticipant(b, 4)], [], H, kernel=True)
+            if ahead:
+                assert master.start_advance(10, 0.0)
+            master.advance_to(10)
+            master.settle()
+            times.append((a.time, b.time))
+    assert times[0] == times[1]
+    assert times[0] == pytest.approx((10 * H, 12 * H))
