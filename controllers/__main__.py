@@ -16,7 +16,7 @@ from typing import Any
 
 import can
 
-from controllers import ccodec
+from controllers import ccodec, cukf
 from controllers.canbus import BusOpenError, BusSpec, open_bus
 from controllers.node import (
     ControllerError,
@@ -77,6 +77,7 @@ def _read_config(path: Path) -> Any:
 def run(args: argparse.Namespace) -> int:
     try:
         ccodec.setting()
+        cukf.setting()
     except ValueError as exc:
         print(f"controller: error: {exc}", file=sys.stderr)
         return 1

@@ -28,6 +28,7 @@ Invariant: an estimate depends only on the sequence of `update` calls (bit-ident
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import dataclasses
 import math
 from collections.abc import Iterable, Mapping, Sequence
@@ -39,6 +40,7 @@ from filterpy.kalman import KalmanFilter, MerweScaledSigmaPoints
 from scipy.linalg import expm
 from scipy.stats import chi2
 
+from controllers import cukf
 from controllers.estimation import (
     BendModel,
     CameraNoise,
@@ -437,6 +439,7 @@ class ArmUnscentedEstimator(_LatencyFilter):
         # the measurement noise sigma^2 I by measurement size
         self._Wc_diagonal = np.diag(self.points_fn.Wc)
         self._noise: dict[int, np.ndarray] = {}
+        self._c = _CUkf(self) if cukf.load() is not None else None
 
     def _initial(self) -> tuple[np.ndarray, np.ndarray]:
         var_theta, var_omega = self._initial_variances()
@@ -457,6 +460,13 @@ class ArmUnscentedEstimator(_LatencyFilter):
         return self._arm_cache[key]
 
     def _predict(
+        self, x: np.ndarray, P: np.ndarray, u: np.ndarray, dt: float
+    ) -> tuple[np.ndarray, np.ndarray]:
+        if self._c is not None:
+            return self._c.predict(x, P, u, dt)
+        return self._predict_numpy(x, P, u, dt)
+
+    def _predict_numpy(
         self, x: np.ndarray, P: np.ndarray, u: np.ndarray, dt: float
     ) -> tuple[np.ndarray, np.ndarray]:
         F, G, Q = self._arm_matrices(dt)
@@ -496,6 +506,15 @@ class ArmUnscentedEstimator(_LatencyFilter):
         return sigmas
 
     def _correct(
+        self, x: np.ndarray, P: np.ndarray, points: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, int, int]:
+        if self._c is not None:
+            corrected = self._c.correct(x, P, points)
+            if corrected is not None:
+                return corrected
+        return self._correct_numpy(x, P, points)
+
+    def _correct_numpy(
         self, x: np.ndarray, P: np.ndarray, points: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray, int, int]:
         seen = ~np.isnan(points).any(axis=1)
@@ -543,6 +562,74 @@ class ArmUnscentedEstimator(_LatencyFilter):
     def _read(self, x: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         n = self.segments
         return x[:n], x[n:], np.diag(P)[:n]
+
+
+class _CUkf:
+    """An ArmUnscentedEstimator's prediction and correction through `controllers.cukf`: the
+    C code works on buffers made once here (inputs copied in, outputs copied out)."""
+
+    def __init__(self, est: ArmUnscentedEstimator) -> None:
+        library = cukf.load()
+        assert library is not None
+        self._predict_c, self._correct_c = library.softhil_ukf_predict, library.softhil_ukf_correct
+        self.est = est
+        N = est.segments
+        n = 2 * N
+
+        def buffer(*shape: int) -> np.ndarray:
+            return np.zeros(shape)
+
+        self.lengths = np.ascontiguousarray(est.lengths, dtype=float)
+        self.Wm = np.ascontiguousarray(est.points_fn.Wm, dtype=float)
+        self.Wc = np.ascontiguousarray(est.points_fn.Wc, dtype=float)
+        self.x, self.P, self.points, self.u = buffer(n), buffer(n, n), buffer(N + 1, 2), buffer(N)
+        self.x_out, self.P_out = buffer(n), buffer(n, n)
+        self.y, self.S, self.work = buffer(2 * N), buffer(4 * N * N), buffer(cukf.work_size(N))
+        ws = self.ws = cukf.Workspace()
+        ws.segments, ws.spread = N, est._spread
+        ws.noise, ws.gate = est.sigma**2, est.gate
+        ws.base[:] = [float(b) for b in est.base]
+        for name in ("lengths", "Wm", "Wc", "x", "P", "points", "u", "x_out", "P_out", "y", "S"):
+            setattr(ws, name, _pointer(getattr(self, name)))
+        ws.work = _pointer(self.work)
+        self.ref = ctypes.byref(ws)
+        # the arm matrices' addresses by dt (the estimator's cache keeps the arrays alive)
+        self._matrices: dict[int, tuple[Any, Any, Any]] = {}
+
+    def predict(
+        self, x: np.ndarray, P: np.ndarray, u: np.ndarray, dt: float
+    ) -> tuple[np.ndarray, np.ndarray]:
+        key = round(dt * 1e9)
+        pointers = self._matrices.get(key)
+        if pointers is None:
+            F, G, Q = (np.ascontiguousarray(m, dtype=float) for m in self.est._arm_matrices(dt))
+            self.est._arm_cache[key] = (F, G, Q)
+            pointers = self._matrices[key] = (_pointer(F), _pointer(G), _pointer(Q))
+        ws = self.ws
+        ws.F, ws.G, ws.Q = pointers
+        self.x[:], self.P[:], self.u[:] = x, P, u
+        self._predict_c(self.ref)
+        return self.x_out.copy(), self.P_out.copy()
+
+    def correct(
+        self, x: np.ndarray, P: np.ndarray, points: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, int, int] | None:
+        """The correction, or None where the numpy path must decide (no Cholesky factor)."""
+        self.x[:], self.P[:], self.points[:] = x, P, points
+        if self._correct_c(self.ref) != 0:
+            return None
+        ws = self.ws
+        if ws.measured == 0:
+            return x, P, ws.gated, 0
+        m = 2 * ws.measured
+        self.est.innovation = self.y[:m].copy()
+        self.est.innovation_covariance = self.S[: m * m].reshape(m, m).copy()
+        return self.x_out.copy(), self.P_out.copy(), ws.gated, ws.measured
+
+
+def _pointer(array: np.ndarray) -> Any:
+    assert array.dtype == np.float64 and array.flags.c_contiguous
+    return array.ctypes.data_as(ctypes.POINTER(ctypes.c_double))
 
 
 _INV: Any = None

@@ -51,11 +51,12 @@ def two_cores() -> bool:
 
 def check() -> None:
     """HilError naming the first softhil variable whose value is not one softhil reads."""
-    from controllers import ccodec
+    from controllers import ccodec, cukf
 
     kernel_enabled()
     kernel_thread()
     try:
         ccodec.setting()
+        cukf.setting()
     except ValueError as exc:
         raise HilError(str(exc)) from None

@@ -68,6 +68,8 @@ def test_non_editable_install_ships_fmu_sources_and_builds(tmp_path: Path) -> No
         "fmus/FeaSegment/model.c",
         "hil/cli/fmu.py",
         "hil/kernel/kernel.c",
+        "controllers/_ccodec.c",
+        "controllers/_cukf.c",
     ):
         assert (target / relative).is_file(), relative
     env = {**os.environ, "PYTHONPATH": str(target), "SOFTHIL_CACHE_DIR": str(tmp_path / "cache")}
