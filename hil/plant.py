@@ -16,6 +16,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import can
 
@@ -37,7 +38,7 @@ from controllers.protocol import (
     frame_key,
     frame_signals,
 )
-from hil.devices import SyncContext
+from hil.devices import DeviceNode, SyncContext
 from hil.errors import BusError, FmuError, ProtocolError
 from hil.master import Master
 from hil.recording import CanLogger, SignalRecorder
@@ -46,6 +47,16 @@ from hil.scenario import Scenario
 
 # frames only the plant sends: on its bus they come from an intruder (no bus echoes own frames)
 PLANT_FRAMES = (DriveStatus, CameraMarker, CameraMarker3D, CameraFrame, Emcy, Heartbeat)
+
+
+class _Route(NamedTuple):
+    """Where a received CAN id's frames go (`Plant._route`)."""
+
+    plant_frame: bool  # a frame only the plant sends: from another node, an intrusion
+    nodes: tuple[DeviceNode, ...]  # the device nodes that accept it
+    recorded: tuple[str, int | None] | None  # (kind, index) if the rig records its signals
+
+
 STARTUP_TIMEOUT = 60.0  # [s] wall clock for the controller's first SYNC
 # the periods an in-process run steps in turn, timed, before it chooses the kernel's worker
 # thread (a median of at least OVERLAP_MIN_COST [s] a period) or stays in turn
@@ -112,6 +123,7 @@ class Plant:
         self._overlap: float | None = None
         self._stepping_costs: list[float] = []  # [s] the first periods, stepped in turn, timed
         self._overlap_min_cost = OVERLAP_MIN_COST
+        self._routes: dict[int, _Route] = {}  # by CAN id (`_route`)
 
     def run(
         self,
@@ -255,7 +267,10 @@ class Plant:
                 self._start_ahead(self._overlap)
             return
         self.can_log.log(message, self.sim_time, received=True)
-        if isinstance(frame, PLANT_FRAMES):
+        route = self._routes.get(message.arbitration_id)
+        if route is None:
+            route = self._routes[message.arbitration_id] = self._route(frame)
+        if route.plant_frame:
             self._intrusion(
                 f"{type(frame).__name__} 0x{message.arbitration_id:03X} from another node at "
                 f"t = {self.sim_time:.3f} s: only the plant sends it"
@@ -272,14 +287,12 @@ class Plant:
                 )
                 return
             self._heard.add(heard)
-        accepted = False
-        for node in self.nodes:
-            if node.accepts(frame):
-                node.receive(frame)
-                accepted = True
-        if self._record_reported(frame):
-            accepted = True
-        if accepted:
+        for node in route.nodes:
+            node.receive(frame)
+        recorded = route.recorded is not None and self.signals.record_frame(
+            *route.recorded, frame_signals(frame)
+        )
+        if route.nodes or recorded:
             return
         if self.scenario.controller.policy == "strict":
             raise BusError(
@@ -297,13 +310,18 @@ class Plant:
         if not self.stats.first_intrusion:
             self.stats.first_intrusion = what
 
-    def _record_reported(self, frame: Frame) -> bool:
-        """Record what the controller reports about itself (the rig's frame-sourced signals);
-        True if the rig records this frame."""
+    def _route(self, frame: Frame) -> _Route:
+        """Where the frames of `frame`'s CAN id go: a CAN id always decodes to the same kind
+        and index, and a node accepts by those (`DeviceNode.accepts`), as a CAN controller's
+        acceptance filter does, so this is found once per id."""
         kind, index = frame_key(frame)
-        if not self.signals.records(kind, index):  # most frames: no need of their values
-            return False
-        return self.signals.record_frame(kind, index, frame_signals(frame))
+        return _Route(
+            isinstance(frame, PLANT_FRAMES),
+            tuple(node for node in self.nodes if node.accepts(frame)),
+            # what the controller reports about itself that the rig records (its
+            # frame-sourced signals): most frames, none
+            (kind, index) if self.signals.records(kind, index) else None,
+        )
 
     def _send(self, frames: list[Frame]) -> None:
         """Encode a SYNC's frames and send them in order, in one write where the bus can
