@@ -741,12 +741,7 @@ class Protocol:
             frame.signals if isinstance(frame, GenericFrame) else frame.__dict__
         )
         if entry.codec is not None:  # the checks below and the encoding, in one call
-            return can.Message(
-                arbitration_id=message.frame_id,
-                data=entry.codec.pack(given),
-                is_extended_id=False,
-                timestamp=timestamp,
-            )
+            return data_message(message.frame_id, entry.codec.pack(given), timestamp)
         signals: dict[str, Any] = {}
         for name, modulus in entry.plan:
             if name not in given:
@@ -805,6 +800,29 @@ class Protocol:
                 )
             kwargs[ftype.index_field] = entry.index
         return ftype.cls(**kwargs)
+
+
+_new = object.__new__
+
+
+def data_message(arbitration_id: int, data: bytes, timestamp: float) -> can.Message:
+    """`can.Message(arbitration_id=..., data=..., is_extended_id=False, timestamp=...)`, every
+    field the same, in a third of the time: a classic data frame with an 11-bit id whose data
+    the DBC codec made (its length the DBC's), so `can.Message`'s checks have nothing to find."""
+    m: can.Message = _new(can.Message)
+    m.timestamp = timestamp
+    m.arbitration_id = arbitration_id
+    m.is_extended_id = False
+    m.is_remote_frame = False
+    m.is_error_frame = False
+    m.channel = None
+    m.dlc = len(data)
+    m.data = bytearray(data)
+    m.is_fd = False
+    m.is_rx = True
+    m.bitrate_switch = False
+    m.error_state_indicator = False
+    return m
 
 
 def _plan(message: Message) -> tuple[tuple[str, int | None], ...]:

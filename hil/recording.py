@@ -33,6 +33,7 @@ from hil.results import RecordFile, WriteError, write_file
 from hil.robots import SignalSpec
 
 UNITS_SUFFIX = ".units.csv"
+_NUMBERS = (float, int)  # the types of a row's cells written by `",".join(map(repr, ...))`
 FLUSH_INTERVAL = 0.25  # [s] of wall time between flushes of the recorders
 
 
@@ -90,8 +91,16 @@ class SignalRecorder:
             return
         row = self._row
         values = [row.get(c, math.nan) for c in self.columns]
-        # a NaN float is an empty cell, everything else its repr (v != v: NaN, as math.isnan)
-        self._writer.writerow(["" if isinstance(v, float) and v != v else repr(v) for v in values])
+        # a NaN float is an empty cell, everything else its repr (v != v: NaN, as math.isnan).
+        # Numbers alone (the usual row): their reprs joined, which is what the csv writer
+        # writes for them (no repr of an int or a finite float has a character to quote)
+        line = ",".join(map(repr, values))
+        if "n" in line or not all(type(v) in _NUMBERS for v in values):  # nan, inf, or more
+            self._writer.writerow(
+                ["" if isinstance(v, float) and v != v else repr(v) for v in values]
+            )
+        else:
+            self._file.write(line + "\n")
         now = time.monotonic()
         if now - self._flushed > FLUSH_INTERVAL:  # blocks of whole records, not a write a SYNC
             self._file.flush()

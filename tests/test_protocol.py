@@ -715,3 +715,21 @@ def test_a_frame_finds_its_message_the_same_way_the_second_time() -> None:
     assert warm.encode(DriveStatus(3.0, **values)).arbitration_id == 0x183  # type: ignore[arg-type]
     with pytest.raises(FrameError, match=r"DriveStatus9: no such frame"):
         warm.encode(DriveStatus(9, **values))
+
+
+@pytest.mark.parametrize("data", [b"", b"\x01\x02\x03", bytes(range(8))])
+def test_data_message_is_can_message_field_for_field(data: bytes) -> None:
+    """The encoder's quick `can.Message` (no checks to pass again) has every field python-can's
+    constructor gives, of the same types."""
+    from controllers.protocol import data_message
+
+    quick = data_message(0x181, data, 1433116800.25)
+    made = can.Message(
+        arbitration_id=0x181, data=data, is_extended_id=False, timestamp=1433116800.25
+    )
+    fields = [name for name in can.Message.__slots__ if name != "__weakref__"]
+    assert len(fields) == 12
+    for name in fields:
+        assert getattr(quick, name) == getattr(made, name), name
+        assert type(getattr(quick, name)) is type(getattr(made, name)), name
+    assert quick.equals(made, check_channel=True, check_direction=True)
