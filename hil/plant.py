@@ -338,9 +338,7 @@ class Plant:
         except (can.CanError, OSError) as exc:
             ids = ", ".join(f"0x{m.arbitration_id:03X}" for m in messages)
             raise BusError(f"sending {ids}: {exc}") from exc
-        log = self.can_log.log
-        for message in messages:
-            log(message, at, received=False)
+        self.can_log.log_all(messages, at, received=False)
 
     def _step_ahead(self) -> None:
         """Step the physics to the next SYNC while the controller computes (a separate process).

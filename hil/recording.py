@@ -146,6 +146,7 @@ def require_asammdf(what: str) -> None:
 
 
 _FRAME_BITS = [frame_bits(dlc) for dlc in range(65)]  # by data length (CAN FD: up to 64)
+_DIRECTION = {False: " T\n", True: " R\n"}  # a candump line's end, by received
 
 
 class _AscWriter(can.ASCWriter):
@@ -205,10 +206,11 @@ class CanLogger:
         self._stamp = math.nan  # the last stamp written, and its "(seconds) channel " text
         self._stamp_text = ""
 
-    def _candump_line(self, message: can.Message, stamp: float, received: bool) -> str:
-        """The line CanutilsLogWriter writes for a classic data frame stamped `stamp` [s]: as it
-        does, a stamp before the log's first is written as the first. The frames of a SYNC
-        share a stamp, so its text is formatted once (a zero stamp always: -0.0 prints apart)."""
+    def _stamp_prefix(self, stamp: float) -> str:
+        """The "(seconds) channel " that CanutilsLogWriter writes before a frame stamped `stamp`
+        [s]: as it does, a stamp before the log's first is written as the first. The frames of a
+        SYNC share a stamp, so its text is formatted once (a zero stamp always: -0.0 prints
+        apart)."""
         if self._first_stamp is None:
             self._first_stamp = stamp or 0.0
         elif stamp < self._first_stamp:
@@ -216,14 +218,42 @@ class CanLogger:
         if stamp != self._stamp or stamp == 0.0:
             self._stamp = stamp
             self._stamp_text = f"({stamp:f}) {self._candump_channel} "
-        ident = self._idents.get((message.arbitration_id, message.is_extended_id))
+        return self._stamp_text
+
+    def _ident(self, message: can.Message) -> str:
+        """ "ID#" as CanutilsLogWriter writes it, remembered by (id, extended)."""
+        key = (message.arbitration_id, message.is_extended_id)
+        ident = self._idents.get(key)
         if ident is None:
             can_id = message.arbitration_id
             ident = f"{can_id:08X}#" if message.is_extended_id else f"{can_id:03X}#"
-            self._idents[(can_id, message.is_extended_id)] = ident
-        return (
-            f"{self._stamp_text}{ident}{message.data.hex().upper()}{' R' if received else ' T'}\n"
-        )
+            self._idents[key] = ident
+        return ident
+
+    def _candump_line(self, message: can.Message, stamp: float, received: bool) -> str:
+        """The line CanutilsLogWriter writes for a classic data frame stamped `stamp` [s]."""
+        prefix = self._stamp_prefix(stamp)
+        return f"{prefix}{self._ident(message)}{message.data.hex().upper()}{_DIRECTION[received]}"
+
+    def log_all(self, messages: Sequence[can.Message], time: float, received: bool) -> None:
+        """`log` of each message in turn (frames sent or received together, at one time)."""
+        if self._record is None:
+            for message in messages:
+                self.log(message, time, received)
+            return
+        prefix = self._stamp_prefix(self.start + time)
+        ident, idents, direction = self._ident, self._idents, _DIRECTION[received]
+        lines, bits = [], 0
+        for m in messages:
+            key = idents.get((m.arbitration_id, m.is_extended_id)) or ident(m)
+            lines.append(f"{prefix}{key}{m.data.hex().upper()}{direction}")
+            bits += _FRAME_BITS[len(m.data)]
+        self._record.write("".join(lines))
+        self.bits += bits
+        if received:
+            self.received += len(messages)
+        else:
+            self.sent += len(messages)
 
     def log(self, message: can.Message, time: float, received: bool) -> None:
         if self._record is not None:

@@ -79,3 +79,43 @@ def test_frames_sharing_a_stamp_and_signed_zeros(tmp_path: Path) -> None:
                 )
         assert lines[-1] == reference.read_text()
     assert lines[0].splitlines()[:2] == ["(0.000000) can0 080#07 T"] * 2
+
+
+def test_frames_logged_together_are_the_lines_of_frames_logged_one_by_one(
+    tmp_path: Path,
+) -> None:
+    """`log_all` (a SYNC's frames, sent at once) writes what `log` writes for each in turn, and
+    counts them alike, in a candump log and in a format python-can's writer writes."""
+    rng = random.Random(4)
+    groups = []
+    for k in range(60):
+        t = -0.25 if k == 7 else k * 0.01 + (0.005 if k % 5 == 0 else 0.0)
+        messages = [
+            can.Message(
+                arbitration_id=rng.randrange(0x800),
+                is_extended_id=False,
+                data=bytes(rng.randrange(256) for _ in range(rng.randrange(9))),
+            )
+            for _ in range(rng.randrange(4))  # none, now and then
+        ]
+        groups.append((messages, t, rng.random() < 0.5))
+    for suffix in (".log", ".asc"):
+        one, together = (
+            CanLogger(tmp_path / f"one{suffix}", 1e9),
+            CanLogger(tmp_path / f"together{suffix}", 1e9),
+        )
+        for messages, t, received in groups:
+            for message in messages:
+                one.log(message, t, received)
+            together.log_all(messages, t, received)
+        one.close()
+        together.close()
+        assert (tmp_path / f"one{suffix}").read_bytes() == (
+            tmp_path / f"together{suffix}"
+        ).read_bytes()
+        assert (one.sent, one.received, one.bits) == (
+            together.sent,
+            together.received,
+            together.bits,
+        )
+        assert one.sent > 20 and one.received > 20
