@@ -184,6 +184,9 @@ class Master:
         self._output_keys = {
             p.name: {n: f"{p.name}.{n}" for n in p.output_names()} for p in participants
         }
+        # participants whose step changes no output (none, or `outputs_hold`): a step publishes
+        # nothing new, so it is not published after one
+        self._held = {p.name for p in participants if _deferrable(p)}
         self.values: dict[str, float] = {}
         self._view = MappingProxyType(self.values)  # what observers get: read-only
         self._kernel: kernel_module.Kernel | None = None
@@ -485,7 +488,8 @@ class Master:
                 p.set_inputs(values)
             p.step(k * self.step, p.decimation * self.step)
         for p in due:
-            self._publish(p)
+            if p.name not in self._held:
+                self._publish(p)
 
     def _step_once(self) -> None:
         if self._kernel_synced:  # the kernel stepped last: hand its state back to Python
