@@ -719,19 +719,25 @@ def test_the_run_chooses_the_thread_by_the_kernels_stepping_time(
     assert result.summary["periods_on_kernel_thread"] == (30 - 12 if on_thread else 0)
 
 
+@pytest.mark.parametrize("decimation", [4, 1])
 def test_the_worker_keeps_each_instances_time_as_stepping_in_turn(
-    drive_cylinder_fmu: BuiltFmu,
+    drive_cylinder_fmu: BuiltFmu, decimation: int
 ) -> None:
-    """FmuSlave.time after a period on the worker thread is the one stepping in turn (or in
-    Python, FmuSlave.do_step) leaves: the end of the last step taken, decimation included."""
+    """FmuSlave.time after a period on the worker thread, or stepped in turn by the kernel, is
+    the one FmuSlave.do_step leaves in the Python master, bit for bit: the end of the last step
+    taken, decimation included."""
     times = []
-    for ahead in (True, False):
+    for ahead, kernel in ((True, True), (False, True), (False, False)):
         with FmuSlave(drive_cylinder_fmu, "a") as a, FmuSlave(drive_cylinder_fmu, "b") as b:
-            master = Master([FmuParticipant(a), FmuParticipant(b, 4)], [], H, kernel=True)
-            if ahead:
-                assert master.start_advance(10, 0.0)
-            master.advance_to(10)
+            master = Master(
+                [FmuParticipant(a), FmuParticipant(b, decimation)], [], H, kernel=kernel
+            )
+            for tick in (7, 10):
+                if ahead:
+                    assert master.start_advance(tick, 0.0)
+                master.advance_to(tick)
+                times.append((ahead, kernel, tick, a.time, b.time))
             master.settle()
-            times.append((a.time, b.time))
-    assert times[0] == times[1]
-    assert times[0] == pytest.approx((10 * H, 12 * H))
+    assert [t[2:] for t in times[:2]] == [t[2:] for t in times[2:4]] == [t[2:] for t in times[4:]]
+    last = -(-10 // decimation) * decimation
+    assert times[-1][3:] == pytest.approx((10 * H, last * H))
