@@ -180,6 +180,7 @@ class Plant:
                 if self.cycle != cycle:
                     self._step_ahead()
         finally:
+            self._count()
             self.stats.wall_time = time.perf_counter() - started
             self.signals.end_row()
             self.can_log.flush(force=True)
@@ -222,6 +223,7 @@ class Plant:
             try:
                 self.master.settle()  # no FMU steps on after the run, nor into a forked child
             finally:
+                self._count()
                 self.stats.wall_time = time.perf_counter() - started
                 self.signals.end_row()
                 self.can_log.flush(force=True)
@@ -404,12 +406,14 @@ class Plant:
             values = master.values
             row = {column: values[s] for column, s in self.sources}
             self.signals.begin_row(self.sim_time, row)
-        self._count()
         self.can_log.flush()
         if self.scenario.controller.policy == "strict":
+            self._count()
             self._strict(outgoing)
 
     def _count(self) -> None:
+        """The device nodes' counts into the stats: when the run ends, however it ends, and at
+        every SYNC under the strict policy (which stops on them)."""
         stats = self.stats
         stats.commands_missed = sum(getattr(n, "missed", 0) for n in self.nodes)
         stats.commands_stale = sum(getattr(n, "stale", 0) for n in self.nodes)
