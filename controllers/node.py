@@ -470,6 +470,7 @@ class ControllerNode:
         self._frames_taken = 0  # camera frames 0 .. _frames_taken - 1 are done with
         self._outbox: list[can.Message] = []  # encoded, not yet sent (`_flush`)
         self._outbox_time = 0.0
+        self._routes: dict[int, tuple[str, tuple[str, int | None]]] = {}  # by CAN id (`_route`)
 
     def _send(self, frame: Any, sim_time: float) -> None:
         """Queue one frame; `_flush` sends the queue in order."""
@@ -530,6 +531,24 @@ class ControllerNode:
         if not self.report.first_intrusion:
             self.report.first_intrusion = what
 
+    def _route(self, frame: Any) -> tuple[str, tuple[str, int | None]]:
+        """What `_collect` does with the frames of `frame`'s CAN id (a CAN id always decodes
+        to the same kind and index, so this is found once per id), and their (kind, index)."""
+        key = frame_key(frame)
+        if key[0] in self._status_kinds:
+            return _STATUS, key
+        if isinstance(frame, CameraMarker | CameraFrame):
+            return _CAMERA, key
+        if isinstance(frame, Emcy):
+            return _EMCY, key
+        if isinstance(frame, Heartbeat):
+            return _HEARTBEAT, key
+        if isinstance(frame, OWN_FRAMES) or (
+            isinstance(frame, GenericFrame) and frame.kind in OWN_KINDS
+        ):
+            return _OWN, key
+        return _OTHER, key
+
     def _collect(self, cycle: int, t: float) -> list[MarkerFrame]:
         """Receive until the cycle holds every status frame echoing it and every camera frame
         due by this SYNC; returns the camera frames completed, oldest first."""
@@ -580,8 +599,11 @@ class ControllerNode:
                     raise ControllerError(f"at SYNC {cycle}: {exc}") from exc
                 self.report.unknown_frames += 1
                 continue
-            key = frame_key(frame)
-            if key[0] in self._status_kinds:
+            route = self._routes.get(message.arbitration_id)
+            if route is None:
+                route = self._routes[message.arbitration_id] = self._route(frame)
+            what, key = route
+            if what is _STATUS:
                 # the echoed counter, without building every signal's value (frame_signals)
                 echo = int(
                     frame.signals["counter"] if isinstance(frame, GenericFrame) else frame.counter
@@ -602,15 +624,13 @@ class ControllerNode:
                     continue
                 self.status[key] = frame
                 needed.discard(key)
-            elif isinstance(frame, CameraMarker | CameraFrame):
+            elif what is _CAMERA:
                 self.camera.add(frame)
-            elif isinstance(frame, Emcy):
+            elif what is _EMCY:
                 self.report.emcy.append({"cycle": cycle, **asdict(frame)})
-            elif isinstance(frame, Heartbeat):
+            elif what is _HEARTBEAT:
                 continue
-            elif isinstance(frame, OWN_FRAMES) or (
-                isinstance(frame, GenericFrame) and frame.kind in OWN_KINDS
-            ):
+            elif what is _OWN:
                 # no bus echoes a sender's own frames: these come from another node
                 self._intrusion(
                     f"{type(frame).__name__} 0x{message.arbitration_id:03X} at SYNC {cycle} from "
@@ -634,6 +654,15 @@ class ControllerNode:
         return frames
 
 
+# what `_collect` does with a received frame (`ControllerNode._route`)
+_STATUS, _CAMERA, _EMCY, _HEARTBEAT, _OWN, _OTHER = (
+    "status",
+    "camera",
+    "emcy",
+    "heartbeat",
+    "own",
+    "other",
+)
 _SENDER = {"DriveStatus": "drive", "ValveStatus": "valve", "CanisterStatus": "canister"}
 
 

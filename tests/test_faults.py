@@ -363,9 +363,9 @@ def test_injected_commands_on_the_hub_from_a_second_client(tmp_path: Path) -> No
     try:
         wait_for(lambda: _listening(port), "the hub")
         run = hil_process(
-            # 5 s: long enough for the intruder to join after the first rows are on disk
-            # (the recorders flush in blocks of up to 0.25 s)
-            "run", str(scenario_file(tmp_path, 5.0, HOLD)), "--bus", f"loopback:127.0.0.1:{port}",
+            # 20 s: long enough for the intruder to join after the first rows are on disk
+            # (the recorders flush in blocks of up to 0.25 s), the run being 15-25x real time
+            "run", str(scenario_file(tmp_path, 20.0, HOLD)), "--bus", f"loopback:127.0.0.1:{port}",
             "--out", str(tmp_path / "run"), "--no-progress",
         )  # fmt: skip
         wait_for(lambda: rows(tmp_path / "run" / "signals.csv") > 2, "progress")
