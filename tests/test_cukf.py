@@ -104,17 +104,24 @@ def test_the_c_prediction_equals_numpys(segments: int) -> None:
 
 
 @needs_c
-def test_a_covariance_without_a_cholesky_factor_is_left_to_numpy() -> None:
-    """Rounding can leave P slightly indefinite; numpy's path then takes the symmetric square
-    root of its positive part. The C code declines, and the result is numpy's exactly."""
+@pytest.mark.parametrize("kind", ["indefinite", "singular"])
+def test_a_covariance_without_a_cholesky_factor_is_left_to_numpy(kind: str) -> None:
+    """Rounding can leave P slightly indefinite, and a state known exactly has a zero variance;
+    numpy's path then takes the symmetric square root of the positive part. The C code
+    declines (a zero pivot included), and the result is numpy's exactly."""
     est = estimator(2)
     x, P, points, _ = next(cases(est, 1, 3))
-    values, vectors = np.linalg.eigh(P)
-    values[0] = -1e-9
-    indefinite = (vectors * values) @ vectors.T
-    assert est._c is not None and est._c.correct(x, indefinite, points) is None
-    fast, slow = est._correct(x, indefinite, points), est._correct_numpy(x, indefinite, points)
-    assert fast[2:] == slow[2:]
+    if kind == "indefinite":
+        values, vectors = np.linalg.eigh(P)
+        values[0] = -1e-9
+        P = (vectors * values) @ vectors.T
+    else:
+        P = P.copy()
+        P[1, :] = P[:, 1] = 0.0  # theta_2 known exactly
+    assert est._c is not None and est._c.correct(x, P, points) is None
+    fast, slow = est._correct(x, P, points), est._correct_numpy(x, P, points)
+    assert fast[2:] == slow[2:] and slow[3] > 0
+    assert np.isfinite(fast[0]).all()
     np.testing.assert_array_equal(fast[0], slow[0])
     np.testing.assert_array_equal(fast[1], slow[1])
 

@@ -52,6 +52,10 @@ def scenario_file(tmp_path: Path, duration: float, *edits: tuple[str, str]) -> P
 
 
 HOLD = ('policy = "strict"', 'policy = "hold"')
+# [s] simulated, for the runs a test stops midway (a signal, a killed or frozen controller, a
+# killed hub): long enough that a run at 20-40x real time is still going when the test acts
+# after its first recorded rows (flushed every 0.25 s); stopped, it costs no more than a short one
+LONG = 100.0
 
 
 def readable(out: Path, can_log: str = "can.log") -> int:
@@ -489,7 +493,7 @@ def scenario_file_static(duration: float) -> Path:
 )
 def test_hil_run_signalled(tmp_path: Path, sig, code: int, line: str, status: str) -> None:
     out = tmp_path / "run"
-    run = hil_process("run", str(scenario_file(tmp_path, 10.0)), "--out", str(out), "--no-progress")  # noqa: E501
+    run = hil_process("run", str(scenario_file(tmp_path, LONG)), "--out", str(out), "--no-progress")  # noqa: E501
     wait_for(lambda: rows(out / "signals.csv") > 2, "progress")
     run.send_signal(sig)
     _, err = run.communicate(timeout=60)
@@ -499,11 +503,11 @@ def test_hil_run_signalled(tmp_path: Path, sig, code: int, line: str, status: st
     assert s["status"] == status and s["error"]
     # how far the run got: the rows recorded, and the same in the error's words
     reached = s["reached"]
-    assert reached["cycles"] == 1000 and 0 < reached["cycle"] < 1000, reached
+    assert reached["cycles"] == 10000 and 0 < reached["cycle"] < 10000, reached
     assert reached["time"] == pytest.approx(reached["cycle"] * 0.01)
     assert s["error"] == (
         f"{status} (SIG{sig.name[3:]}) at t = {reached['time']:.3f} s "
-        f"(after SYNC {reached['cycle']} of 1000)"
+        f"(after SYNC {reached['cycle']} of 10000)"
     )
     assert not (out / "controller.pid").exists() and not (out / hil.results.LOCK).exists()
     readable(out)
@@ -512,7 +516,7 @@ def test_hil_run_signalled(tmp_path: Path, sig, code: int, line: str, status: st
 @pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGTERM], ids=["KILL", "TERM"])
 def test_controller_killed(tmp_path: Path, sig) -> None:
     out = tmp_path / "run"
-    run = hil_process("run", str(scenario_file(tmp_path, 10.0)), "--out", str(out), "--no-progress")  # noqa: E501
+    run = hil_process("run", str(scenario_file(tmp_path, LONG)), "--out", str(out), "--no-progress")  # noqa: E501
     wait_for(lambda: rows(out / "signals.csv") > 2 and rows(out / "controller.pid") > 0, "progress")  # noqa: E501
     os.kill(int((out / "controller.pid").read_text()), sig)
     _, err = run.communicate(timeout=60)
@@ -522,7 +526,7 @@ def test_controller_killed(tmp_path: Path, sig) -> None:
     s = summary(out)
     assert s["status"] == "failed" and "controller exited" in s["error"]
     assert s["error"].endswith(f"stopped at t = {s['reached']['time']:.3f} s (after SYNC "
-                               f"{s['reached']['cycle']} of 1000)")  # fmt: skip
+                               f"{s['reached']['cycle']} of 10000)")  # fmt: skip
     readable(out)
 
 
@@ -530,7 +534,7 @@ def test_controller_frozen_times_out(tmp_path: Path) -> None:
     out = tmp_path / "run"
     short_wait = ('policy = "strict"', 'policy = "strict"\ntimeout = 0.5')
     run = hil_process(
-        "run", str(scenario_file(tmp_path, 10.0, short_wait)), "--out", str(out), "--no-progress"
+        "run", str(scenario_file(tmp_path, LONG, short_wait)), "--out", str(out), "--no-progress"
     )  # noqa: E501
     wait_for(lambda: rows(out / "signals.csv") > 2 and rows(out / "controller.pid") > 0, "progress")  # noqa: E501
     pid = int((out / "controller.pid").read_text())
@@ -554,7 +558,7 @@ def test_hub_killed_under_a_running_plant(tmp_path: Path) -> None:
     wait_for(lambda: _listening(port), "the hub")
     out = tmp_path / "run"
     run = hil_process(
-        "run", str(scenario_file(tmp_path, 10.0)), "--bus", f"loopback:127.0.0.1:{port}",
+        "run", str(scenario_file(tmp_path, LONG)), "--bus", f"loopback:127.0.0.1:{port}",
         "--out", str(out), "--no-progress",
     )  # fmt: skip
     wait_for(lambda: rows(out / "signals.csv") > 2, "progress")

@@ -55,7 +55,9 @@ def test_rows_are_what_the_csv_writer_writes_for_any_numbers(tmp_path: Path) -> 
     expected = io.StringIO()
     writer = csv.writer(expected, lineterminator="\n")
     writer.writerow(["time", *(s.column for s in specs)])
+    # the csv writer quotes a cell with a comma or a quote in it (a tuple's repr, a string's)
     odd = [math.inf, -math.inf, math.nan, True, np.float64(0.5), -0.0, 10**20, 1e-300, 7]
+    odd += [(1.0, 2.0), 'say "a,b"']
     for k in range(300):
         values = [float(v) for v in rng.normal(0.0, 10.0 ** rng.integers(-8, 8), 4)]
         if k % 3 == 0:
