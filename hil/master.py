@@ -450,7 +450,7 @@ class Master:
         for (e, due), row in zip(samplers, rows, strict=True):
             if e >= done:
                 break
-            sampled = dict(zip(self._slots, row, strict=True))  # by key, in slot order
+            sampled = _Row(row, self._slots)
             self._step_participants(e, due, [self._inputs(p.name, sampled) for p in due])
         self.tick = done
         if error is not None:
@@ -502,6 +502,22 @@ class Master:
         self.tick = k + 1
         for observer in self.observers:
             observer.observe(self.tick, self._view)
+
+
+class _Row(Mapping[str, float]):
+    """A row of values the kernel sampled, read by "participant.output" as Master.values is."""
+
+    def __init__(self, row: Sequence[float], slots: Mapping[str, int]) -> None:
+        self._row, self._slots = row, slots
+
+    def __getitem__(self, key: str) -> float:
+        return self._row[self._slots[key]]
+
+    def __iter__(self) -> Any:
+        return iter(self._slots)
+
+    def __len__(self) -> int:
+        return len(self._slots)
 
 
 def _deferrable(participant: Participant) -> bool:
