@@ -589,7 +589,19 @@ def _c_first(
             return python(x)
         return out
 
+    call.parts = (c_call, capsule, call)  # type: ignore[attr-defined]  # `_parts`
     return call
+
+
+def _no_c(capsule: Any, x: Any) -> None:
+    """The C half of `_parts` for a function without one: never the plain case."""
+
+
+def _parts(function: Callable[[Any], Any]) -> tuple[Callable[[Any, Any], Any], Any, Callable]:
+    """(C call, capsule, function) of a `_c_first` function, so that a caller calls C directly
+    and `function` only where C returns None; (a C call that always returns None, None,
+    function) for a Python-only one."""
+    return getattr(function, "parts", (_no_c, None, function))
 
 
 @dataclass(frozen=True)
@@ -628,6 +640,10 @@ class Protocol:
         self._by_key: dict[tuple[str, int | None], _Entry] = {}
         # the typed frames' generated decoders by CAN id, filled as ids are first decoded
         self._unpackers: dict[int, Callable[[Data], Frame]] = {}
+        # by CAN id: the encoders' `_parts`, and for the typed frames decoded before, the
+        # payload's length and their unpackers' `_parts` (`decode`'s first lines)
+        self._packs: dict[int, tuple[Callable[[Any, Any], Any], Any, Callable[[Any], Any]]] = {}
+        self._fast: dict[int, tuple[int, Callable[[Any, Any], Any], Any, Callable[[Any], Any]]] = {}
         # `_entry_of`'s memory: the index field of each typed frame class met, and the entry
         # of each (class, int index) met
         self._index_fields: dict[type, str | None] = {}
@@ -741,7 +757,12 @@ class Protocol:
             frame.signals if isinstance(frame, GenericFrame) else frame.__dict__
         )
         if entry.codec is not None:  # the checks below and the encoding, in one call
-            return data_message(message.frame_id, entry.codec.pack(given), timestamp)
+            parts = self._packs.get(message.frame_id)
+            if parts is None:
+                parts = self._packs[message.frame_id] = _parts(entry.codec.pack)
+            c_pack, capsule, pack = parts  # the C codec's plain case called directly
+            data = c_pack(capsule, given)
+            return data_message(message.frame_id, pack(given) if data is None else data, timestamp)
         signals: dict[str, Any] = {}
         for name, modulus in entry.plan:
             if name not in given:
@@ -764,6 +785,17 @@ class Protocol:
 
     def decode(self, msg: can.Message) -> Frame:
         """The frame of a received message; unknown ids and malformed data raise FrameError."""
+        fast = self._fast.get(msg.arbitration_id)  # a typed frame's id decoded before
+        if fast is not None:
+            length, c_unpack, capsule, unpack = fast
+            if (
+                len(msg.data) == length
+                and not msg.is_extended_id
+                and not msg.is_error_frame
+                and not msg.is_remote_frame
+            ):
+                frame = c_unpack(capsule, msg.data)
+                return unpack(msg.data) if frame is None else frame
         if msg.is_extended_id or msg.is_error_frame or msg.is_remote_frame:
             raise FrameError(f"unexpected extended/error/remote frame 0x{msg.arbitration_id:X}")
         entry = self._by_id.get(msg.arbitration_id)
@@ -783,6 +815,7 @@ class Protocol:
                 unpack = self._unpackers[msg.arbitration_id] = entry.codec.unpacker(
                     ftype, entry.index
                 )
+                self._fast[msg.arbitration_id] = (message.length, *_parts(unpack))
                 return unpack(msg.data)
             values = entry.codec.decode(msg.data)
         else:
