@@ -185,7 +185,8 @@ class Master:
             p.name: {n: f"{p.name}.{n}" for n in p.output_names()} for p in participants
         }
         # participants whose step changes no output (none, or `outputs_hold`): a step publishes
-        # nothing new, so it is not published after one
+        # nothing new, so it is not published after one, and it may be stepped after the FMUs'
+        # ticks (`start_advance`)
         self._held = {p.name for p in participants if _deferrable(p)}
         self.values: dict[str, float] = {}
         self._view = MappingProxyType(self.values)  # what observers get: read-only
@@ -407,13 +408,13 @@ class Master:
         for p in self._slow:
             d = p.decimation
             for e in range(-(-k // d) * d, tick, d):
-                if e > k and not _deferrable(p):
+                if e > k and p.name not in self._held:
                     return False  # its outputs may feed the FMUs inside the interval
                 due.setdefault(e, []).append(p)
         self._take_over()
         begin = k
         first = due.get(k, [])
-        if not all(_deferrable(p) for p in first):  # tick k in turn, as advance_to steps it
+        if not all(p.name in self._held for p in first):  # tick k in turn, as advance_to does
             inputs = [self.inputs_of(p.name) for p in first]
             self._kernel_advance(k, k + 1)
             self._step_participants(k, first, inputs)
