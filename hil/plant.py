@@ -32,6 +32,7 @@ from controllers.protocol import (
     Emcy,
     Frame,
     FrameError,
+    GenericFrame,
     Heartbeat,
     Protocol,
     Sync,
@@ -54,7 +55,7 @@ class _Route(NamedTuple):
 
     plant_frame: bool  # a frame only the plant sends: from another node, an intrusion
     nodes: tuple[DeviceNode, ...]  # the device nodes that accept it
-    recorded: tuple[str, int | None] | None  # (kind, index) if the rig records its signals
+    recorded: tuple[tuple[str, str], ...]  # the rig's recorded signals of it: (signal, column)
 
 
 STARTUP_TIMEOUT = 60.0  # [s] wall clock for the controller's first SYNC
@@ -291,10 +292,10 @@ class Plant:
             self._heard.add(heard)
         for node in route.nodes:
             node.receive(frame)
-        recorded = route.recorded is not None and self.signals.record_frame(
-            *route.recorded, frame_signals(frame)
-        )
-        if route.nodes or recorded:
+        if route.recorded:
+            signals = frame.signals if isinstance(frame, GenericFrame) else frame.__dict__
+            self.signals.set_cells([(column, signals[name]) for name, column in route.recorded])
+        if route.nodes or route.recorded:
             return
         if self.scenario.controller.policy == "strict":
             raise BusError(
@@ -321,8 +322,12 @@ class Plant:
             isinstance(frame, PLANT_FRAMES),
             tuple(node for node in self.nodes if node.accepts(frame)),
             # what the controller reports about itself that the rig records (its
-            # frame-sourced signals): most frames, none
-            (kind, index) if self.signals.records(kind, index) else None,
+            # frame-sourced signals; most frames, none): the columns of the frame's signals
+            tuple(
+                (name, column)
+                for name, column in self.signals.frame_columns(kind, index)
+                if name in frame_signals(frame)
+            ),
         )
 
     def _send(self, frames: list[Frame]) -> None:

@@ -21,7 +21,7 @@ import csv
 import io
 import math
 import time
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import TextIO, cast
 
@@ -71,20 +71,15 @@ class SignalRecorder:
         self.end_row()
         self._row = {"time": time, **values}
 
-    def records(self, kind: str, index: int | None) -> bool:
-        """Whether any signal of frame (kind, index) has a column."""
-        return (kind, index) in self._by_frame
+    def frame_columns(self, kind: str, index: int | None) -> list[tuple[str, str]]:
+        """(signal, column) of every recorded signal of frame (kind, index)."""
+        return list(self._by_frame.get((kind, index), ()))
 
-    def record_frame(self, kind: str, index: int | None, values: dict[str, float]) -> bool:
-        """Values a frame reported (the controller's state), for the open row; True if any of
-        the frame's signals is recorded."""
-        recorded = False
-        for name, column in self._by_frame.get((kind, index), ()):
-            if name in values:
-                recorded = True
-                if self._row is not None:
-                    self._row[column] = values[name]
-        return recorded
+    def set_cells(self, cells: Iterable[tuple[str, float]]) -> None:
+        """(column, value) pairs into the open row: what a frame reported (the controller's
+        state), its columns looked up once (`frame_columns`)."""
+        if self._row is not None:
+            self._row.update(cells)
 
     def end_row(self) -> None:
         if self._row is None:

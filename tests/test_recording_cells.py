@@ -1,5 +1,6 @@
 """The signals CSV's cells: a value's repr, an empty cell for NaN or a column nobody filled;
-frame-sourced columns filled from the frame they name only (hil/recording.py).
+frame-sourced columns filled from the frame they name only (hil/recording.py; the plant fills
+them from the frames it receives, tests/test_house.py).
 
 Invariant checked: equal rows give equal bytes (repr round-trips every float), and a missing
 value is an empty cell, not "nan".
@@ -23,14 +24,18 @@ def test_cells_and_frame_columns(tmp_path: Path) -> None:
         SignalSpec("kappa_ref2", "1/m", "reference 2", frame=("ControllerState", 2, "kappa_ref")),
     ]
     recorder = SignalRecorder(tmp_path / "signals.csv", specs)
-    assert recorder.records("ControllerState", 1)
-    assert not recorder.records("ControllerState", 3) and not recorder.records("DriveStatus", 1)
+    assert recorder.frame_columns("ControllerState", 1) == [
+        ("kappa_ref", "kappa_ref"),
+        ("kappa_est", "kappa_est"),
+    ]
+    assert recorder.frame_columns("ControllerState", 2) == [("kappa_ref", "kappa_ref2")]
+    assert recorder.frame_columns("ControllerState", 3) == []
+    assert recorder.frame_columns("DriveStatus", 1) == []
+    recorder.set_cells([("kappa_ref", 9.0)])  # no open row: nothing to fill
     recorder.begin_row(0.01, {"kappa": 0.1 + 0.2, "fault": 3})
-    # a frame with no recorded signal changes nothing; kappa_est is not given
-    assert not recorder.record_frame("ControllerState", 3, {"kappa_ref": 5.0})
-    assert not recorder.record_frame("ControllerState", 2, {"counter": 7})
-    assert recorder.record_frame("ControllerState", 2, {"kappa_ref": 4.0})
-    assert recorder.record_frame("ControllerState", 1, {"kappa_ref": -2.5, "counter": 7})
+    # kappa_est is not given
+    recorder.set_cells([("kappa_ref2", 4.0)])
+    recorder.set_cells([("kappa_ref", -2.5)])
     recorder.begin_row(0.02, {"kappa": math.nan, "fault": 0})  # ends the first row
     recorder.close()
     lines = (tmp_path / "signals.csv").read_text().splitlines()
