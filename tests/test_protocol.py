@@ -369,17 +369,28 @@ def test_decoding_an_unknown_id(protocol: Protocol, frame_id: int, text: str) ->
         protocol.decode(message)
 
 
+def _with_data(message: can.Message) -> can.Message:
+    message.data = bytearray(8)
+    return message
+
+
 @pytest.mark.parametrize(
     "message",
     [
         can.Message(arbitration_id=0x181, data=bytes(8), is_extended_id=True),
         can.Message(arbitration_id=0x181, is_remote_frame=True, dlc=8, is_extended_id=False),
         can.Message(arbitration_id=0x181, is_error_frame=True, is_extended_id=False),
+        # with the id's length of data, set after python-can built them
+        _with_data(can.Message(arbitration_id=0x181, is_remote_frame=True, is_extended_id=False)),
+        _with_data(can.Message(arbitration_id=0x181, is_error_frame=True, is_extended_id=False)),
     ],
 )
-def test_extended_remote_and_error_frames_are_rejected(
-    protocol: Protocol, message: can.Message
-) -> None:
+@pytest.mark.parametrize("warm", [False, True])
+def test_extended_remote_and_error_frames_are_rejected(message: can.Message, warm: bool) -> None:
+    """Also once the id has been decoded before (`decode`'s quick path)."""
+    protocol = Protocol()
+    if warm:
+        protocol.decode(protocol.encode(DriveStatus(1, 0.01, 0.0, 0.0, 0, 0)))
     with pytest.raises(FrameError, match="0x181"):
         protocol.decode(message)
 
@@ -458,8 +469,14 @@ def test_candump_log_written_by_python_can_decodes_with_cantools(
     assert protocol.decode(message) == DriveStatus(2, piston, 1000.0, -2000.0, 3, 17)
 
 
-def test_marker_frame_whose_id_disagrees_with_its_can_id_is_rejected() -> None:
+@pytest.mark.parametrize("warm", [False, True])
+def test_marker_frame_whose_id_disagrees_with_its_can_id_is_rejected(warm: bool) -> None:
+    """Also once the id has been decoded before (`decode`'s quick path: the C codec declines,
+    the Python path says why)."""
     protocol = Protocol()
+    if warm:
+        genuine = protocol.encode(CameraMarker(3, 0.1, 0.2, 1, 0.006))
+        assert protocol.decode(genuine) == protocol.decode(genuine)
     message = protocol.encode(CameraMarker(5, 0.1, 0.2, 1, 0.006))
     forged = can.Message(arbitration_id=0x283, data=message.data, is_extended_id=False)
     with pytest.raises(FrameError, match=r"CameraMarker3 \(0x283\): marker_id 5 does not match"):

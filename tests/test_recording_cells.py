@@ -72,3 +72,25 @@ def test_rows_are_what_the_csv_writer_writes_for_any_numbers(tmp_path: Path) -> 
         writer.writerow(["" if isinstance(v, float) and v != v else repr(v) for v in row])
     recorder.close()
     assert (tmp_path / "signals.csv").read_text() == expected.getvalue()
+
+
+def test_the_plant_records_a_frames_signals_only(tmp_path: Path) -> None:
+    """A received frame fills the columns of its own DBC signals: a column that names a field
+    which is not one (the index, carried by the CAN id) or a signal of another frame stays
+    empty, and a frame with no recorded signal is not recorded."""
+    from types import SimpleNamespace
+
+    from controllers.protocol import ControllerState
+    from hil.plant import Plant
+
+    specs = [
+        SignalSpec("kappa_ref", "1/m", "reference", frame=("ControllerState", 1, "kappa_ref")),
+        SignalSpec("node", "", "not a signal", frame=("ControllerState", 1, "node")),
+        SignalSpec("kappa_ref2", "1/m", "reference 2", frame=("ControllerState", 2, "kappa_ref")),
+    ]
+    recorder = SignalRecorder(tmp_path / "signals.csv", specs)
+    plant = SimpleNamespace(nodes=[], signals=recorder)
+    route = Plant._route(plant, ControllerState(1, 2.5, 0.5, 7))  # type: ignore[arg-type]
+    assert route.recorded == (("kappa_ref", "kappa_ref"),) and route.nodes == ()
+    assert Plant._route(plant, ControllerState(3, 2.5, 0.5, 7)).recorded == ()  # type: ignore[arg-type]
+    recorder.close()
