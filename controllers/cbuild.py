@@ -47,6 +47,33 @@ def cache_folder(folder: Path, error: type[Exception] = CompileError) -> Path:
     return folder
 
 
+# a shared library of plain C11, its exports marked, every warning an error; a * b + c in two
+# roundings, as Python computes it (no fused multiply-add), so its bits are the same on every host
+LIBRARY_FLAGS = (
+    "-std=c11",
+    "-O2",
+    "-fPIC",
+    "-shared",
+    "-fvisibility=hidden",
+    "-ffp-contract=off",
+    "-Wall",
+    "-Wextra",
+    "-Werror",
+)
+
+
+def c_or_python(variable: str, c_means: str, python_means: str = "") -> str:
+    """The setting ${variable}: "c" (unset or empty: `c_means`, the default) or "python" (case
+    and spaces aside); ValueError naming the variable for any other value."""
+    value = os.environ.get(variable, "").strip().lower() or "c"
+    if value not in ("c", "python"):
+        raise ValueError(
+            f"{variable}={os.environ[variable]!r}: must be c ({c_means}, the default) or "
+            f"python{python_means}"
+        )
+    return value
+
+
 def compiler() -> str:
     """The C compiler command: $CC or gcc."""
     return os.environ.get("CC", "gcc")

@@ -19,28 +19,17 @@ from __future__ import annotations
 import importlib.machinery
 import importlib.util
 import logging
-import os
 import sys
 import sysconfig
 import threading
 from pathlib import Path
 from types import ModuleType
 
-from controllers.cbuild import CompileError, compile_library
+from controllers.cbuild import LIBRARY_FLAGS, CompileError, c_or_python, compile_library
 
 SOURCE = Path(__file__).with_name("_ccodec.c")
 MODULE = "_softhil_ccodec"
-FLAGS = (
-    "-std=c11",
-    "-O2",
-    "-fPIC",
-    "-shared",
-    "-fvisibility=hidden",
-    "-ffp-contract=off",  # a * b + c in two roundings, as Python computes it
-    "-Wall",
-    "-Wextra",
-    "-Werror",
-)
+FLAGS = LIBRARY_FLAGS
 ENV = "SOFTHIL_CODEC"  # "python": never use the C codec
 
 _log = logging.getLogger(__name__)
@@ -67,13 +56,7 @@ def _build() -> Path:
 def setting() -> str:
     """SOFTHIL_CODEC: "c" (unset or empty: the C codec wherever it builds) or "python";
     ValueError naming the variable for any other value."""
-    value = os.environ.get(ENV, "").strip().lower() or "c"
-    if value not in ("c", "python"):
-        raise ValueError(
-            f"{ENV}={os.environ[ENV]!r}: must be c (the C codec where it builds, the default) "
-            "or python"
-        )
-    return value
+    return c_or_python(ENV, "the C codec where it builds")
 
 
 def load() -> ModuleType | None:

@@ -17,25 +17,13 @@ from __future__ import annotations
 
 import ctypes
 import logging
-import os
 import threading
 from pathlib import Path
 
-from controllers.cbuild import CompileError, compile_library
+from controllers.cbuild import LIBRARY_FLAGS, CompileError, c_or_python, compile_library
 
 SOURCE = Path(__file__).with_name("_cukf.c")
-FLAGS = (
-    "-std=c11",
-    "-O2",
-    "-fPIC",
-    "-shared",
-    "-fvisibility=hidden",
-    "-ffp-contract=off",  # a * b + c in two roundings on every host
-    "-Wall",
-    "-Wextra",
-    "-Werror",
-    "-lm",
-)
+FLAGS = (*LIBRARY_FLAGS, "-lm")
 ENV = "SOFTHIL_UKF"  # "python": the UKF in numpy only
 
 _Ptr = ctypes.POINTER(ctypes.c_double)
@@ -85,13 +73,7 @@ _lock = threading.Lock()
 def setting() -> str:
     """SOFTHIL_UKF: "c" (unset or empty: C wherever it builds) or "python"; ValueError naming
     the variable for any other value."""
-    value = os.environ.get(ENV, "").strip().lower() or "c"
-    if value not in ("c", "python"):
-        raise ValueError(
-            f"{ENV}={os.environ[ENV]!r}: must be c (the UKF's algebra in C where it builds, the "
-            "default) or python (numpy)"
-        )
-    return value
+    return c_or_python(ENV, "the UKF's algebra in C where it builds", " (numpy)")
 
 
 def load() -> ctypes.CDLL | None:
