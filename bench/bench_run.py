@@ -451,8 +451,8 @@ def budget_wrappers(budget: LayerBudget) -> None:
         (CameraNode, ("step", "act"), "camera"),
         (Protocol, ("encode", "decode"), "codec"),
         (DirectBus, ("send", "recv"), "bus"),
-        (CanLogger, ("log", "flush"), "recording"),
-        (SignalRecorder, ("begin_row", "record_frame", "end_row"), "recording"),
+        (CanLogger, ("log", "log_all", "flush"), "recording"),
+        (SignalRecorder, ("begin_row", "set_cells", "end_row"), "recording"),
         (Plant, ("handle",), "plant node"),
         (ControllerNode, ("_collect", "_send", "_flush"), "controller node"),
     ):
