@@ -62,26 +62,33 @@ static int cholesky(int n, const double *A, double *L) {
     return 0;
 }
 
-/* x_out = F x + G u, P_out = F P F' + Q symmetrised. */
+/* x_out = F x + G u, P_out = F P F' + Q symmetrised. The arm's F is block diagonal (each
+ * segment's theta and omega) and G has one entry a column: the terms of F's and G's zeros are
+ * skipped, which leaves every sum as the dense loop forms it (a zero term adds nothing) and
+ * costs a sixth of the products on six segments. */
 EXPORT int softhil_ukf_predict(struct softhil_ukf *f) {
     const int N = f->segments, n = 2 * N;
     double *FP = f->work; /* n x n */
     for (int i = 0; i < n; i++) {
         double s = 0.0;
-        for (int k = 0; k < n; k++) s += f->F[i * n + k] * f->x[k];
+        for (int k = 0; k < n; k++)
+            if (f->F[i * n + k] != 0.0) s += f->F[i * n + k] * f->x[k];
         double g = 0.0;
-        for (int k = 0; k < N; k++) g += f->G[i * N + k] * f->u[k];
+        for (int k = 0; k < N; k++)
+            if (f->G[i * N + k] != 0.0) g += f->G[i * N + k] * f->u[k];
         f->x_out[i] = s + g;
-        for (int j = 0; j < n; j++) {
-            double t = 0.0;
-            for (int k = 0; k < n; k++) t += f->F[i * n + k] * f->P[k * n + j];
-            FP[i * n + j] = t;
+        for (int j = 0; j < n; j++) FP[i * n + j] = 0.0;
+        for (int k = 0; k < n; k++) {
+            const double a = f->F[i * n + k];
+            if (a == 0.0) continue;
+            for (int j = 0; j < n; j++) FP[i * n + j] += a * f->P[k * n + j];
         }
     }
     for (int i = 0; i < n; i++)
         for (int j = 0; j < n; j++) {
             double t = 0.0;
-            for (int k = 0; k < n; k++) t += FP[i * n + k] * f->F[j * n + k];
+            for (int k = 0; k < n; k++)
+                if (f->F[j * n + k] != 0.0) t += FP[i * n + k] * f->F[j * n + k];
             f->P_out[i * n + j] = t + f->Q[i * n + j];
         }
     for (int i = 0; i < n; i++)

@@ -561,7 +561,7 @@ class ArmUnscentedEstimator(_LatencyFilter):
 
     def _read(self, x: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         n = self.segments
-        return x[:n], x[n:], np.diag(P)[:n]
+        return x[:n], x[n:], P.diagonal()[:n]
 
 
 class _CUkf:
