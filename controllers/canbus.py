@@ -24,6 +24,7 @@ import socket
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import can
 
@@ -242,6 +243,42 @@ def failure_text(exc: BaseException) -> str:
     the text of its CanError; keep what precedes it."""
     text = str(exc).split("Traceback", 1)[0]
     return " ".join(text.split()) or type(exc).__name__
+
+
+_new = object.__new__
+
+
+def unchecked_message(
+    timestamp: float,
+    arbitration_id: int,
+    is_extended_id: bool,
+    is_remote_frame: bool,
+    is_error_frame: bool,
+    channel: Any,
+    dlc: int,
+    data: bytearray,
+    is_fd: bool,
+    is_rx: bool,
+    bitrate_switch: bool,
+    error_state_indicator: bool,
+) -> can.Message:
+    """A `can.Message` with every field given, in a third of the time of its constructor, whose
+    checks a message built from another one's fields, or from the DBC codec's bytes, need not
+    pass again (the data a bytearray, as the constructor keeps it)."""
+    m: can.Message = _new(can.Message)
+    m.timestamp = timestamp
+    m.arbitration_id = arbitration_id
+    m.is_extended_id = is_extended_id
+    m.is_remote_frame = is_remote_frame
+    m.is_error_frame = is_error_frame
+    m.channel = channel
+    m.dlc = dlc
+    m.data = data
+    m.is_fd = is_fd
+    m.is_rx = is_rx
+    m.bitrate_switch = bitrate_switch
+    m.error_state_indicator = error_state_indicator
+    return m
 
 
 def send_all(bus: can.BusABC, messages: Sequence[can.Message]) -> None:

@@ -599,11 +599,10 @@ class _CUkf:
     def predict(
         self, x: np.ndarray, P: np.ndarray, u: np.ndarray, dt: float
     ) -> tuple[np.ndarray, np.ndarray]:
-        key = round(dt * 1e9)
+        key = round(dt * 1e9)  # as `_arm_matrices` keys its cache, which keeps the arrays
         pointers = self._matrices.get(key)
         if pointers is None:
-            F, G, Q = (np.ascontiguousarray(m, dtype=float) for m in self.est._arm_matrices(dt))
-            self.est._arm_cache[key] = (F, G, Q)
+            F, G, Q = self.est._arm_matrices(dt)
             pointers = self._matrices[key] = (_pointer(F), _pointer(G), _pointer(Q))
         ws = self.ws
         ws.F, ws.G, ws.Q = pointers

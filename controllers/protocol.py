@@ -33,6 +33,7 @@ import cantools
 from cantools.database.can import Database, Message
 
 from controllers import ccodec
+from controllers.canbus import unchecked_message
 
 DBC_PATH = Path(str(files("controllers") / "softhil.dbc"))
 Data = bytes | bytearray  # a frame's payload: python-can gives either
@@ -638,10 +639,8 @@ class Protocol:
         self._by_id: dict[int, _Entry] = {}
         self._by_name: dict[str, _Entry] = {}
         self._by_key: dict[tuple[str, int | None], _Entry] = {}
-        # the typed frames' generated decoders by CAN id, filled as ids are first decoded
-        self._unpackers: dict[int, Callable[[Data], Frame]] = {}
         # by CAN id: the encoders' `_parts`, and for the typed frames decoded before, the
-        # payload's length and their unpackers' `_parts` (`decode`'s first lines)
+        # payload's length and their generated decoders' `_parts` (`decode`'s first lines)
         self._packs: dict[int, tuple[Callable[[Any, Any], Any], Any, Callable[[Any], Any]]] = {}
         self._fast: dict[int, tuple[int, Callable[[Any, Any], Any], Any, Callable[[Any], Any]]] = {}
         # `_entry_of`'s memory: the index field of each typed frame class met, and the entry
@@ -806,15 +805,10 @@ class Protocol:
             raise _frame_error(
                 message, f"{len(msg.data)} data bytes, the DBC says {message.length}"
             )
-        unpack = self._unpackers.get(msg.arbitration_id)
-        if unpack is not None:
-            return unpack(msg.data)
         ftype = entry.type
         if entry.codec is not None:
-            if ftype is not None:  # decoded and built in one call, from now on
-                unpack = self._unpackers[msg.arbitration_id] = entry.codec.unpacker(
-                    ftype, entry.index
-                )
+            if ftype is not None:  # decoded and built in one call, from now on (`_fast`)
+                unpack = entry.codec.unpacker(ftype, entry.index)
                 self._fast[msg.arbitration_id] = (message.length, *_parts(unpack))
                 return unpack(msg.data)
             values = entry.codec.decode(msg.data)
@@ -835,27 +829,14 @@ class Protocol:
         return ftype.cls(**kwargs)
 
 
-_new = object.__new__
-
-
 def data_message(arbitration_id: int, data: bytes, timestamp: float) -> can.Message:
     """`can.Message(arbitration_id=..., data=..., is_extended_id=False, timestamp=...)`, every
     field the same, in a third of the time: a classic data frame with an 11-bit id whose data
     the DBC codec made (its length the DBC's), so `can.Message`'s checks have nothing to find."""
-    m: can.Message = _new(can.Message)
-    m.timestamp = timestamp
-    m.arbitration_id = arbitration_id
-    m.is_extended_id = False
-    m.is_remote_frame = False
-    m.is_error_frame = False
-    m.channel = None
-    m.dlc = len(data)
-    m.data = bytearray(data)
-    m.is_fd = False
-    m.is_rx = True
-    m.bitrate_switch = False
-    m.error_state_indicator = False
-    return m
+    return unchecked_message(
+        timestamp, arbitration_id, False, False, False, None, len(data), bytearray(data),
+        False, True, False, False,
+    )  # fmt: skip
 
 
 def _plan(message: Message) -> tuple[tuple[str, int | None], ...]:

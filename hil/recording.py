@@ -192,7 +192,7 @@ class CanLogger:
         self.sent = 0
         self.received = 0
         self.bits = 0
-        # candump lines are written here directly (`_candump_line`), as python-can's
+        # candump lines are written here directly (`log_all`), as python-can's
         # CanutilsLogWriter writes them (checked byte for byte in the tests) without building a
         # message per frame; its channel rule: a bare number n is "can<n>"
         self._candump_channel = f"can{channel}" if channel.isdigit() else channel
@@ -225,23 +225,18 @@ class CanLogger:
             self._idents[key] = ident
         return ident
 
-    def _candump_line(self, message: can.Message, stamp: float, received: bool) -> str:
-        """The line CanutilsLogWriter writes for a classic data frame stamped `stamp` [s]."""
-        prefix = self._stamp_prefix(stamp)
-        return f"{prefix}{self._ident(message)}{message.data.hex().upper()}{_DIRECTION[received]}"
-
     def log_all(self, messages: Sequence[can.Message], time: float, received: bool) -> None:
         """`log` of each message in turn (frames sent or received together, at one time)."""
         if self._record is None:
             for message in messages:
-                self.log(message, time, received)
+                self._write(message, time, received)
             return
+        # the lines CanutilsLogWriter writes for classic data frames
         prefix = self._stamp_prefix(self.start + time)
-        ident, idents, direction = self._ident, self._idents, _DIRECTION[received]
+        ident, direction = self._ident, _DIRECTION[received]
         lines, bits = [], 0
         for m in messages:
-            key = idents.get((m.arbitration_id, m.is_extended_id)) or ident(m)
-            lines.append(f"{prefix}{key}{m.data.hex().upper()}{direction}")
+            lines.append(f"{prefix}{ident(m)}{m.data.hex().upper()}{direction}")
             bits += _FRAME_BITS[len(m.data)]
         self._record.write("".join(lines))
         self.bits += bits
@@ -251,10 +246,11 @@ class CanLogger:
             self.sent += len(messages)
 
     def log(self, message: can.Message, time: float, received: bool) -> None:
-        if self._record is not None:
-            self._record.write(self._candump_line(message, self.start + time, received))
-            self._count(message, received)
-            return
+        """One frame the plant sent (T) or received (R), stamped start + `time`."""
+        self.log_all((message,), time, received)
+
+    def _write(self, message: can.Message, time: float, received: bool) -> None:
+        """One frame through python-can's writer for the log's suffix."""
         stamped = can.Message(
             timestamp=self.start + time,
             arbitration_id=message.arbitration_id,
@@ -267,9 +263,6 @@ class CanLogger:
             self._writer.on_message_received(stamped)
         except OSError as exc:
             raise WriteError(f"{self.path}: cannot write: {exc.strerror or exc}") from None
-        self._count(message, received)
-
-    def _count(self, message: can.Message, received: bool) -> None:
         self.bits += _FRAME_BITS[len(message.data)]
         if received:
             self.received += 1
