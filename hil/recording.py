@@ -239,15 +239,27 @@ class CanLogger:
             lines.append(f"{prefix}{ident(m)}{m.data.hex().upper()}{direction}")
             bits += _FRAME_BITS[len(m.data)]
         self._record.write("".join(lines))
-        self.bits += bits
-        if received:
-            self.received += len(messages)
-        else:
-            self.sent += len(messages)
+        self._count(bits, len(messages), received)
 
     def log(self, message: can.Message, time: float, received: bool) -> None:
-        """One frame the plant sent (T) or received (R), stamped start + `time`."""
-        self.log_all((message,), time, received)
+        """One frame the plant sent (T) or received (R), stamped start + `time`: `log_all`'s
+        line, without its list (a received frame is logged as it comes)."""
+        if self._record is None:
+            self._write(message, time, received)
+            return
+        prefix = self._stamp_prefix(self.start + time)
+        data = message.data
+        self._record.write(
+            f"{prefix}{self._ident(message)}{data.hex().upper()}{_DIRECTION[received]}"
+        )
+        self._count(_FRAME_BITS[len(data)], 1, received)
+
+    def _count(self, bits: int, frames: int, received: bool) -> None:
+        self.bits += bits
+        if received:
+            self.received += frames
+        else:
+            self.sent += frames
 
     def _write(self, message: can.Message, time: float, received: bool) -> None:
         """One frame through python-can's writer for the log's suffix."""
@@ -263,11 +275,7 @@ class CanLogger:
             self._writer.on_message_received(stamped)
         except OSError as exc:
             raise WriteError(f"{self.path}: cannot write: {exc.strerror or exc}") from None
-        self.bits += _FRAME_BITS[len(message.data)]
-        if received:
-            self.received += 1
-        else:
-            self.sent += 1
+        self._count(_FRAME_BITS[len(message.data)], 1, received)
 
     def flush(self, force: bool = False) -> None:
         """Whole records on disk, in blocks (every FLUSH_INTERVAL of wall time, or now with
