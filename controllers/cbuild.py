@@ -10,12 +10,17 @@ flags, salt, source), and it appears in the cache only whole (built privately, r
 from __future__ import annotations
 
 import hashlib
+import importlib.machinery
+import importlib.util
 import os
 import shutil
 import subprocess
+import sys
+import sysconfig
 import tempfile
 from collections.abc import Sequence
 from pathlib import Path
+from types import ModuleType
 
 
 class CompileError(RuntimeError):
@@ -118,3 +123,27 @@ def compile_library(
             raise error(f"compiling {c_file.name} failed: {first}")
         os.replace(built, target)  # atomic: a concurrent build of the same digest is identical
     return target
+
+
+def compile_extension(kind: str, stem: str, source: Path | str, flags: Sequence[str]) -> Path:
+    """A CPython extension module compiled from one C `source` against this Python's headers
+    (`compile_library` keyed also by the Python it is built for); CompileError if it cannot be
+    (no Python.h among them, a compiler error)."""
+    include = sysconfig.get_paths()["include"]
+    if not (Path(include) / "Python.h").is_file():
+        raise CompileError(f"no Python.h in {include} (install the Python headers)")
+    suffix = (importlib.machinery.EXTENSION_SUFFIXES or [".so"])[0]
+    salt = f"{sys.version} {sys.platform}"  # the ABI it is built for
+    return compile_library(kind, stem, source, (*flags, f"-I{include}"), salt=salt, suffix=suffix)
+
+
+def import_extension(name: str, target: Path) -> ModuleType:
+    """The extension module `name` loaded from the file `target` (ImportError if it does not
+    load: a damaged cache entry, which the caller builds again)."""
+    loader = importlib.machinery.ExtensionFileLoader(name, str(target))
+    spec = importlib.util.spec_from_file_location(name, target, loader=loader)
+    if spec is None:
+        raise ImportError(f"{target}: not loadable")
+    module = importlib.util.module_from_spec(spec)
+    loader.exec_module(module)
+    return module

@@ -16,16 +16,18 @@ there. Without a compiler or the headers, or with
 
 from __future__ import annotations
 
-import importlib.machinery
-import importlib.util
 import logging
-import sys
-import sysconfig
 import threading
 from pathlib import Path
 from types import ModuleType
 
-from controllers.cbuild import LIBRARY_FLAGS, CompileError, c_or_python, compile_library
+from controllers.cbuild import (
+    LIBRARY_FLAGS,
+    CompileError,
+    c_or_python,
+    compile_extension,
+    import_extension,
+)
 
 SOURCE = Path(__file__).with_name("_ccodec.c")
 MODULE = "_softhil_ccodec"
@@ -38,19 +40,10 @@ _failure: str | None = None  # why the C codec is not available, once tried
 _lock = threading.Lock()  # one build and one load, whichever thread asks first
 
 
-def _include() -> str:
-    return sysconfig.get_paths()["include"]
-
-
 def _build() -> Path:
     """The module in the softhil cache, compiled if it is not there (CompileError if it cannot
     be: no compiler, no Python.h, a compiler error)."""
-    if not (Path(_include()) / "Python.h").is_file():
-        raise CompileError(f"no Python.h in {_include()} (install the Python headers)")
-    suffix = (importlib.machinery.EXTENSION_SUFFIXES or [".so"])[0]
-    flags = (*FLAGS, f"-I{_include()}")
-    salt = f"{sys.version} {sys.platform}"  # the ABI it is built for
-    return compile_library("codec", "ccodec", SOURCE, flags, salt=salt, suffix=suffix)
+    return compile_extension("codec", "ccodec", SOURCE, FLAGS)
 
 
 def setting() -> str:
@@ -89,13 +82,7 @@ def _load() -> ModuleType | None:
 
 
 def _import(target: Path) -> ModuleType:
-    loader = importlib.machinery.ExtensionFileLoader(MODULE, str(target))
-    spec = importlib.util.spec_from_file_location(MODULE, target, loader=loader)
-    if spec is None:
-        raise ImportError(f"{target}: not loadable")
-    module = importlib.util.module_from_spec(spec)
-    loader.exec_module(module)
-    return module
+    return import_extension(MODULE, target)
 
 
 def failure() -> str | None:

@@ -52,11 +52,13 @@ def two_cores() -> bool:
 def check() -> None:
     """HilError naming the first softhil variable whose value is not one softhil reads."""
     from controllers import ccodec, cukf
+    from hil import cformat
 
     kernel_enabled()
     kernel_thread()
     try:
         ccodec.setting()
         cukf.setting()
+        cformat.setting()
     except ValueError as exc:
         raise HilError(str(exc)) from None

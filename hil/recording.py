@@ -11,8 +11,8 @@ beside it gives every column's unit and meaning (`pandas.read_csv` reads either 
 Both the CSV and a candump log are written in whole records (`hil.results.RecordFile`), in
 blocks at most FLUSH_INTERVAL of wall time apart and whenever a run stops, so whatever stops a
 run, a full disk included, leaves complete, readable files up to the last flushed control
-period, without a system call per SYNC. Values are written with `repr`, so equal
-runs give byte-identical files.
+period, without a system call per SYNC. Values are written as `repr` writes them (in C:
+`hil.cformat`), so equal runs give byte-identical files.
 """
 
 from __future__ import annotations
@@ -28,6 +28,7 @@ from typing import TextIO, cast
 import can
 
 from controllers.protocol import frame_bits
+from hil import cformat
 from hil.errors import HilError
 from hil.results import RecordFile, WriteError, write_file
 from hil.robots import SignalSpec
@@ -63,6 +64,8 @@ class SignalRecorder:
         self._writer.writerow(self.columns)
         self._file.flush()
         self._row: dict[str, float] | None = None
+        module = cformat.load()
+        self._format_row = module.format_row if module is not None else None
         self.rows = 0
         self.table: list[list[float]] = []  # every row, for the MF4 copy and the summary
 
@@ -86,16 +89,11 @@ class SignalRecorder:
             return
         row = self._row
         values = [row.get(c, math.nan) for c in self.columns]
-        # a NaN float is an empty cell, everything else its repr (v != v: NaN, as math.isnan).
-        # Numbers alone (the usual row): their reprs joined, which is what the csv writer
-        # writes for them (no repr of an int or a finite float has a character to quote)
-        line = ",".join(map(repr, values))
-        if "n" in line or not all(type(v) in _NUMBERS for v in values):  # nan, inf, or more
-            self._writer.writerow(
-                ["" if isinstance(v, float) and v != v else repr(v) for v in values]
-            )
+        line = self._format_row(values) if self._format_row is not None else None
+        if line is not None:  # floats and ints, the usual row: written in C
+            self._file.write(line)
         else:
-            self._file.write(line + "\n")
+            self._write_row(values)
         now = time.monotonic()
         if now - self._flushed > FLUSH_INTERVAL:  # blocks of whole records, not a write a SYNC
             self._file.flush()
@@ -103,6 +101,19 @@ class SignalRecorder:
         self.table.append(values)
         self._row = None
         self.rows += 1
+
+    def _write_row(self, values: list[float]) -> None:
+        """`values` as csv.writer writes the list of their texts: a NaN float an empty cell,
+        everything else its repr (v != v: NaN, as math.isnan). Numbers alone: their reprs
+        joined, which is what csv.writer writes for them (no repr of an int or a finite float
+        has a character to quote)."""
+        line = ",".join(map(repr, values))
+        if "n" in line or not all(type(v) in _NUMBERS for v in values):  # nan, inf, or more
+            self._writer.writerow(
+                ["" if isinstance(v, float) and v != v else repr(v) for v in values]
+            )
+        else:
+            self._file.write(line + "\n")
 
     def close(self) -> None:
         if not self._file.closed:

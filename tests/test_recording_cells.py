@@ -11,6 +11,9 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+import pytest
+
+from hil import cformat
 from hil.recording import SignalRecorder
 from hil.robots import SignalSpec
 
@@ -46,17 +49,26 @@ def test_cells_and_frame_columns(tmp_path: Path) -> None:
     ]
 
 
-def test_rows_are_what_the_csv_writer_writes_for_any_numbers(tmp_path: Path) -> None:
-    """Rows of plain numbers take a quicker path than csv.writer; whatever the values (ints,
-    floats of every magnitude, -0.0, inf, NaN, bools, numpy scalars), the file is the same."""
+@pytest.mark.parametrize("writer", ["c", "python"])
+def test_rows_are_what_the_csv_writer_writes_for_any_numbers(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, writer: str
+) -> None:
+    """Rows of plain numbers take a quicker path than csv.writer (C, hil.cformat, or repr
+    joined); whatever the values (ints, floats of every magnitude, -0.0, inf, NaN, bools,
+    numpy scalars), the file is the same."""
     import csv
     import io
 
     import numpy as np
 
     rng = np.random.default_rng(5)
+    if writer == "python":
+        monkeypatch.setattr(cformat, "load", lambda: None)
+    elif cformat.load() is None:
+        pytest.skip(f"no C formatter here: {cformat.failure()}")
     specs = [SignalSpec(f"s{i}", "", "", source=f"p.s{i}") for i in range(4)]
     recorder = SignalRecorder(tmp_path / "signals.csv", specs)
+    assert (recorder._format_row is None) == (writer == "python")
     expected = io.StringIO()
     writer = csv.writer(expected, lineterminator="\n")
     writer.writerow(["time", *(s.column for s in specs)])
