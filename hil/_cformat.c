@@ -14,6 +14,10 @@
  * each value as repr writes it and a NaN float as an empty cell, which is what csv.writer
  * writes for the row `hil.recording.SignalRecorder` hands it; None for a row it does not
  * write (another type, or a one-cell NaN row, which csv quotes), which Python then writes.
+ *
+ * candump_lines(prefix, messages, end, bits) -> (str, int) | None: the candump lines of a list of
+ * classic data frames as python-can's CanutilsLogWriter writes them ("(stamp) can0 " prefix,
+ * "1A3#00FF", " T\n" end) and the sum of bits[len(data)]; None if any frame is not one.
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -309,6 +313,170 @@ fail:
     return NULL;
 }
 
+/* ------------------------------------------------------------------ candump lines */
+
+/* A growing text: a stack buffer first, the heap beyond it. */
+struct text {
+    char *data, *heap;
+    Py_ssize_t length, capacity;
+};
+
+static int text_room(struct text *t, Py_ssize_t more) /* 0, or -1 with MemoryError */
+{
+    if (t->length + more <= t->capacity)
+        return 0;
+    const Py_ssize_t grown = 2 * (t->capacity + more);
+    char *bigger = PyMem_Malloc((size_t)grown);
+    if (bigger == NULL) {
+        PyErr_NoMemory();
+        return -1;
+    }
+    memcpy(bigger, t->data, (size_t)t->length);
+    PyMem_Free(t->heap);
+    t->data = t->heap = bigger;
+    t->capacity = grown;
+    return 0;
+}
+
+static PyObject *s_arbitration_id, *s_is_extended_id, *s_is_error_frame, *s_is_remote_frame,
+    *s_is_fd, *s_data;
+
+/* 1 if message.<name> is true, 0 if false, -1 with an exception */
+static int flag(PyObject *message, PyObject *name)
+{
+    PyObject *value = PyObject_GetAttr(message, name);
+    if (value == NULL)
+        return -1;
+    const int truth = PyObject_IsTrue(value);
+    Py_DECREF(value);
+    return truth;
+}
+
+static const char HEX[] = "0123456789ABCDEF";
+
+static PyObject *candump_lines(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    (void)self;
+    if (nargs != 4 || !PyUnicode_Check(args[0]) || !PyUnicode_Check(args[2]) ||
+        !PyTuple_Check(args[3])) {
+        PyErr_SetString(PyExc_TypeError,
+                        "candump_lines(prefix: str, messages, end: str, bits: tuple)");
+        return NULL;
+    }
+    Py_ssize_t prefix_size, end_size;
+    const char *prefix = PyUnicode_AsUTF8AndSize(args[0], &prefix_size);
+    const char *end = prefix ? PyUnicode_AsUTF8AndSize(args[2], &end_size) : NULL;
+    if (end == NULL)
+        return NULL;
+    PyObject *messages = PySequence_Fast(args[1], "candump_lines: a sequence of messages");
+    if (messages == NULL)
+        return NULL;
+    PyObject *bits_of = args[3];
+    const Py_ssize_t count = PySequence_Fast_GET_SIZE(messages);
+    char stack[4096];
+    struct text t = {stack, NULL, 0, (Py_ssize_t)sizeof stack};
+    long long bits = 0;
+    PyObject *result = NULL;
+    for (Py_ssize_t i = 0; i < count; i++) {
+        PyObject *message = PySequence_Fast_GET_ITEM(messages, i);
+        /* classic data frames only: error, remote and FD frames are python-can's to write */
+        int odd = flag(message, s_is_error_frame);
+        if (odd == 0)
+            odd = flag(message, s_is_remote_frame);
+        if (odd == 0)
+            odd = flag(message, s_is_fd);
+        if (odd < 0)
+            goto fail;
+        if (odd)
+            goto decline;
+        const int extended = flag(message, s_is_extended_id);
+        if (extended < 0)
+            goto fail;
+        PyObject *ident = PyObject_GetAttr(message, s_arbitration_id);
+        if (ident == NULL)
+            goto fail;
+        if (!PyLong_CheckExact(ident)) {
+            Py_DECREF(ident);
+            goto decline;
+        }
+        const unsigned long long can_id = PyLong_AsUnsignedLongLong(ident);
+        Py_DECREF(ident);
+        if (can_id == (unsigned long long)-1 && PyErr_Occurred()) {
+            PyErr_Clear(); /* negative or huge: python-can's writer says what it makes of it */
+            goto decline;
+        }
+        PyObject *data = PyObject_GetAttr(message, s_data);
+        if (data == NULL)
+            goto fail;
+        const char *bytes;
+        Py_ssize_t size;
+        if (PyByteArray_CheckExact(data)) {
+            bytes = PyByteArray_AS_STRING(data);
+            size = PyByteArray_GET_SIZE(data);
+        } else if (PyBytes_CheckExact(data)) {
+            bytes = PyBytes_AS_STRING(data);
+            size = PyBytes_GET_SIZE(data);
+        } else {
+            Py_DECREF(data);
+            goto decline;
+        }
+        if (size >= PyTuple_GET_SIZE(bits_of)) {
+            Py_DECREF(data);
+            goto decline;
+        }
+        const long frame_bits = PyLong_AsLong(PyTuple_GET_ITEM(bits_of, size));
+        if (frame_bits == -1 && PyErr_Occurred()) {
+            Py_DECREF(data);
+            goto fail;
+        }
+        bits += frame_bits;
+        if (text_room(&t, prefix_size + 17 + 1 + 2 * size + end_size) < 0) {
+            Py_DECREF(data);
+            goto fail;
+        }
+        char *p = t.data + t.length;
+        memcpy(p, prefix, (size_t)prefix_size);
+        p += prefix_size;
+        /* the id in hex, upper case, at least 3 digits (8 extended): "{id:03X}#" */
+        char digits[16];
+        int n = 0;
+        for (unsigned long long v = can_id; v || n == 0; v >>= 4)
+            digits[n++] = HEX[v & 15];
+        for (int z = n; z < (extended ? 8 : 3); z++)
+            *p++ = '0';
+        while (n)
+            *p++ = digits[--n];
+        *p++ = '#';
+        for (Py_ssize_t k = 0; k < size; k++) {
+            const unsigned char byte = (unsigned char)bytes[k];
+            *p++ = HEX[byte >> 4];
+            *p++ = HEX[byte & 15];
+        }
+        Py_DECREF(data);
+        memcpy(p, end, (size_t)end_size);
+        p += end_size;
+        t.length = p - t.data;
+    }
+    {
+        PyObject *text = PyUnicode_New(t.length, 127);
+        if (text == NULL)
+            goto fail;
+        memcpy(PyUnicode_DATA(text), t.data, (size_t)t.length);
+        result = Py_BuildValue("(NL)", text, bits);
+    }
+    PyMem_Free(t.heap);
+    Py_DECREF(messages);
+    return result;
+decline:
+    PyMem_Free(t.heap);
+    Py_DECREF(messages);
+    Py_RETURN_NONE;
+fail:
+    PyMem_Free(t.heap);
+    Py_DECREF(messages);
+    return NULL;
+}
+
 static PyObject *float_text(PyObject *self, PyObject *value)
 {
     (void)self;
@@ -325,6 +493,10 @@ static PyMethodDef methods[] = {
      "format_row(list) -> str | None: the CSV line of a row of floats and ints (repr of each, "
      "a NaN float empty), None for a row with any other value"},
     {"float_repr", float_text, METH_O, "float_repr(x) -> str: repr(float(x)), computed in C"},
+    {"candump_lines", (PyCFunction)(void (*)(void))candump_lines, METH_FASTCALL,
+     "candump_lines(prefix, messages, end, bits) -> (str, int) | None: each classic data "
+     "frame's candump line, prefix + ID#DATA + end, and the sum of bits[len(data)]; None if "
+     "any is an error, remote or FD frame (python-can writes those)"},
     {NULL, NULL, 0, NULL},
 };
 
@@ -333,4 +505,14 @@ static struct PyModuleDef module = {
     NULL, NULL, NULL, NULL,
 };
 
-PyMODINIT_FUNC PyInit__softhil_cformat(void) { return PyModule_Create(&module); }
+PyMODINIT_FUNC PyInit__softhil_cformat(void)
+{
+    if (!(s_arbitration_id = PyUnicode_InternFromString("arbitration_id")) ||
+        !(s_is_extended_id = PyUnicode_InternFromString("is_extended_id")) ||
+        !(s_is_error_frame = PyUnicode_InternFromString("is_error_frame")) ||
+        !(s_is_remote_frame = PyUnicode_InternFromString("is_remote_frame")) ||
+        !(s_is_fd = PyUnicode_InternFromString("is_fd")) ||
+        !(s_data = PyUnicode_InternFromString("data")))
+        return NULL;
+    return PyModule_Create(&module);
+}

@@ -64,15 +64,18 @@ class SignalRecorder:
         self._writer.writerow(self.columns)
         self._file.flush()
         self._row: dict[str, float] | None = None
+        self._missing = [math.nan] * len(self.columns)
         module = cformat.load()
         self._format_row = module.format_row if module is not None else None
         self.rows = 0
         self.table: list[list[float]] = []  # every row, for the MF4 copy and the summary
 
     def begin_row(self, time: float, values: dict[str, float]) -> None:
-        """Start the row of a SYNC with the plant's values (by column)."""
+        """Start the row of a SYNC with the plant's values (by column): the row is `values`
+        itself, which the caller hands over (it must not change it afterwards)."""
         self.end_row()
-        self._row = {"time": time, **values}
+        values["time"] = time
+        self._row = values
 
     def frame_columns(self, kind: str, index: int | None) -> list[tuple[str, str]]:
         """(signal, column) of every recorded signal of frame (kind, index)."""
@@ -88,7 +91,7 @@ class SignalRecorder:
         if self._row is None:
             return
         row = self._row
-        values = [row.get(c, math.nan) for c in self.columns]
+        values = list(map(row.get, self.columns, self._missing))  # NaN where nobody wrote
         line = self._format_row(values) if self._format_row is not None else None
         if line is not None:  # floats and ints, the usual row: written in C
             self._file.write(line)
@@ -151,7 +154,7 @@ def require_asammdf(what: str) -> None:
         ) from None
 
 
-_FRAME_BITS = [frame_bits(dlc) for dlc in range(65)]  # by data length (CAN FD: up to 64)
+_FRAME_BITS = tuple(frame_bits(dlc) for dlc in range(65))  # by data length (FD: up to 64)
 _DIRECTION = {False: " T\n", True: " R\n"}  # a candump line's end, by received
 
 
@@ -211,6 +214,8 @@ class CanLogger:
         self._idents: dict[tuple[int, bool], str] = {}  # "ID#" as written, by (id, extended)
         self._stamp = math.nan  # the last stamp written, and its "(seconds) channel " text
         self._stamp_text = ""
+        module = cformat.load()  # the lines of classic data frames in C
+        self._lines = module.candump_lines if module is not None else None
 
     def _stamp_prefix(self, stamp: float) -> str:
         """The "(seconds) channel " that CanutilsLogWriter writes before a frame stamped `stamp`
@@ -242,28 +247,57 @@ class CanLogger:
             for message in messages:
                 self._write(message, time, received)
             return
-        # the lines CanutilsLogWriter writes for classic data frames
         prefix = self._stamp_prefix(self.start + time)
-        ident, direction = self._ident, _DIRECTION[received]
-        lines, bits = [], 0
-        for m in messages:
-            lines.append(f"{prefix}{ident(m)}{m.data.hex().upper()}{direction}")
-            bits += _FRAME_BITS[len(m.data)]
-        self._record.write("".join(lines))
-        self._count(bits, len(messages), received)
+        end = _DIRECTION[received]
+        if self._lines is not None:  # in C: classic data frames, the usual case
+            done = self._lines(prefix, messages, end, _FRAME_BITS)
+            if done is not None:
+                self._record.write(done[0])
+                self._count(done[1], len(messages), received)
+                return
+        for message in messages:
+            self._line(prefix, message, end, received)
 
     def log(self, message: can.Message, time: float, received: bool) -> None:
-        """One frame the plant sent (T) or received (R), stamped start + `time`: `log_all`'s
-        line, without its list (a received frame is logged as it comes)."""
+        """One frame the plant sent (T) or received (R), stamped start + `time`."""
         if self._record is None:
             self._write(message, time, received)
             return
         prefix = self._stamp_prefix(self.start + time)
-        data = message.data
-        self._record.write(
-            f"{prefix}{self._ident(message)}{data.hex().upper()}{_DIRECTION[received]}"
-        )
-        self._count(_FRAME_BITS[len(data)], 1, received)
+        end = _DIRECTION[received]
+        if self._lines is not None:
+            done = self._lines(prefix, (message,), end, _FRAME_BITS)
+            if done is not None:
+                self._record.write(done[0])
+                self._count(done[1], 1, received)
+                return
+        self._line(prefix, message, end, received)
+
+    def _line(self, prefix: str, message: can.Message, end: str, received: bool) -> None:
+        """The candump line of one frame, in Python: a classic data frame's as CanutilsLogWriter
+        writes it, any other (error, remote, FD) by CanutilsLogWriter itself."""
+        if message.is_error_frame or message.is_remote_frame or message.is_fd:
+            self._writer.last_timestamp = self._first_stamp  # type: ignore[attr-defined]
+            self._writer.on_message_received(
+                can.Message(
+                    timestamp=self._stamp,
+                    arbitration_id=message.arbitration_id,
+                    is_extended_id=message.is_extended_id,
+                    is_remote_frame=message.is_remote_frame,
+                    is_error_frame=message.is_error_frame,
+                    is_fd=message.is_fd,
+                    bitrate_switch=message.bitrate_switch,
+                    error_state_indicator=message.error_state_indicator,
+                    dlc=message.dlc,
+                    data=None if message.is_remote_frame else bytes(message.data),
+                    is_rx=received,
+                    channel=self.channel,
+                )
+            )
+        else:
+            data = message.data
+            self._record.write(f"{prefix}{self._ident(message)}{data.hex().upper()}{end}")  # type: ignore[union-attr]
+        self._count(_FRAME_BITS[len(message.data)], 1, received)
 
     def _count(self, bits: int, frames: int, received: bool) -> None:
         self.bits += bits

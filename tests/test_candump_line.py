@@ -7,11 +7,45 @@ import random
 from pathlib import Path
 
 import can
+import pytest
 
+from hil import cformat
 from hil.recording import CanLogger
 
+FD_LENGTHS = (12, 16, 20, 24, 32, 48, 64)
 
-def test_candump_lines_are_python_cans_byte_for_byte(tmp_path: Path) -> None:
+
+@pytest.fixture(params=["c", "python"])
+def lines_in(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> str:
+    """The lines written in C (hil.cformat) or in Python: the same bytes either way."""
+    if request.param == "python":
+        monkeypatch.setattr(cformat, "load", lambda: None)
+    elif cformat.load() is None:
+        pytest.skip(f"no C formatter here: {cformat.failure()}")
+    return str(request.param)
+
+
+def _message(rng: random.Random, i: int) -> can.Message:
+    """Mostly classic data frames; some remote, error and FD frames, which python-can writes."""
+    extended = rng.random() < 0.3
+    kind = rng.random()
+    fd = kind > 0.9
+    return can.Message(
+        arbitration_id=rng.randrange(0x20000000 if extended else 0x800),
+        is_extended_id=extended,
+        is_remote_frame=kind < 0.05,
+        is_error_frame=0.05 <= kind < 0.08,
+        is_fd=fd,
+        bitrate_switch=fd and rng.random() < 0.5,
+        error_state_indicator=fd and rng.random() < 0.5,
+        dlc=3 if kind < 0.05 else None,
+        data=None
+        if kind < 0.05
+        else bytes(rng.randrange(256) for _ in range(rng.choice(FD_LENGTHS) if fd else i % 9)),
+    )
+
+
+def test_candump_lines_are_python_cans_byte_for_byte(tmp_path: Path, lines_in: str) -> None:
     rng = random.Random(3)
     start = 1433116800.0
     times = [0.0, *sorted(rng.uniform(0.0, 30.0) for _ in range(200))]
@@ -20,30 +54,43 @@ def test_candump_lines_are_python_cans_byte_for_byte(tmp_path: Path) -> None:
     times[151:151] = [-0.25] * 3
     logger = CanLogger(tmp_path / "ours.log", start=start)
     reference = tmp_path / "reference.log"
+    frames = 0
     with reference.open("w") as file:
         writer = can.CanutilsLogWriter(file)
         for i, t in enumerate(times):
-            extended = rng.random() < 0.3
-            message = can.Message(
-                arbitration_id=rng.randrange(0x20000000 if extended else 0x800),
-                is_extended_id=extended,
-                data=bytes(rng.randrange(256) for _ in range(i % 9)),
-            )
+            message = _message(rng, i)
             received = rng.random() < 0.5
-            logger.log(message, t, received=received)
-            writer.on_message_received(
-                can.Message(
-                    timestamp=start + t,
-                    arbitration_id=message.arbitration_id,
-                    is_extended_id=extended,
-                    data=bytes(message.data),
-                    is_rx=received,
-                    channel="can0",
+            if i % 7 == 0:  # a SYNC's frames, logged together
+                batch = [message, _message(rng, i + 1), _message(rng, i + 2)]
+            else:
+                batch = [message]
+            if len(batch) > 1:
+                logger.log_all(batch, t, received=received)
+            else:
+                logger.log(message, t, received=received)
+            for m in batch:
+                writer.on_message_received(
+                    can.Message(
+                        timestamp=start + t,
+                        arbitration_id=m.arbitration_id,
+                        is_extended_id=m.is_extended_id,
+                        is_remote_frame=m.is_remote_frame,
+                        is_error_frame=m.is_error_frame,
+                        is_fd=m.is_fd,
+                        bitrate_switch=m.bitrate_switch,
+                        error_state_indicator=m.error_state_indicator,
+                        dlc=m.dlc,
+                        data=None if m.is_remote_frame else bytes(m.data),
+                        is_rx=received,
+                        channel="can0",
+                    )
                 )
-            )
+                frames += 1
     logger.close()
     assert (tmp_path / "ours.log").read_bytes() == reference.read_bytes()
-    assert logger.sent + logger.received == len(times)
+    assert logger.sent + logger.received == frames
+    text = reference.read_text()
+    assert " R\n" in text and "R T\n" in text and "##" in text  # every kind was written
 
 
 def test_a_numeric_channel_is_written_as_python_can_writes_it(tmp_path: Path) -> None:
