@@ -82,6 +82,22 @@ class _Plan(ctypes.Structure):
     ]
 
 
+class _Job(ctypes.Structure):
+    """`Job` of kernel.c: a job for the worker thread, written before `softhil_worker_go`."""
+
+    _fields_ = [
+        ("plan", _P(_Plan)),
+        ("values", _DOUBLES),
+        ("k_begin", ctypes.c_longlong),
+        ("k_end", ctypes.c_longlong),
+        ("h", ctypes.c_double),
+        ("sample_ticks", _P(ctypes.c_longlong)),
+        ("n_samples", ctypes.c_int),
+        ("samples", _DOUBLES),
+        ("n_values", ctypes.c_int),
+    ]
+
+
 class _Failure(ctypes.Structure):
     _fields_ = [
         ("tick", ctypes.c_longlong),
@@ -120,18 +136,11 @@ def load_kernel() -> ctypes.CDLL:
         library.softhil_advance.restype = ctypes.c_int
         library.softhil_advance.argtypes = [*stretch, *outcome]
         library.softhil_worker_new.restype = ctypes.c_void_p
-        library.softhil_worker_new.argtypes = [ctypes.c_double]
-        library.softhil_worker_start.restype = None
-        library.softhil_worker_start.argtypes = [
-            ctypes.c_void_p,
-            *stretch,
-            _P(ctypes.c_longlong),  # sample ticks
-            ctypes.c_int,
-            _DOUBLES,  # samples
-            ctypes.c_int,
-        ]
+        library.softhil_worker_new.argtypes = [ctypes.c_double, _P(_Job)]
+        # called once a period, with ctypes objects made once (a c_void_p, byrefs) and no
+        # argtypes: ctypes converts nothing (0.7 us a call, against 3 us for ten typed arguments)
+        library.softhil_worker_go.restype = None
         library.softhil_worker_wait.restype = ctypes.c_int
-        library.softhil_worker_wait.argtypes = [ctypes.c_void_p, *outcome]
         library.softhil_worker_free.restype = None
         library.softhil_worker_free.argtypes = [ctypes.c_void_p]
         _library = library
@@ -155,7 +164,7 @@ class _WorkerHandle:
         self.library = library
         self.arrays = arrays
         self.buffers: tuple[Any, ...] = ()
-        self.worker: int | None = None
+        self.worker: ctypes.c_void_p | None = None
 
     def stop(self) -> None:
         if self.worker is not None:
@@ -270,6 +279,15 @@ class Kernel:
         # arrays a job writes kept alive until then
         self._handle = _WorkerHandle(self._library, (self._keep, self.values, self._plan))
         weakref.finalize(self, self._handle.stop)
+        self._worker_job = _Job(
+            plan=ctypes.pointer(self._plan),
+            values=ctypes.cast(self.values, _DOUBLES),
+            h=self.step,
+            sample_ticks=ctypes.cast(self._sample_ticks, _P(ctypes.c_longlong)),
+            samples=ctypes.cast(self._samples, _DOUBLES),
+            n_values=len(self.values),
+        )
+        self._outcome = (ctypes.byref(self._done), ctypes.byref(self._failure))
 
     def set_external(self, participant: str, variable: str, value: float) -> None:
         i = self._input_index[(participant, variable)]
@@ -325,32 +343,33 @@ class Kernel:
         """Begin stepping ticks k_begin .. k_end - 1 on the worker thread, as `advance` would,
         copying the values at the start of each of `sample_ticks` (ascending, in the range); the
         caller touches neither the values nor the FMUs until `finish`. `spin` [s]: how long the
-        caller polls in `finish` before it sleeps (fixed when the worker is made). The worker
-        sleeps between jobs: its wake-up is off the caller's path, and a polling worker would
-        take a core from other runs (a batch, a test suite) for no gain (6 segments: a median
-        13.4x real time either way). HilError if no thread can be started."""
+        caller polls in `finish` before it sleeps, and the worker for the next job (fixed when
+        the worker is made): waking a sleeping thread cost 10-14 us here, a twentieth of a
+        6-segment period; a batch of runs sharing cores steps in turn (`hil.batch`). The job
+        goes to the worker in a structure written here (`_Job`), not as arguments, which ctypes
+        would convert one by one. HilError if no thread can be started."""
         if self._job is not None:
             raise HilError("the kernel's worker is busy: finish its job first")
         self._check_alive()
         if self._handle.worker is None:
-            self._handle.worker = self._library.softhil_worker_new(spin)
-            if not self._handle.worker:
-                self._handle.worker = None
+            worker = self._library.softhil_worker_new(spin, ctypes.byref(self._worker_job))
+            if not worker:
                 raise HilError("the kernel could not start its worker thread")
+            self._handle.worker = ctypes.c_void_p(worker)
+        job = self._worker_job
         n = len(sample_ticks)
-        if len(self._sample_ticks) < n:
-            self._sample_ticks = (ctypes.c_longlong * n)()
         width = len(self.values)
-        if len(self._samples) < n * width:
+        if len(self._sample_ticks) < n or len(self._samples) < n * width:
+            self._sample_ticks = (ctypes.c_longlong * n)()
             self._samples = (ctypes.c_double * (n * width))()
-        self._handle.buffers = (self._sample_ticks, self._samples)
+            job.sample_ticks = ctypes.cast(self._sample_ticks, _P(ctypes.c_longlong))
+            job.samples = ctypes.cast(self._samples, _DOUBLES)
+        self._handle.buffers = (job, self._sample_ticks, self._samples)  # alive while it runs
         for i, tick in enumerate(sample_ticks):
             self._sample_ticks[i] = tick
+        job.k_begin, job.k_end, job.n_samples = k_begin, k_end, n
         self._job = (k_begin, k_end, list(map(len, self._said)))
-        self._library.softhil_worker_start(
-            self._handle.worker, self._plan_ref, self.values, k_begin, k_end, self.step,
-            self._sample_ticks, n, self._samples, width,
-        )  # fmt: skip
+        self._library.softhil_worker_go(self._handle.worker)
 
     def finish(self, samples: int) -> tuple[list[list[float]], FmuError | None]:
         """Wait for the started job: the first `samples` sampled value rows that the job reached
@@ -358,9 +377,7 @@ class Kernel:
         raised, or None. `ticks_done` is the first tick not completed."""
         assert self._job is not None, "finish without start"
         k_begin, k_end, before = self._job
-        failed = self._library.softhil_worker_wait(
-            self._handle.worker, ctypes.byref(self._done), ctypes.byref(self._failure)
-        )
+        failed = self._library.softhil_worker_wait(self._handle.worker, *self._outcome)
         self._job = None  # only now: an interrupt before this leaves the job to `stop`
         width = len(self.values)
         rows = [self._samples[i * width : (i + 1) * width] for i in range(samples)]

@@ -201,11 +201,19 @@ EXPORT int softhil_advance(const Plan *plan, double *values, long long k_begin, 
 }
 
 /* The worker: its states, each written by one side only (the caller: IDLE, PENDING, QUIT; the
- * thread: DONE), published with release and read with acquire ordering. */
+ * thread: DONE). Each side waits for the other by polling for `spin` seconds (yielding the core),
+ * then sleeping on the condition variable; a side that changes the state wakes the other only if
+ * it sleeps. Waking a sleeping thread is a system call and, on a virtual machine, an interrupt
+ * to another virtual CPU: 10-14 us measured here, which is what a period's hand-over cost when
+ * the thread slept between jobs (it now polls between them, as the caller does for its end).
+ * The state and the count of sleepers are sequentially consistent atomics, so a changer either
+ * sees the sleeper or the sleeper sees the change before it sleeps. */
 enum { IDLE = 0, PENDING = 1, DONE = 2, QUIT = 3 };
 
+/* A job, in memory the caller owns (hil.kernel._Job mirrors it): written before each
+ * softhil_worker_go, read by the thread once it sees PENDING. Passing it so, not as ten
+ * arguments of a call, spares the caller ctypes' conversion of each (3 us a job, measured). */
 typedef struct {
-    /* the job, written by the caller before it publishes PENDING */
     const Plan *plan;
     double *values;
     long long k_begin, k_end;
@@ -214,25 +222,31 @@ typedef struct {
     int n_samples;
     double *samples;
     int n_values;
+} Job;
+
+typedef struct {
+    const Job *job;
     /* the outcome, valid once DONE */
     int result;
     long long ticks_done;
     Failure failure;
     int state;
-    double spin; /* [s] the caller polls for the job's end before it sleeps (the thread sleeps
-                  * between jobs: its wake-up is off the caller's path) */
+    int sleepers; /* threads in pthread_cond_wait, or about to be */
+    double spin;  /* [s] either side polls for the other before it sleeps */
     pthread_mutex_t mutex;
     pthread_cond_t changed;
     pthread_t thread;
 } Worker;
 
-static int state_of(Worker *w) { return __atomic_load_n(&w->state, __ATOMIC_ACQUIRE); }
+static int state_of(Worker *w) { return __atomic_load_n(&w->state, __ATOMIC_SEQ_CST); }
 
 static void publish(Worker *w, int state) {
-    pthread_mutex_lock(&w->mutex);
-    __atomic_store_n(&w->state, state, __ATOMIC_RELEASE);
-    pthread_cond_broadcast(&w->changed);
-    pthread_mutex_unlock(&w->mutex);
+    __atomic_store_n(&w->state, state, __ATOMIC_SEQ_CST);
+    if (__atomic_load_n(&w->sleepers, __ATOMIC_SEQ_CST)) {
+        pthread_mutex_lock(&w->mutex);
+        pthread_cond_broadcast(&w->changed);
+        pthread_mutex_unlock(&w->mutex);
+    }
 }
 
 static double seconds(void) {
@@ -254,25 +268,29 @@ static int await_state(Worker *w, int a, int b, double spin) {
         } while (seconds() < until);
     }
     pthread_mutex_lock(&w->mutex);
+    __atomic_add_fetch(&w->sleepers, 1, __ATOMIC_SEQ_CST);
     while ((s = state_of(w)) != a && s != b) pthread_cond_wait(&w->changed, &w->mutex);
+    __atomic_sub_fetch(&w->sleepers, 1, __ATOMIC_SEQ_CST);
     pthread_mutex_unlock(&w->mutex);
     return s;
 }
 
 static void *work(void *arg) {
     Worker *w = arg;
-    while (await_state(w, PENDING, QUIT, 0.0) == PENDING) {
-        w->result = advance(w->plan, w->values, w->k_begin, w->k_end, w->h, w->sample_ticks,
-                            w->n_samples, w->samples, w->n_values, &w->ticks_done, &w->failure);
+    while (await_state(w, PENDING, QUIT, w->spin) == PENDING) {
+        const Job *j = w->job;
+        w->result = advance(j->plan, j->values, j->k_begin, j->k_end, j->h, j->sample_ticks,
+                            j->n_samples, j->samples, j->n_values, &w->ticks_done, &w->failure);
         publish(w, DONE);
     }
     return NULL;
 }
 
-/* A worker thread, idle; NULL if no thread could be started. */
-EXPORT Worker *softhil_worker_new(double spin) {
+/* A worker thread, idle, for the jobs written into *job; NULL if no thread could be started. */
+EXPORT Worker *softhil_worker_new(double spin, const Job *job) {
     Worker *w = calloc(1, sizeof(Worker));
     if (w == NULL) return NULL;
+    w->job = job;
     w->spin = spin;
     w->state = IDLE;
     if (pthread_mutex_init(&w->mutex, NULL) != 0) {
@@ -296,30 +314,17 @@ EXPORT Worker *softhil_worker_new(double spin) {
     return w;
 }
 
-/* Start stepping ticks k_begin .. k_end - 1 as softhil_advance does, sampling values[] at the
- * sample ticks (ascending, within the range) into samples (n_samples rows of n_values). The worker
- * must be idle (no job, or the last one waited for). */
-EXPORT void softhil_worker_start(Worker *w, const Plan *plan, double *values, long long k_begin,
-                                 long long k_end, double h, const long long *sample_ticks,
-                                 int n_samples, double *samples, int n_values) {
-    w->plan = plan;
-    w->values = values;
-    w->k_begin = k_begin;
-    w->k_end = k_end;
-    w->h = h;
-    w->sample_ticks = sample_ticks;
-    w->n_samples = n_samples;
-    w->samples = samples;
-    w->n_values = n_values;
-    publish(w, PENDING);
-}
+/* Start the job (the worker must be idle: no job, or the last one waited for): stepping ticks
+ * k_begin .. k_end - 1 as softhil_advance does, sampling values[] at the sample ticks
+ * (ascending, within the range) into samples (n_samples rows of n_values). */
+EXPORT void softhil_worker_go(Worker *w) { publish(w, PENDING); }
 
 /* Wait for the started job; its outcome as softhil_advance's. The worker is idle again. */
 EXPORT int softhil_worker_wait(Worker *w, long long *ticks_done, Failure *failure) {
     await_state(w, DONE, DONE, w->spin);
     *ticks_done = w->ticks_done;
     *failure = w->failure;
-    __atomic_store_n(&w->state, IDLE, __ATOMIC_RELEASE);
+    __atomic_store_n(&w->state, IDLE, __ATOMIC_SEQ_CST); /* nobody waits for IDLE */
     return w->result;
 }
 
