@@ -180,8 +180,11 @@ class Camera:
             raise ValueError(
                 f"camera frame {frame_index} out of order: the next frame is {self._next_frame}"
             )
-        draw = float(self._rng_jitter.normal(0.0, 1.0)) * self.effects.jitter
-        ticks = min(max(round(draw / self.macro_step), 0), self.max_delay_ticks)
+        if self.effects.jitter > 0.0:
+            draw = float(self._rng_jitter.normal(0.0, 1.0)) * self.effects.jitter
+            ticks = min(max(round(draw / self.macro_step), 0), self.max_delay_ticks)
+        else:  # no jitter: no delay (the stream serves jitter alone, so nothing else moves)
+            ticks = 0
         self._jitter_ticks[frame_index] = ticks
         self._next_frame += 1
         return ticks
@@ -198,6 +201,8 @@ class Camera:
 
     def _occluded(self, time: float, markers: int) -> np.ndarray:
         """Markers hidden by occlusion bursts at `time` (times must not decrease)."""
+        if not self._bursts and self._next_burst > time:  # none under way, none due
+            return np.zeros(markers, dtype=bool)
         while self._next_burst <= time:
             start = self._next_burst
             choice = float(self._rng_occlusion.random())
@@ -225,17 +230,20 @@ class Camera:
         time = tick * self.macro_step
         # fixed draw counts per picture: M x dims normals, M uniforms, M uniforms + M x dims normals
         noise = self._rng_noise.normal(0.0, 1.0, (markers, dims)) * e.noise
-        dropped = np.asarray(self._rng_dropout.random(markers) < e.dropout)
-        outlier = np.asarray(self._rng_outlier.random(markers) < e.outlier_rate)
+        drop_draws = self._rng_dropout.random(markers)
+        outlier_draws = self._rng_outlier.random(markers)
         direction = self._rng_outlier.normal(0.0, 1.0, (markers, dims))
+        dropped = drop_draws < e.dropout
+        outlier = outlier_draws < e.outlier_rate
         occluded = self._occluded(time, markers)
         points = true_points + noise
         # most pictures have neither outliers nor missing markers: skip the masked updates (row
-        # by row, so the rows that are updated get the same values either way)
-        if outlier.any():
+        # by row, so the rows that are updated get the same values either way); whether any
+        # draw falls below its rate is asked of a handful of floats (quicker than ndarray.any)
+        if min(outlier_draws.tolist(), default=1.0) < e.outlier_rate:
             direction /= np.maximum(np.linalg.norm(direction, axis=1, keepdims=True), 1e-300)
             points[outlier] += e.outlier_distance * direction[outlier]
         missing = dropped | occluded
-        if missing.any():
+        if min(drop_draws.tolist(), default=1.0) < e.dropout or self._bursts:
             points[missing] = np.nan
         return Picture(frame_index, tick, time, points, dropped, occluded, outlier & ~missing)
