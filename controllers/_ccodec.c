@@ -502,7 +502,137 @@ done:
     return result;
 }
 
+/* ------------------------------------------------------------------ can.Message, made here
+
+   `controllers.canbus.unchecked_message` in C: a can.Message with every field given and none
+   checked, as `object.__new__(can.Message)` and twelve attribute stores make it. python-can
+   declares the fields as __slots__, so `bind_message(can.Message)` finds each field's place in
+   the object once (its member descriptor's offset) and the message is filled in place. It binds
+   only a class whose twelve fields are plain writable slots of its own; otherwise it returns
+   False and Python makes the messages. */
+
+#include <structmember.h>
+
+enum {
+    F_TIMESTAMP, F_ID, F_EXTENDED, F_REMOTE, F_ERROR, F_CHANNEL, F_DLC, F_DATA, F_FD, F_RX,
+    F_BRS, F_ESI, N_FIELDS
+};
+static const char *FIELDS[N_FIELDS] = {
+    "timestamp", "arbitration_id", "is_extended_id", "is_remote_frame", "is_error_frame",
+    "channel", "dlc", "data", "is_fd", "is_rx", "bitrate_switch", "error_state_indicator",
+};
+static PyTypeObject *message_type = NULL; /* the bound class (owned) */
+static Py_ssize_t field_offset[N_FIELDS];
+
+static PyObject *bind_message(PyObject *self, PyObject *cls) {
+    (void)self;
+    if (!PyType_Check(cls)) {
+        PyErr_SetString(PyExc_TypeError, "bind_message: a class");
+        return NULL;
+    }
+    PyTypeObject *type = (PyTypeObject *)cls;
+    Py_ssize_t offsets[N_FIELDS];
+    for (int i = 0; i < N_FIELDS; i++) {
+        PyObject *descr = PyDict_GetItemString(type->tp_dict, FIELDS[i]); /* borrowed */
+        if (descr == NULL || Py_TYPE(descr) != &PyMemberDescr_Type) Py_RETURN_FALSE;
+        PyMemberDef *member = ((PyMemberDescrObject *)descr)->d_member;
+        if (member->type != T_OBJECT_EX || (member->flags & READONLY)) Py_RETURN_FALSE;
+        offsets[i] = member->offset;
+    }
+    Py_INCREF(type);
+    Py_XSETREF(message_type, type);
+    memcpy(field_offset, offsets, sizeof offsets);
+    Py_RETURN_TRUE;
+}
+
+/* a new message of the bound class, its fields the values given (borrowed) */
+static PyObject *make_message(PyObject *const *values) {
+    PyObject *m = message_type->tp_alloc(message_type, 0);
+    if (m == NULL) return NULL;
+    for (int i = 0; i < N_FIELDS; i++) {
+        PyObject **slot = (PyObject **)((char *)m + field_offset[i]);
+        Py_INCREF(values[i]);
+        Py_XSETREF(*slot, values[i]);
+    }
+    return m;
+}
+
+static int bound(void) {
+    if (message_type != NULL) return 1;
+    PyErr_SetString(PyExc_RuntimeError, "no message class bound (bind_message)");
+    return 0;
+}
+
+static PyObject *new_message(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
+    (void)self;
+    if (nargs != N_FIELDS) {
+        PyErr_Format(PyExc_TypeError, "new_message: %d fields, got %zd", N_FIELDS, nargs);
+        return NULL;
+    }
+    return bound() ? make_message(args) : NULL;
+}
+
+/* data_message(arbitration_id, data, timestamp): a classic data frame with an 11-bit id, received
+   flag set, as controllers.protocol.data_message makes it */
+static PyObject *data_message(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
+    (void)self;
+    if (nargs != 3) {
+        PyErr_SetString(PyExc_TypeError, "data_message(arbitration_id, data, timestamp)");
+        return NULL;
+    }
+    if (!bound()) return NULL;
+    PyObject *data = PyByteArray_FromObject(args[1]);
+    if (data == NULL) return NULL;
+    PyObject *dlc = PyLong_FromSsize_t(PyByteArray_GET_SIZE(data));
+    if (dlc == NULL) {
+        Py_DECREF(data);
+        return NULL;
+    }
+    PyObject *values[N_FIELDS] = {
+        args[2], args[0], Py_False, Py_False, Py_False, Py_None,
+        dlc,     data,    Py_False, Py_True,  Py_False, Py_False,
+    };
+    PyObject *m = make_message(values);
+    Py_DECREF(dlc);
+    Py_DECREF(data);
+    return m;
+}
+
+/* copy_message(message, channel): a message of the bound class as delivered on `channel`,
+   every field the same and its data a copy (hil.bus.direct); None for another class or a
+   message with a field unset, which Python copies (or fails on) instead */
+static PyObject *copy_message(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
+    (void)self;
+    if (nargs != 2) {
+        PyErr_SetString(PyExc_TypeError, "copy_message(message, channel)");
+        return NULL;
+    }
+    PyObject *original = args[0];
+    if (message_type == NULL || Py_TYPE(original) != message_type) Py_RETURN_NONE;
+    PyObject *values[N_FIELDS];
+    for (int i = 0; i < N_FIELDS; i++) {
+        values[i] = *(PyObject **)((char *)original + field_offset[i]);
+        if (values[i] == NULL) Py_RETURN_NONE;
+    }
+    PyObject *data = PyByteArray_FromObject(values[F_DATA]);
+    if (data == NULL) return NULL;
+    values[F_DATA] = data;
+    values[F_CHANNEL] = args[1];
+    PyObject *m = make_message(values);
+    Py_DECREF(data);
+    return m;
+}
+
 static PyMethodDef methods[] = {
+    {"bind_message", bind_message, METH_O,
+     "bind_message(cls) -> bool: make messages of cls here (its fields plain slots)."},
+    {"new_message", (PyCFunction)(void (*)(void))new_message, METH_FASTCALL,
+     "new_message(timestamp, arbitration_id, is_extended_id, is_remote_frame, is_error_frame, "
+     "channel, dlc, data, is_fd, is_rx, bitrate_switch, error_state_indicator) -> message"},
+    {"data_message", (PyCFunction)(void (*)(void))data_message, METH_FASTCALL,
+     "data_message(arbitration_id, data, timestamp) -> message (a classic data frame)"},
+    {"copy_message", (PyCFunction)(void (*)(void))copy_message, METH_FASTCALL,
+     "copy_message(message, channel) -> message, or None if not of the bound class."},
     {"compile_encoder", compile_encoder, METH_VARARGS, "An encoder capsule from its plan."},
     {"compile_decoder", compile_decoder, METH_VARARGS, "A decoder capsule from its plan."},
     {"pack", (PyCFunction)(void (*)(void))pack, METH_FASTCALL,

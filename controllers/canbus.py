@@ -281,6 +281,20 @@ def unchecked_message(
     return m
 
 
+def c_messages() -> Any | None:
+    """The C codec module (`controllers.ccodec`) with `can.Message` bound: its
+    `data_message(arbitration_id, data, timestamp)` and `copy_message(message, channel)` make
+    messages as `unchecked_message` does, filling python-can's slots in place (0.2 us, against
+    1 us here); None where the C codec is not in use, or python-can's Message is not made of
+    plain slots, and the messages are made in Python."""
+    from controllers import ccodec
+
+    module = ccodec.load()
+    if module is None or not module.bind_message(can.Message):
+        return None
+    return module
+
+
 def send_all(bus: can.BusABC, messages: Sequence[can.Message]) -> None:
     """Send `messages` in order: in one write on a bus that offers ``send_batch`` (softhil's
     binary records: one system call and one hub wake-up per batch), else one by one. What the

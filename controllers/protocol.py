@@ -33,7 +33,7 @@ import cantools
 from cantools.database.can import Database, Message
 
 from controllers import ccodec
-from controllers.canbus import unchecked_message
+from controllers.canbus import c_messages, unchecked_message
 
 DBC_PATH = Path(str(files("controllers") / "softhil.dbc"))
 Data = bytes | bytearray  # a frame's payload: python-can gives either
@@ -647,6 +647,8 @@ class Protocol:
         # of each (class, int index) met
         self._index_fields: dict[type, str | None] = {}
         self._typed: dict[tuple[type, Any], _Entry] = {}
+        made_in_c = c_messages()  # the message of a frame the C codec packed, made in C too
+        self._data_message = data_message if made_in_c is None else made_in_c.data_message
         for message in database.messages:
             match = _NAME.match(message.name)
             assert match is not None  # the pattern matches every string
@@ -761,7 +763,9 @@ class Protocol:
                 parts = self._packs[message.frame_id] = _parts(entry.codec.pack)
             c_pack, capsule, pack = parts  # the C codec's plain case called directly
             data = c_pack(capsule, given)
-            return data_message(message.frame_id, pack(given) if data is None else data, timestamp)
+            return self._data_message(
+                message.frame_id, pack(given) if data is None else data, timestamp
+            )
         signals: dict[str, Any] = {}
         for name, modulus in entry.plan:
             if name not in given:

@@ -11,6 +11,7 @@ import shutil
 from pathlib import Path
 from typing import Any
 
+import can
 import cantools
 import numpy as np
 import pytest
@@ -315,3 +316,61 @@ def test_a_damaged_cache_entry_is_built_again(
     assert rebuilt is not None, ccodec.failure()
     assert target.read_bytes()[:4] == b"\x7fELF"
     assert rebuilt.pack is not None
+
+
+FIELDS = [name for name in can.Message.__slots__ if name != "__weakref__"]
+
+
+@needs_c
+def test_messages_made_in_c_are_unchecked_message_s() -> None:
+    """new_message and copy_message fill python-can's slots as `unchecked_message` and the direct
+    bus's `_copy` set them: every field, its type, and a copy of the data of its own."""
+    from controllers.canbus import c_messages, unchecked_message
+    from hil.bus.direct import _copy
+
+    made = c_messages()
+    assert made is not None
+    values = (2.5, 0x1ABCDE, True, False, False, "ch", 3, bytearray(b"\x01\x02\x03"), False,
+              True, False, False)  # fmt: skip
+    ours, reference = made.new_message(*values), unchecked_message(*values)
+    originals = [
+        reference,
+        can.Message(arbitration_id=0x7, is_remote_frame=True, dlc=3, is_extended_id=False),
+        can.Message(arbitration_id=0x9, data=bytes(12), is_fd=True, bitrate_switch=True),
+        can.Message(arbitration_id=0x1, is_error_frame=True, channel=3, is_rx=False),
+    ]
+    pairs = [(ours, reference)]
+    pairs += [(made.copy_message(m, "out"), _copy(m, "out")) for m in originals]
+    for (c, python), original in zip(pairs, [reference, *originals], strict=False):
+        assert type(c) is can.Message
+        for name in FIELDS:
+            assert getattr(c, name) == getattr(python, name), name
+            assert type(getattr(c, name)) is type(getattr(python, name)), name
+        if c is not ours:
+            assert c.data is not original.data and c.channel == "out"
+    with pytest.raises(TypeError):
+        made.new_message(1.0, 2)
+
+
+@needs_c
+def test_a_message_c_does_not_copy_is_left_to_python() -> None:
+    """Another class (a subclass too) or a field never set: None, and Python copies it (or
+    fails as it always did); a class whose fields are not plain slots is not bound."""
+    from controllers.canbus import c_messages
+
+    made = c_messages()
+    assert made is not None
+
+    class Tagged(can.Message):
+        __slots__ = ("tag",)
+
+    assert made.copy_message(Tagged(arbitration_id=1, data=b"\x01"), "x") is None
+    unset = can.Message.__new__(can.Message)
+    assert made.copy_message(unset, "x") is None
+    assert made.copy_message(object(), "x") is None
+
+    class Plain:
+        timestamp = 0.0
+
+    assert made.bind_message(Plain) is False
+    assert made.bind_message(can.Message) is True

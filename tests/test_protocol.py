@@ -734,12 +734,21 @@ def test_a_frame_finds_its_message_the_same_way_the_second_time() -> None:
         warm.encode(DriveStatus(9, **values))
 
 
+@pytest.mark.parametrize("maker", ["python", "c"])
 @pytest.mark.parametrize("data", [b"", b"\x01\x02\x03", bytes(range(8))])
-def test_data_message_is_can_message_field_for_field(data: bytes) -> None:
-    """The encoder's quick `can.Message` (no checks to pass again) has every field python-can's
-    constructor gives, of the same types."""
+def test_data_message_is_can_message_field_for_field(data: bytes, maker: str) -> None:
+    """The encoder's quick `can.Message` (no checks to pass again), made in Python or in C
+    (`controllers.canbus.c_messages`), has every field python-can's constructor gives, of the
+    same types; the encoder uses the C one where the C codec is in use."""
+    from controllers.canbus import c_messages
     from controllers.protocol import data_message
 
+    if maker == "c":
+        module = c_messages()
+        if module is None:
+            pytest.skip("no C codec here")
+        data_message = module.data_message
+        assert Protocol()._data_message is data_message
     quick = data_message(0x181, data, 1433116800.25)
     made = can.Message(
         arbitration_id=0x181, data=data, is_extended_id=False, timestamp=1433116800.25

@@ -19,7 +19,7 @@ from collections.abc import Callable
 
 import can
 
-from controllers.canbus import unchecked_message
+from controllers.canbus import c_messages, unchecked_message
 
 Handler = Callable[[can.Message], None]
 
@@ -32,13 +32,17 @@ class DirectBus(can.BusABC):
         self.inbox: deque[can.Message] = deque()
         self.peer: DirectBus | None = None
         self.handler: Handler | None = None
+        made_in_c = c_messages()  # the copy of a can.Message made in C (None for any other)
+        self._copy_in_c = _no_copy if made_in_c is None else made_in_c.copy_message
         super().__init__(channel=name, **kwargs)  # type: ignore[arg-type]
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         peer = self.peer
         if peer is None:
             raise can.CanOperationError(f"{self.channel_info}: the other end is shut down")
-        copy = _copy(msg, peer.channel_info)
+        copy = self._copy_in_c(msg, peer.channel_info)
+        if copy is None:
+            copy = _copy(msg, peer.channel_info)
         if peer.handler is not None:
             peer.handler(copy)
         else:
@@ -73,6 +77,10 @@ def _copy(msg: can.Message, channel: str) -> can.Message:
         msg.is_error_frame, channel, msg.dlc, bytearray(msg.data), msg.is_fd, msg.is_rx,
         msg.bitrate_switch, msg.error_state_indicator,
     )  # fmt: skip
+
+
+def _no_copy(msg: can.Message, channel: str) -> None:
+    """No C copier: `_copy` copies."""
 
 
 def direct_pair(name: str = "softhil") -> tuple[DirectBus, DirectBus]:
