@@ -252,6 +252,14 @@ class Master:
         self._fast_keys = [f"{p.name}.{n}" for p in fast for n in p.output_names()]
         self._fast_slots = [self._slots[key] for key in self._fast_keys]
         self._fresh = _items(self._fast_slots)
+        # the Python participants' connections by the slots of their sources: their inputs from
+        # a row the kernel sampled (`_sampled_inputs`)
+        self._row_links = {
+            p.name: [
+                (v, self._slots[source], g, o) for v, source, g, o in self._connections[p.name]
+            ]
+            for p in self._slow
+        }
         return kernel
 
     def _endpoint(self, name: str, kind: str) -> tuple[str, str]:
@@ -333,6 +341,13 @@ class Master:
         values = dict(self._externals[participant])
         for variable, source, gain, offset in self._connections[participant]:
             values[variable] = gain * outputs[source] + offset
+        return values
+
+    def _sampled_inputs(self, participant: str, row: Sequence[float]) -> dict[str, float]:
+        """`_inputs` from a row of values the kernel sampled (by slot) instead of `values`."""
+        values = dict(self._externals[participant])
+        for variable, slot, gain, offset in self._row_links[participant]:
+            values[variable] = gain * row[slot] + offset
         return values
 
     @property
@@ -451,8 +466,7 @@ class Master:
         for (e, due), row in zip(samplers, rows, strict=True):
             if e >= done:
                 break
-            sampled = _Row(row, self._slots)
-            self._step_participants(e, due, [self._inputs(p.name, sampled) for p in due])
+            self._step_participants(e, due, [self._sampled_inputs(p.name, row) for p in due])
         self.tick = done
         if error is not None:
             raise error
@@ -503,22 +517,6 @@ class Master:
         self.tick = k + 1
         for observer in self.observers:
             observer.observe(self.tick, self._view)
-
-
-class _Row(Mapping[str, float]):
-    """A row of values the kernel sampled, read by "participant.output" as Master.values is."""
-
-    def __init__(self, row: Sequence[float], slots: Mapping[str, int]) -> None:
-        self._row, self._slots = row, slots
-
-    def __getitem__(self, key: str) -> float:
-        return self._row[self._slots[key]]
-
-    def __iter__(self) -> Any:
-        return iter(self._slots)
-
-    def __len__(self) -> int:
-        return len(self._slots)
 
 
 def _deferrable(participant: Participant) -> bool:
