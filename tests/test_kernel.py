@@ -607,6 +607,30 @@ def test_the_worker_thread_stops_when_settled(drive_cylinder_fmu: BuiltFmu) -> N
         assert not Master([FmuParticipant(slave)], [], H, kernel=False).start_advance(30)
 
 
+@pytest.mark.parametrize("spin, gap", [(0.0, 0.0), (0.002, 0.0), (0.002, 0.01)])
+def test_the_worker_takes_jobs_whether_it_polls_or_sleeps(
+    drive_cylinder_fmu: BuiltFmu, spin: float, gap: float
+) -> None:
+    """Either side polls for the other for `spin` [s], then sleeps, and is woken only if it
+    sleeps: jobs handed over while the worker polls (no gap), after it fell asleep (a gap longer
+    than its spin) or with no polling at all are all done, and the values are the Python
+    master's."""
+    import time
+
+    with FmuSlave(drive_cylinder_fmu, "cylinder1") as slave:
+        master = Master([FmuParticipant(slave)], [], H, kernel=True)
+        for k in range(1, 16):
+            assert master.start_advance(10 * k, spin)
+            time.sleep(gap)
+            master.advance_to(10 * k)  # waits for the job
+        threaded = dict(master.values)
+        master.settle()
+    with FmuSlave(drive_cylinder_fmu, "cylinder1") as slave:
+        master = Master([FmuParticipant(slave)], [], H, kernel=False)
+        master.advance_to(150)
+        assert dict(master.values) == threaded
+
+
 def test_kernel_thread_switch(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv("SOFTHIL_KERNEL_THREAD", "0")
     assert not kernel_thread()
