@@ -18,7 +18,7 @@ import subprocess
 import sys
 import sysconfig
 import tempfile
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from types import ModuleType
 
@@ -147,3 +147,15 @@ def import_extension(name: str, target: Path) -> ModuleType:
     module = importlib.util.module_from_spec(spec)
     loader.exec_module(module)
     return module
+
+
+def load_extension(name: str, build: Callable[[], Path]) -> ModuleType:
+    """The extension module `name` built by `build` (into the cache, or found there) and
+    imported; a cached file that does not import (cut short, overwritten) is removed and built
+    again. CompileError, OSError or ImportError if it cannot be had."""
+    target = build()
+    try:
+        return import_extension(name, target)
+    except ImportError:  # a damaged cache entry: built again
+        target.unlink()
+        return import_extension(name, build())

@@ -26,7 +26,7 @@ from controllers.cbuild import (
     CompileError,
     c_or_python,
     compile_extension,
-    import_extension,
+    load_extension,
 )
 
 SOURCE = Path(__file__).with_name("_ccodec.c")
@@ -68,21 +68,12 @@ def _load() -> ModuleType | None:
         _failure = f"{ENV}=python"
         return None
     try:
-        target = _build()
-        try:
-            _module = _import(target)
-        except ImportError:  # a damaged cache entry: built again
-            target.unlink()
-            _module = _import(_build())
+        _module = load_extension(MODULE, _build)
     except (CompileError, OSError, ImportError) as exc:
         _failure = str(exc)
         # unexpected where the README's install holds (gcc and Python's headers): say so once
         _log.warning("the DBC codec runs in Python only (slower, same frames): %s", exc)
     return _module
-
-
-def _import(target: Path) -> ModuleType:
-    return import_extension(MODULE, target)
 
 
 def failure() -> str | None:

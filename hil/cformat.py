@@ -26,7 +26,7 @@ from controllers.cbuild import (
     CompileError,
     c_or_python,
     compile_extension,
-    import_extension,
+    load_extension,
 )
 
 SOURCE = Path(__file__).with_name("_cformat.c")
@@ -99,12 +99,7 @@ def load() -> ModuleType | None:
             _failure = f"{ENV}=python"
             return None
         try:
-            target = _build()
-            try:
-                _module = import_extension(MODULE, target)
-            except ImportError:  # a damaged cache entry: built again
-                target.unlink()
-                _module = import_extension(MODULE, _build())
+            _module = load_extension(MODULE, _build)
         except (CompileError, OSError, ImportError) as exc:
             _failure = str(exc)
             _log.warning("signal rows are written by repr in Python (slower, same bytes): %s", exc)
