@@ -9,6 +9,7 @@ from pathlib import Path
 import can
 import pytest
 
+from controllers.protocol import frame_bits
 from hil import cformat
 from hil.recording import CanLogger
 
@@ -54,7 +55,7 @@ def test_candump_lines_are_python_cans_byte_for_byte(tmp_path: Path, lines_in: s
     times[151:151] = [-0.25] * 3
     logger = CanLogger(tmp_path / "ours.log", start=start)
     reference = tmp_path / "reference.log"
-    frames = 0
+    frames = bits = 0
     with reference.open("w") as file:
         writer = can.CanutilsLogWriter(file)
         for i, t in enumerate(times):
@@ -86,9 +87,11 @@ def test_candump_lines_are_python_cans_byte_for_byte(tmp_path: Path, lines_in: s
                     )
                 )
                 frames += 1
+                bits += frame_bits(len(m.data))
     logger.close()
     assert (tmp_path / "ours.log").read_bytes() == reference.read_bytes()
     assert logger.sent + logger.received == frames
+    assert logger.bits == bits
     text = reference.read_text()
     assert " R\n" in text and "R T\n" in text and "##" in text  # every kind was written
 
@@ -166,3 +169,20 @@ def test_frames_logged_together_are_the_lines_of_frames_logged_one_by_one(
             together.bits,
         )
         assert one.sent > 20 and one.received > 20
+
+
+def test_frames_python_can_writes_keep_the_logs_stamps(tmp_path: Path, lines_in: str) -> None:
+    """A remote frame after a later one: python-can's writer, which writes it, is told the log's
+    first stamp (its own would be the first frame it wrote, and it would move this one to it)."""
+    logger = CanLogger(tmp_path / "x.log", start=0.0)
+    data = can.Message(arbitration_id=0x80, is_extended_id=False, data=b"\x07")
+    remote = can.Message(arbitration_id=0x81, is_extended_id=False, is_remote_frame=True, dlc=1)
+    logger.log(data, 0.0, False)
+    logger.log(remote, 5.0, True)
+    logger.log(remote, 1.0, True)
+    logger.close()
+    assert (tmp_path / "x.log").read_text().splitlines() == [
+        "(0.000000) can0 080#07 T",
+        "(5.000000) can0 081#R R",
+        "(1.000000) can0 081#R R",
+    ]
