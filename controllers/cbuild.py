@@ -12,15 +12,20 @@ from __future__ import annotations
 import hashlib
 import importlib.machinery
 import importlib.util
+import logging
 import os
 import shutil
 import subprocess
 import sys
 import sysconfig
 import tempfile
+import threading
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from types import ModuleType
+from typing import Generic, TypeVar
+
+T = TypeVar("T")
 
 
 class CompileError(RuntimeError):
@@ -159,3 +164,49 @@ def load_extension(name: str, build: Callable[[], Path]) -> ModuleType:
     except ImportError:  # a damaged cache entry: built again
         target.unlink()
         return import_extension(name, build())
+
+
+class CPart(Generic[T]):
+    """A part of softhil in C with a Python fallback (the codec, the UKF's algebra, the signal
+    rows): loaded by `load` (which builds it into the cache if needed) once, on first use, by
+    whichever thread asks first, unless its variable says "python". `get()` is the loaded
+    part or None, `failure` why it is None (None: in use, or not tried yet); a build that fails
+    is warned of once on `logger` with `fallback` (what runs instead)."""
+
+    def __init__(
+        self,
+        variable: str,
+        c_means: str,
+        load: Callable[[], T],
+        logger: logging.Logger,
+        fallback: str,
+        python_means: str = "",
+    ) -> None:
+        self.variable = variable
+        self._c_means, self._python_means = c_means, python_means
+        self._load, self._logger, self._fallback = load, logger, fallback
+        self.value: T | None = None
+        self.failure: str | None = None
+        self._lock = threading.Lock()
+
+    def setting(self) -> str:
+        """The variable: "c" (unset or empty: the C part where it builds) or "python";
+        ValueError naming it for any other value."""
+        return c_or_python(self.variable, self._c_means, self._python_means)
+
+    def get(self) -> T | None:
+        if self.value is not None or self.failure is not None:
+            return self.value
+        with self._lock:
+            if self.value is not None or self.failure is not None:
+                return self.value
+            if self.setting() == "python":
+                self.failure = f"{self.variable}=python"
+                return None
+            try:
+                self.value = self._load()
+            except (CompileError, OSError, ImportError) as exc:
+                self.failure = str(exc)
+                # unexpected where the README's install holds (gcc, Python's headers): once
+                self._logger.warning("%s: %s", self._fallback, exc)
+        return self.value

@@ -17,14 +17,12 @@ there. Without a compiler or the headers, or with
 from __future__ import annotations
 
 import logging
-import threading
 from pathlib import Path
 from types import ModuleType
 
 from controllers.cbuild import (
     LIBRARY_FLAGS,
-    CompileError,
-    c_or_python,
+    CPart,
     compile_extension,
     load_extension,
 )
@@ -34,11 +32,6 @@ MODULE = "_softhil_ccodec"
 FLAGS = LIBRARY_FLAGS
 ENV = "SOFTHIL_CODEC"  # "python": never use the C codec
 
-_log = logging.getLogger(__name__)
-_module: ModuleType | None = None
-_failure: str | None = None  # why the C codec is not available, once tried
-_lock = threading.Lock()  # one build and one load, whichever thread asks first
-
 
 def _build() -> Path:
     """The module in the softhil cache, compiled if it is not there (CompileError if it cannot
@@ -46,40 +39,26 @@ def _build() -> Path:
     return compile_extension("codec", "ccodec", SOURCE, FLAGS)
 
 
+_part: CPart[ModuleType] = CPart(
+    ENV,
+    "the C codec where it builds",
+    lambda: load_extension(MODULE, _build),
+    logging.getLogger(__name__),
+    "the DBC codec runs in Python only (slower, same frames)",
+)
+
+
 def setting() -> str:
     """SOFTHIL_CODEC: "c" (unset or empty: the C codec wherever it builds) or "python";
     ValueError naming the variable for any other value."""
-    return c_or_python(ENV, "the C codec where it builds")
+    return _part.setting()
 
 
 def load() -> ModuleType | None:
     """The C codec module, built if needed; None if it cannot be (why: `failure()`)."""
-    if _module is not None or _failure is not None:
-        return _module
-    with _lock:
-        return _load()
-
-
-def _load() -> ModuleType | None:
-    global _module, _failure  # noqa: PLW0603 - the loaded module is immutable code, loaded once
-    if _module is not None or _failure is not None:
-        return _module
-    if setting() == "python":
-        _failure = f"{ENV}=python"
-        return None
-    try:
-        _module = load_extension(MODULE, _build)
-    except (CompileError, OSError, ImportError) as exc:
-        _failure = str(exc)
-        # unexpected where the README's install holds (gcc and Python's headers): say so once
-        _log.warning("the DBC codec runs in Python only (slower, same frames): %s", exc)
-    return _module
+    return _part.get()
 
 
 def failure() -> str | None:
     """Why the C codec is not in use (None: it is, or it was not tried yet)."""
-    return _failure
-
-
-def available() -> bool:
-    return load() is not None
+    return _part.failure

@@ -17,10 +17,9 @@ from __future__ import annotations
 
 import ctypes
 import logging
-import threading
 from pathlib import Path
 
-from controllers.cbuild import LIBRARY_FLAGS, CompileError, c_or_python, compile_library
+from controllers.cbuild import LIBRARY_FLAGS, CPart, compile_library
 
 SOURCE = Path(__file__).with_name("_cukf.c")
 FLAGS = (*LIBRARY_FLAGS, "-lm")
@@ -64,47 +63,43 @@ def work_size(segments: int) -> int:
     return (2 * n + 1) * (n + 2 * segments) + 4 * segments + 24 * segments**2 + 16
 
 
-_log = logging.getLogger(__name__)
-_library: ctypes.CDLL | None = None
-_failure: str | None = None
-_lock = threading.Lock()
+def _load() -> ctypes.CDLL:
+    """The library from the softhil cache, compiled if it is not there; a cached file that does
+    not load is built again."""
+    path = compile_library("ukf", "cukf", SOURCE, FLAGS)
+    try:
+        library = ctypes.CDLL(str(path))
+    except OSError:  # a damaged cache entry: built again
+        path.unlink()
+        library = ctypes.CDLL(str(compile_library("ukf", "cukf", SOURCE, FLAGS)))
+    for name in ("softhil_ukf_predict", "softhil_ukf_correct"):
+        function = getattr(library, name)
+        function.argtypes = [ctypes.POINTER(Workspace)]
+        function.restype = ctypes.c_int
+    return library
+
+
+_part: CPart[ctypes.CDLL] = CPart(
+    ENV,
+    "the UKF's algebra in C where it builds",
+    _load,
+    logging.getLogger(__name__),
+    "the UKF runs in numpy only (slower, the same to rounding)",
+    " (numpy)",
+)
 
 
 def setting() -> str:
     """SOFTHIL_UKF: "c" (unset or empty: C wherever it builds) or "python"; ValueError naming
     the variable for any other value."""
-    return c_or_python(ENV, "the UKF's algebra in C where it builds", " (numpy)")
+    return _part.setting()
 
 
 def load() -> ctypes.CDLL | None:
     """The library, built if needed; None if it cannot be (why: `failure()`)."""
-    global _library, _failure  # noqa: PLW0603 - loaded once, immutable code
-    if _library is not None or _failure is not None:
-        return _library
-    with _lock:
-        if _library is not None or _failure is not None:
-            return _library
-        if setting() == "python":
-            _failure = f"{ENV}=python"
-            return None
-        try:
-            path = compile_library("ukf", "cukf", SOURCE, FLAGS)
-            try:
-                library = ctypes.CDLL(str(path))
-            except OSError:  # a damaged cache entry: built again
-                path.unlink()
-                library = ctypes.CDLL(str(compile_library("ukf", "cukf", SOURCE, FLAGS)))
-            for name in ("softhil_ukf_predict", "softhil_ukf_correct"):
-                function = getattr(library, name)
-                function.argtypes = [ctypes.POINTER(Workspace)]
-                function.restype = ctypes.c_int
-            _library = library
-        except (CompileError, OSError) as exc:
-            _failure = str(exc)
-            _log.warning("the UKF runs in numpy only (slower, the same to rounding): %s", exc)
-    return _library
+    return _part.get()
 
 
 def failure() -> str | None:
     """Why the C UKF is not in use (None: it is, or it was not tried yet)."""
-    return _failure
+    return _part.failure

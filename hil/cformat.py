@@ -17,14 +17,12 @@ a compiler or the headers, or with ``SOFTHIL_FORMAT=python``, the recorder write
 from __future__ import annotations
 
 import logging
-import threading
 from pathlib import Path
 from types import ModuleType
 
 from controllers.cbuild import (
     LIBRARY_FLAGS,
-    CompileError,
-    c_or_python,
+    CPart,
     compile_extension,
     load_extension,
 )
@@ -36,11 +34,6 @@ ENV = "SOFTHIL_FORMAT"  # "python": rows written with repr only
 # Ryu's double tables: 5^q's inverse for q < 342 (exponents >= 0), 5^i for i < 326 (below 0),
 # each the top bits of the exact value as a (low, high) pair of 64-bit words
 INV_SIZE, POW_SIZE, INV_BITS, POW_BITS = 342, 326, 125, 125
-
-_log = logging.getLogger(__name__)
-_module: ModuleType | None = None
-_failure: str | None = None
-_lock = threading.Lock()
 
 
 def tables() -> str:
@@ -78,34 +71,29 @@ def source() -> str:
     return head + marker + tables() + rest
 
 
-def setting() -> str:
-    """SOFTHIL_FORMAT: "c" (unset or empty) or "python"; ValueError naming it for any other."""
-    return c_or_python(ENV, "rows written in C where it builds")
-
-
 def _build() -> Path:
     return compile_extension("format", "cformat", source(), LIBRARY_FLAGS)
 
 
+_part: CPart[ModuleType] = CPart(
+    ENV,
+    "rows written in C where it builds",
+    lambda: load_extension(MODULE, _build),
+    logging.getLogger(__name__),
+    "signal rows are written by repr in Python (slower, same bytes)",
+)
+
+
+def setting() -> str:
+    """SOFTHIL_FORMAT: "c" (unset or empty) or "python"; ValueError naming it for any other."""
+    return _part.setting()
+
+
 def load() -> ModuleType | None:
     """The C module, built if needed; None if it cannot be (why: `failure()`)."""
-    global _module, _failure  # noqa: PLW0603 - the loaded module is immutable code, loaded once
-    if _module is not None or _failure is not None:
-        return _module
-    with _lock:
-        if _module is not None or _failure is not None:
-            return _module
-        if setting() == "python":
-            _failure = f"{ENV}=python"
-            return None
-        try:
-            _module = load_extension(MODULE, _build)
-        except (CompileError, OSError, ImportError) as exc:
-            _failure = str(exc)
-            _log.warning("signal rows are written by repr in Python (slower, same bytes): %s", exc)
-    return _module
+    return _part.get()
 
 
 def failure() -> str | None:
     """Why the C module is not in use (None: it is, or it was not tried yet)."""
-    return _failure
+    return _part.failure

@@ -257,8 +257,8 @@ def test_classes_with_more_than_fields_keep_the_python_decoder() -> None:
 
 def test_the_python_codec_alone_gives_the_same_frames(monkeypatch: pytest.MonkeyPatch) -> None:
     """SOFTHIL_CODEC=python: no C module is built or loaded, and the frames are the same."""
-    monkeypatch.setattr(ccodec, "_module", None)
-    monkeypatch.setattr(ccodec, "_failure", None)
+    monkeypatch.setattr(ccodec._part, "value", None)
+    monkeypatch.setattr(ccodec._part, "failure", None)
     monkeypatch.setenv(ccodec.ENV, "python")
     assert ccodec.load() is None and ccodec.failure() == "SOFTHIL_CODEC=python"
     message = Protocol().database.get_message_by_name("DriveStatus4")
@@ -285,8 +285,8 @@ def test_a_misspelt_codec_setting_is_one_line_in_hil_and_the_controller(
         monkeypatch.setenv(ccodec.ENV, value)
         assert ccodec.setting() == meant
     monkeypatch.setenv(ccodec.ENV, "pyhton")
-    monkeypatch.setattr(ccodec, "_module", None)
-    monkeypatch.setattr(ccodec, "_failure", None)
+    monkeypatch.setattr(ccodec._part, "value", None)
+    monkeypatch.setattr(ccodec._part, "failure", None)
     with pytest.raises(ValueError, match="^SOFTHIL_CODEC='pyhton': must be c .* or python$"):
         ccodec.load()
     assert hil_main(["scenarios"]) == 1
@@ -308,8 +308,8 @@ def test_a_damaged_cache_entry_is_built_again(
         pytest.skip("no gcc")
     monkeypatch.setenv("SOFTHIL_CACHE_DIR", str(tmp_path))
     monkeypatch.delenv(ccodec.ENV, raising=False)
-    monkeypatch.setattr(ccodec, "_module", None)
-    monkeypatch.setattr(ccodec, "_failure", None)
+    monkeypatch.setattr(ccodec._part, "value", None)
+    monkeypatch.setattr(ccodec._part, "failure", None)
     target = ccodec._build()
     target.write_bytes(b"not a shared library")
     rebuilt = ccodec.load()

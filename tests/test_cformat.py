@@ -116,11 +116,11 @@ def test_tables_are_ryus() -> None:
 
 
 def test_python_only_and_a_misspelt_setting(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(cformat, "_module", None)
-    monkeypatch.setattr(cformat, "_failure", None)
+    monkeypatch.setattr(cformat._part, "value", None)
+    monkeypatch.setattr(cformat._part, "failure", None)
     monkeypatch.setenv(cformat.ENV, "python")
     assert cformat.load() is None and cformat.failure() == "SOFTHIL_FORMAT=python"
-    monkeypatch.setattr(cformat, "_failure", None)
+    monkeypatch.setattr(cformat._part, "failure", None)
     monkeypatch.setenv(cformat.ENV, "pyhton")
     with pytest.raises(ValueError, match="^SOFTHIL_FORMAT='pyhton': must be c .* or python$"):
         cformat.load()

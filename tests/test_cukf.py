@@ -128,8 +128,8 @@ def test_a_covariance_without_a_cholesky_factor_is_left_to_numpy(kind: str) -> N
 
 def test_the_numpy_path_alone_when_asked(monkeypatch: pytest.MonkeyPatch) -> None:
     """SOFTHIL_UKF=python: no library is built or loaded; the estimator works in numpy."""
-    monkeypatch.setattr(cukf, "_library", None)
-    monkeypatch.setattr(cukf, "_failure", None)
+    monkeypatch.setattr(cukf._part, "value", None)
+    monkeypatch.setattr(cukf._part, "failure", None)
     monkeypatch.setenv(cukf.ENV, "python")
     assert cukf.load() is None and cukf.failure() == "SOFTHIL_UKF=python"
     est = estimator(2)

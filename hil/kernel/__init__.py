@@ -356,6 +356,7 @@ class Kernel:
             if not worker:
                 raise HilError("the kernel could not start its worker thread")
             self._handle.worker = ctypes.c_void_p(worker)
+            self._handle.buffers = (self._worker_job, self._sample_ticks, self._samples)
         job = self._worker_job
         n = len(sample_ticks)
         width = len(self.values)
@@ -364,7 +365,7 @@ class Kernel:
             self._samples = (ctypes.c_double * (n * width))()
             job.sample_ticks = ctypes.cast(self._sample_ticks, _P(ctypes.c_longlong))
             job.samples = ctypes.cast(self._samples, _DOUBLES)
-        self._handle.buffers = (job, self._sample_ticks, self._samples)  # alive while it runs
+            self._handle.buffers = (job, self._sample_ticks, self._samples)  # alive while it runs
         for i, tick in enumerate(sample_ticks):
             self._sample_ticks[i] = tick
         job.k_begin, job.k_end, job.n_samples = k_begin, k_end, n
