@@ -396,6 +396,9 @@ class RealtimeClock:
         return max(0.0, now - deadline)
 
 
+_UNSEEN_MARKER = (math.nan, math.nan)  # a marker a picture does not hold
+
+
 class CameraAssembler:
     """Collects each camera picture: its CameraFrame header says which markers it holds; the
     picture is complete when all of them have arrived, in whatever order."""
@@ -424,10 +427,12 @@ class CameraAssembler:
         key = index % COUNTER_MODULO
         header = self._headers.pop(key)
         frame = self._pending.pop(key, {})
-        points = np.full((self.markers, 2), np.nan)
+        # the rows as floats, one array made of them (not a row assignment per marker)
+        rows = [_UNSEEN_MARKER] * self.markers
         for m, marker in frame.items():
             if header.marker_mask >> m & 1:
-                points[m] = (marker.x, marker.y)
+                rows[m] = (marker.x, marker.y)
+        points = np.array(rows, dtype=float)
         return MarkerFrame(exposure_time=sync_time - header.exposure_offset, points=points)
 
     def drop(self, index: int) -> bool:

@@ -37,6 +37,8 @@ from dataclasses import dataclass
 from types import MappingProxyType
 from typing import Any, Protocol
 
+import numpy as np
+
 from hil import kernel as kernel_module
 from hil.environment import kernel_enabled
 from hil.errors import BuildError, FmuError, HilError
@@ -188,8 +190,13 @@ class Master:
         # nothing new, so it is not published after one, and it may be stepped after the FMUs'
         # ticks (`start_advance`)
         self._held = {p.name for p in participants if _deferrable(p)}
-        self.values: dict[str, float] = {}
-        self._view = MappingProxyType(self.values)  # what observers get: read-only
+        # every value by "participant.variable"; after the kernel stepped, its FMUs' values are
+        # in the kernel's array and copied here only when asked for (`values`, `_refresh`): the
+        # plant's loop reads what it needs from the array (`reader`, `inputs_of`)
+        self._values: dict[str, float] = {}
+        self._stale = False  # the kernel stepped since its values were copied into `_values`
+        self._snapshot: list[float] | None = None  # the kernel's array as floats (`_current`)
+        self._view = MappingProxyType(self._values)  # what observers get: read-only
         self._kernel: kernel_module.Kernel | None = None
         self._kernel_synced = False
         # a started `start_advance`: its last tick and the samplers due inside it, by tick
@@ -209,6 +216,59 @@ class Master:
             self._kernel = self._make_kernel()
 
     @property
+    def values(self) -> dict[str, float]:
+        """Every value by "participant.variable", current (the caller must not change it)."""
+        self._join()
+        self._refresh()
+        return self._values
+
+    def _refresh(self) -> None:
+        """Copy the values the kernel stepped into `_values`, if it stepped since."""
+        if self._stale:
+            self._values.update(zip(self._fast_keys, self._fresh(self._current()), strict=True))
+            self._stale = False
+
+    def _current(self) -> list[float]:
+        """The kernel's values by slot, as floats (one conversion until the kernel steps)."""
+        snapshot = self._snapshot
+        if snapshot is None:
+            snapshot = self._snapshot = self._array.tolist()
+        return snapshot
+
+    def _kernel_stepped(self) -> None:
+        """The kernel's array changed: `_values` and the snapshot are out of date."""
+        self._stale = True
+        self._snapshot = None
+
+    def reader(self, keys: Sequence[str]) -> Callable[[], tuple[float, ...]]:
+        """A function giving the current values of `keys` ("participant.variable"), in order,
+        as a tuple: what the plant records at every SYNC, read without `values`' copy of the
+        kernel's array (the FMUs' values from its floats, the others as published)."""
+        keys = list(keys)
+        for key in keys:
+            if key not in self._values:
+                raise HilError(f"no value {key!r}: not an output of any participant")
+        from_dict = _getter(keys)
+        values = self._values
+        if self._kernel is None:
+            return lambda: from_dict(values)
+        fast = set(self._fast_keys)
+        fast_keys = [k for k in keys if k in fast]
+        slow_keys = [k for k in keys if k not in fast]
+        from_array = _getter([self._slots[k] for k in fast_keys])
+        from_slow = _getter(slow_keys)
+        position = {k: i for i, k in enumerate(fast_keys + slow_keys)}
+        in_order = _getter([position[k] for k in keys])
+
+        def read() -> tuple[float, ...]:
+            self._join()
+            if self._stale:
+                return in_order(from_array(self._current()) + from_slow(values))
+            return from_dict(values)
+
+        return read
+
+    @property
     def uses_kernel(self) -> bool:
         """Whether FMU participants are stepped in C between events."""
         return self._kernel is not None
@@ -216,7 +276,7 @@ class Master:
     def _make_kernel(self) -> kernel_module.Kernel | None:
         """Bind the FMU participants with Real, Integer and Boolean variables to the kernel;
         every other participant (and an FMU with other types) stays in Python."""
-        self._slots = {key: i for i, key in enumerate(self.values)}
+        self._slots = {key: i for i, key in enumerate(self._values)}
         fast: list[FmuParticipant] = []
         for p in self.participants.values():
             if isinstance(p, FmuParticipant) and all(
@@ -247,11 +307,12 @@ class Master:
             for p in fast
         ]
         kernel = kernel_module.Kernel(plan, links, len(self._slots), self.step)
+        self._array = np.frombuffer(kernel.values, dtype=np.float64)
         self._fast = fast
         self._slow = [p for p in self.participants.values() if p not in fast]
         self._fast_keys = [f"{p.name}.{n}" for p in fast for n in p.output_names()]
         self._fast_slots = [self._slots[key] for key in self._fast_keys]
-        self._fresh = _items(self._fast_slots)
+        self._fresh = _getter(self._fast_slots)
         # the Python participants' connections by the slots of their sources: their inputs from
         # a row the kernel sampled (`_sampled_inputs`)
         self._row_links = {
@@ -292,11 +353,11 @@ class Master:
             if isinstance(p, FmuParticipant) and p.slave.initializing
         ]
         for _ in initializing:
-            before = dict(self.values)
+            before = dict(self._values)
             for p in initializing:
                 p.set_inputs(self.inputs_of(p.name))
                 self._publish(p)
-            if self.values == before:
+            if self._values == before:
                 break
         for p in initializing:
             p.slave.exit_initialization()
@@ -309,14 +370,17 @@ class Master:
             (keys.get(name) or f"{participant.name}.{name}", value)
             for name, value in outputs.items()
         ]
-        self.values.update(published)
+        self._values.update(published)
         if self._kernel_synced:
             array = self._kernel.values  # type: ignore[union-attr]
+            snapshot = self._snapshot
             slots = self._slots
             for key, value in published:
                 slot = slots.get(key)
                 if slot is not None:
                     array[slot] = value
+                    if snapshot is not None:
+                        snapshot[slot] = array[slot]  # as the array holds it
 
     def publish(self, participant: str) -> None:
         """Refresh a participant's outputs after an event changed them between ticks (a device
@@ -334,7 +398,9 @@ class Master:
         """The inputs `participant` would receive now: externals and connected outputs."""
         self._join()
         self._participant(participant)
-        return self._inputs(participant, self.values)
+        if self._stale and participant in self._row_links:  # from the kernel's array
+            return self._sampled_inputs(participant, self._current())
+        return self._inputs(participant, self._values)
 
     def _inputs(self, participant: str, outputs: Mapping[str, float]) -> dict[str, float]:
         """`participant`'s inputs from its externals and `outputs` (by "participant.output")."""
@@ -368,6 +434,7 @@ class Master:
 
     def add_observer(self, observer: Observer) -> None:
         self._join()
+        self._refresh()
         self.observers.append(observer)
         observer.observe(self.tick, self._view)
 
@@ -406,7 +473,8 @@ class Master:
         if not self._kernel_synced:
             kernel.load_last_inputs([p._last_inputs for p in self._fast])
             for key, slot in self._slots.items():
-                kernel.values[slot] = self.values[key]
+                kernel.values[slot] = self._values[key]
+            self._snapshot = None
             self._kernel_synced = True
 
     def start_advance(self, tick: int, spin: float = 0.0) -> bool:
@@ -461,7 +529,7 @@ class Master:
         self._ahead = None
         kernel = self._kernel
         rows, error = kernel.finish(len(samplers))
-        self.values.update(zip(self._fast_keys, self._fresh(kernel.values), strict=True))
+        self._kernel_stepped()
         done = kernel.ticks_done
         for (e, due), row in zip(samplers, rows, strict=True):
             if e >= done:
@@ -490,7 +558,7 @@ class Master:
             kernel.advance(k_begin, k_end)
         finally:
             self.kernel_seconds += time.perf_counter() - started
-            self.values.update(zip(self._fast_keys, self._fresh(kernel.values), strict=True))
+            self._kernel_stepped()
             self.tick = kernel.ticks_done
 
     def _step_participants(
@@ -508,6 +576,7 @@ class Master:
 
     def _step_once(self) -> None:
         if self._kernel_synced:  # the kernel stepped last: hand its state back to Python
+            self._refresh()
             self._kernel.store_last_inputs([p._last_inputs for p in self._fast])  # type: ignore[union-attr]
             self._kernel_synced = False
         k = self.tick
@@ -526,8 +595,10 @@ def _deferrable(participant: Participant) -> bool:
     return not participant.output_names() or getattr(participant, "outputs_hold", False)
 
 
-def _items(slots: Sequence[int]) -> Callable[[Any], Sequence[float]]:
-    """The values at `slots` of an array, in one call (operator.itemgetter, always a tuple)."""
-    if len(slots) > 1:
-        return operator.itemgetter(*slots)
-    return lambda array: tuple(array[i] for i in slots)
+def _getter(keys: Sequence[Any]) -> Callable[[Any], tuple[Any, ...]]:
+    """The items at `keys` of a sequence or mapping, in one call: operator.itemgetter, always
+    a tuple (itemgetter of one key gives the item, of none is an error)."""
+    if len(keys) > 1:
+        return operator.itemgetter(*keys)
+    keys = tuple(keys)
+    return lambda items: tuple(items[k] for k in keys)

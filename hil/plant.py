@@ -40,7 +40,7 @@ from controllers.protocol import (
     frame_signals,
 )
 from hil.devices import DeviceNode, SyncContext
-from hil.errors import BusError, FmuError, ProtocolError
+from hil.errors import BusError, FmuError, HilError, ProtocolError
 from hil.master import Master
 from hil.recording import CanLogger, SignalRecorder
 from hil.robots import Rig
@@ -112,7 +112,12 @@ class Plant:
         self.protocol = protocol or Protocol()
         self.stats = PlantStats()
         self.nodes = rig.nodes
-        self.sources = [(s.column, s.source) for s in rig.signals if s.source is not None]
+        # the recorded master values, read at every SYNC in the recorder's order
+        source_of = {s.column: s.source for s in rig.signals if s.source is not None}
+        unknown = [c for c in signals.source_columns if c not in source_of]
+        if unknown:
+            raise HilError(f"{signals.path.name}: no source for column {unknown[0]!r} in the rig")
+        self._sourced = self.master.reader([source_of[c] for c in signals.source_columns])
         self.sim_time = 0.0
         self.cycle = -1
         self.heartbeat_every = heartbeat_every
@@ -408,9 +413,7 @@ class Plant:
             # the row of this SYNC (writing the last one) once its frames are out, so the
             # controller is not kept waiting for the CSV; the values are the SYNC's still (the
             # master steps on after this); a failed send still records the row
-            values = master.values
-            row = {column: values[s] for column, s in self.sources}
-            self.signals.begin_row(self.sim_time, row)
+            self.signals.begin_row(self.sim_time, self._sourced())
         self.can_log.flush()
         if self.scenario.controller.policy == "strict":
             self._count()

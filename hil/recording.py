@@ -20,8 +20,9 @@ from __future__ import annotations
 import csv
 import io
 import math
+import operator
 import time
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import TextIO, cast
 
@@ -45,6 +46,18 @@ class SignalRecorder:
         self.path = path
         self.specs = list(specs)
         self.columns = ["time"] + [s.column for s in self.specs]
+        # a row is put together from the SYNC's time, the plant's values of the columns with a
+        # source (in `source_columns` order, `begin_row`) and the cells frames fill (the other
+        # columns, NaN where nobody wrote), in column order in one call
+        self.source_columns = [s.column for s in self.specs if s.source is not None]
+        sourced = set(self.source_columns)
+        self._cell_columns = [c for c in self.columns[1:] if c not in sourced]
+        position = {c: i for i, c in enumerate(["time", *self.source_columns, *self._cell_columns])}
+        order = [position[c] for c in self.columns]
+        self._in_order: Callable[[list[float]], Sequence[float]] = (
+            operator.itemgetter(*order) if len(order) > 1 else lambda parts: parts[:1]
+        )
+        self._no_cells = [math.nan] * len(self._cell_columns)
         # the recorded signals of each frame (kind, index): (signal, column) pairs
         self._by_frame: dict[tuple[str, int | None], list[tuple[str, str]]] = {}
         for s in self.specs:
@@ -63,19 +76,23 @@ class SignalRecorder:
         self._writer = csv.writer(self._file, lineterminator="\n")
         self._writer.writerow(self.columns)
         self._file.flush()
-        self._row: dict[str, float] | None = None
-        self._missing = [math.nan] * len(self.columns)
+        self._row: tuple[float, Sequence[float]] | None = None  # (time, sourced values)
+        self._cells: dict[str, float] = {}
         module = cformat.load()
         self._format_row = module.format_row if module is not None else None
         self.rows = 0
         self.table: list[list[float]] = []  # every row, for the MF4 copy and the summary
 
-    def begin_row(self, time: float, values: dict[str, float]) -> None:
-        """Start the row of a SYNC with the plant's values (by column): the row is `values`
-        itself, which the caller hands over (it must not change it afterwards)."""
+    def begin_row(self, time: float, values: Sequence[float]) -> None:
+        """Start the row of a SYNC with the plant's values of `source_columns`, in that order
+        (held until the row ends: the caller must not change them)."""
+        if len(values) != len(self.source_columns):
+            raise HilError(
+                f"{self.path.name}: a row of {len(values)} values for "
+                f"{len(self.source_columns)} sourced columns"
+            )
         self.end_row()
-        values["time"] = time
-        self._row = values
+        self._row = (time, values)
 
     def frame_columns(self, kind: str, index: int | None) -> list[tuple[str, str]]:
         """(signal, column) of every recorded signal of frame (kind, index)."""
@@ -83,15 +100,21 @@ class SignalRecorder:
 
     def set_cells(self, cells: Iterable[tuple[str, float]]) -> None:
         """(column, value) pairs into the open row: what a frame reported (the controller's
-        state), its columns looked up once (`frame_columns`)."""
+        state), its columns looked up once (`frame_columns`); the columns with a source take
+        the plant's values, not these."""
         if self._row is not None:
-            self._row.update(cells)
+            self._cells.update(cells)
 
     def end_row(self) -> None:
         if self._row is None:
             return
-        row = self._row
-        values = list(map(row.get, self.columns, self._missing))  # NaN where nobody wrote
+        time_, sourced = self._row
+        cells = self._cells
+        values = list(  # NaN where nobody wrote
+            self._in_order([time_, *sourced, *map(cells.get, self._cell_columns, self._no_cells)])
+        )
+        if cells:
+            cells.clear()
         line = self._format_row(values) if self._format_row is not None else None
         if line is not None:  # floats and ints, the usual row: written in C
             self._file.write(line)

@@ -215,6 +215,39 @@ def test_kernel_and_python_master_are_bit_identical_at_every_sync(
     assert [t for t, _ in python_probe.received] == [k * H for k in range(0, 600, 10)]
 
 
+def test_what_the_loop_reads_after_the_worker_is_what_values_says(
+    drive_cylinder_fmu: BuiltFmu, fea_segment_fmu: BuiltFmu
+) -> None:
+    """After a period on the worker thread the master copies the FMUs' values into `values`
+    only when asked; what the plant's loop reads before that (`reader`, `inputs_of`: from the
+    kernel's array, a published value as published) is what the Python master holds, and what
+    `values` then says."""
+    keys = ["segment1.kappa", "drive.x_ref", "cylinder2.x", "probe.x_ref", "segment2.p_b"]
+    reads: dict[bool, list[object]] = {False: [], True: []}
+    stale: list[bool] = []
+
+    def ahead(master: Master, target: int) -> None:
+        read = master.__dict__.setdefault("_test_read", master.reader(keys))
+        one = master.__dict__.setdefault("_test_one", master.reader(["cylinder1.x"]))
+        if master.uses_kernel:
+            assert master.start_advance(target, 0.0)
+        master.advance_to(target)
+        stale.append(master._stale)
+        got = (read(), one(), master.inputs_of("drive"), master.inputs_of("sampler"))
+        assert got[0] == tuple(master.values[k] for k in keys)
+        assert got[1] == (master.values["cylinder1.x"],)
+        reads[master.uses_kernel].append(got)
+
+    python, _, _ = run_syncs(drive_cylinder_fmu, fea_segment_fmu, False, 20, ahead, SYNC_TICKS)
+    kernel, _, used = run_syncs(drive_cylinder_fmu, fea_segment_fmu, True, 20, ahead, SYNC_TICKS)
+    assert used and kernel == python
+    assert reads[True] == reads[False]
+    assert stale.count(True) == 20  # the kernel's reads all came from its array
+    assert len({got[0] for got in reads[True]}) > 10  # the values moved
+    with pytest.raises(HilError, match="no value 'segment1.nope'"):
+        Master([], [], H).reader(["segment1.nope"])
+
+
 def test_kernel_and_python_master_are_bit_identical_at_every_tick(
     drive_cylinder_fmu: BuiltFmu, fea_segment_fmu: BuiltFmu
 ) -> None:

@@ -14,6 +14,7 @@ from pathlib import Path
 import pytest
 
 from hil import cformat
+from hil.errors import HilError
 from hil.recording import SignalRecorder
 from hil.robots import SignalSpec
 
@@ -34,12 +35,16 @@ def test_cells_and_frame_columns(tmp_path: Path) -> None:
     assert recorder.frame_columns("ControllerState", 2) == [("kappa_ref", "kappa_ref2")]
     assert recorder.frame_columns("ControllerState", 3) == []
     assert recorder.frame_columns("DriveStatus", 1) == []
+    assert recorder.source_columns == ["kappa", "fault"]
     recorder.set_cells([("kappa_ref", 9.0)])  # no open row: nothing to fill
-    recorder.begin_row(0.01, {"kappa": 0.1 + 0.2, "fault": 3})
+    recorder.begin_row(0.01, (0.1 + 0.2, 3))
     # kappa_est is not given
     recorder.set_cells([("kappa_ref2", 4.0)])
     recorder.set_cells([("kappa_ref", -2.5)])
-    recorder.begin_row(0.02, {"kappa": math.nan, "fault": 0})  # ends the first row
+    recorder.set_cells([("kappa", 7.0)])  # a sourced column takes the plant's value
+    recorder.begin_row(0.02, (math.nan, 0))  # ends the first row
+    with pytest.raises(HilError, match="signals.csv: a row of 1 values for 2 sourced columns"):
+        recorder.begin_row(0.03, (1.0,))
     recorder.close()
     lines = (tmp_path / "signals.csv").read_text().splitlines()
     assert lines == [
@@ -88,7 +93,7 @@ def test_rows_are_what_the_csv_writer_writes_for_any_numbers(
         values = [float(v) for v in rng.normal(0.0, 10.0 ** rng.integers(-8, 8), 4)]
         if k % 3 == 0:
             values[k % 4] = odd[(k // 3) % len(odd)]
-        recorder.begin_row(k * 0.01, {f"s{i}": v for i, v in enumerate(values)})
+        recorder.begin_row(k * 0.01, values)
         row = [k * 0.01, *values]
         reference.writerow(["" if isinstance(v, float) and v != v else repr(v) for v in row])
     recorder.close()
