@@ -98,15 +98,18 @@ def compile_library(
     salt: str = "",
     suffix: str = ".so",
     error: type[Exception] = CompileError,
+    link: Sequence[str] = (),
 ) -> Path:
     """A shared library compiled from one C `source` (a file, or the code itself) with
-    `compiler()` and `flags`, once per compiler, flags, source and `salt` (whatever else the
-    library depends on): `<cache>/<kind>/<stem>-<digest><suffix>`, built in a private file and
+    `compiler()` and `flags`, linked with `link` (libraries and static archives, after the
+    source, as the linker needs them), once per compiler, flags, link, source and `salt`
+    (whatever else the library depends on, such as an archive's version):
+    `<cache>/<kind>/<stem>-<digest><suffix>`, built in a private file and
     renamed into place, so concurrent builds of the same digest never see a half-written file.
     `error` (CompileError by default), with the compiler's first line, if it cannot be built."""
     code = source.read_text() if isinstance(source, Path) else source
     cc = compiler()
-    h = hashlib.sha256(" ".join((cc, *flags)).encode())
+    h = hashlib.sha256(" ".join((cc, *flags, *link)).encode())
     h.update(salt.encode())
     h.update(code.encode())
     target = cache_root() / kind / f"{stem}-{h.hexdigest()[:16]}{suffix}"
@@ -121,7 +124,7 @@ def compile_library(
             c_file.write_text(code)
         built = Path(work) / f"{stem}{suffix}"
         result = subprocess.run(
-            [cc, *flags, str(c_file), "-o", str(built)], capture_output=True, text=True
+            [cc, *flags, str(c_file), *link, "-o", str(built)], capture_output=True, text=True
         )
         if result.returncode != 0:
             first = (result.stderr.strip().splitlines() or ["(no output)"])[0]
@@ -130,16 +133,25 @@ def compile_library(
     return target
 
 
-def compile_extension(kind: str, stem: str, source: Path | str, flags: Sequence[str]) -> Path:
+def compile_extension(
+    kind: str,
+    stem: str,
+    source: Path | str,
+    flags: Sequence[str],
+    link: Sequence[str] = (),
+    salt: str = "",
+) -> Path:
     """A CPython extension module compiled from one C `source` against this Python's headers
-    (`compile_library` keyed also by the Python it is built for); CompileError if it cannot be
-    (no Python.h among them, a compiler error)."""
+    (`compile_library` keyed also by the Python it is built for, and `salt`); CompileError if it
+    cannot be (no Python.h among them, a compiler error)."""
     include = sysconfig.get_paths()["include"]
     if not (Path(include) / "Python.h").is_file():
         raise CompileError(f"no Python.h in {include} (install the Python headers)")
     suffix = (importlib.machinery.EXTENSION_SUFFIXES or [".so"])[0]
-    salt = f"{sys.version} {sys.platform}"  # the ABI it is built for
-    return compile_library(kind, stem, source, (*flags, f"-I{include}"), salt=salt, suffix=suffix)
+    salt = " ".join(filter(None, (sys.version, sys.platform, salt)))  # the ABI, the caller's
+    return compile_library(
+        kind, stem, source, (*flags, f"-I{include}"), salt=salt, suffix=suffix, link=link
+    )
 
 
 def import_extension(name: str, target: Path) -> ModuleType:

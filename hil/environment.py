@@ -52,7 +52,7 @@ def two_cores() -> bool:
 def check() -> None:
     """HilError naming the first softhil variable whose value is not one softhil reads."""
     from controllers import ccodec, cukf
-    from hil import cformat
+    from hil import cformat, cvision
 
     kernel_enabled()
     kernel_thread()
@@ -60,5 +60,6 @@ def check() -> None:
         ccodec.setting()
         cukf.setting()
         cformat.setting()
+        cvision.setting()
     except ValueError as exc:
         raise HilError(str(exc)) from None

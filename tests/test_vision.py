@@ -184,3 +184,81 @@ def test_bad_values_raise_one_line_errors_naming_the_key(change: dict, message: 
     assert "\n" not in str(error.value)
     with pytest.raises(ValueError):
         Camera(dataclasses.replace(CameraEffects(), **change), np.random.default_rng(0), PERIOD, H)
+
+
+@pytest.mark.parametrize(
+    "effects",
+    [
+        DEFAULT,
+        CameraEffects(),
+        CameraEffects(noise=1e-3, dropout=0.3, outlier_rate=0.3, outlier_distance=0.05),
+        CameraEffects(
+            noise=5e-4,
+            dropout=0.05,
+            outlier_rate=0.1,
+            outlier_distance=0.02,
+            occlusion_interval=0.05,
+            occlusion_duration=0.02,
+            occlusion_scope="marker",
+            jitter=2e-3,
+        ),
+        CameraEffects(noise=2e-4, occlusion_interval=0.1, occlusion_duration=0.03),
+    ],
+)
+@pytest.mark.parametrize("markers, dims", [(1, 2), (4, 2), (7, 2), (5, 3)])
+def test_pictures_drawn_in_c_are_numpys_bit_for_bit(
+    effects: CameraEffects, markers: int, dims: int
+) -> None:
+    """The picture's draws in C (hil.cvision: numpy's C random API on the same streams) give
+    numpy's pictures bit for bit, the outliers, dropouts and occlusions in their places, and
+    leave every stream where numpy leaves it."""
+    from hil import cvision
+
+    if cvision.load() is None:
+        pytest.skip(f"no C camera here: {cvision.failure()}")
+    rng = np.random.default_rng(11)
+    truth = rng.uniform(-0.2, 0.2, (400, markers, dims))
+    cameras = [Camera(effects, np.random.default_rng(3), PERIOD, H) for _ in range(2)]
+    assert cameras[0]._c_picture is not None
+    cameras[1]._c_picture = None  # numpy's Python API
+    outliers = missing = 0
+    for j in range(400):
+        true = truth[j] if j % 2 else truth[j][:, :].T.copy().T  # contiguous and not
+        c, py = (camera.picture(j, j * PERIOD, true) for camera in cameras)
+        assert (c.frame_index, c.exposure_tick, c.exposure_time) == (
+            py.frame_index,
+            py.exposure_tick,
+            py.exposure_time,
+        )
+        for field in ("points", "dropped", "occluded", "outlier"):
+            a, b = getattr(c, field), getattr(py, field)
+            assert a.dtype == b.dtype and a.shape == b.shape, field
+            assert a.tobytes() == b.tobytes(), (j, field)  # bits: NaN, -0.0 included
+        outliers += int(py.outlier.sum())
+        missing += int((~py.seen).sum())
+    states = [
+        [g.bit_generator.state for g in (cam._rng_noise, cam._rng_dropout, cam._rng_outlier)]
+        for cam in cameras
+    ]
+    assert states[0] == states[1]
+    if effects.outlier_rate >= 0.1:
+        assert outliers > 10  # the outlier path ran
+    if effects.dropout >= 0.05 or effects.occlusion_interval > 0.0:
+        assert missing > 20
+
+
+def test_python_only_and_a_misspelt_camera_setting(monkeypatch: pytest.MonkeyPatch) -> None:
+    from hil import cvision
+
+    monkeypatch.setattr(cvision._part, "value", None)
+    monkeypatch.setattr(cvision._part, "failure", None)
+    monkeypatch.setenv(cvision.ENV, "python")
+    assert cvision.load() is None and cvision.failure() == "SOFTHIL_CAMERA=python"
+    assert Camera(DEFAULT, np.random.default_rng(1), PERIOD, H)._c_picture is None
+    monkeypatch.setattr(cvision._part, "failure", None)
+    monkeypatch.setenv(cvision.ENV, "cee")
+    with pytest.raises(ValueError, match="^SOFTHIL_CAMERA='cee': must be c .* or python$"):
+        cvision.load()
+    from hil.cli import main as hil_main
+
+    assert hil_main(["scenarios"]) == 1

@@ -1,0 +1,81 @@
+"""The camera's picture in C (`_cvision.c`): its draws and points in one call.
+
+`hil.vision.Camera.picture` draws each marker's noise, dropout and outlier from numpy random
+streams and adds them up in some fifteen numpy calls, 18 us a picture, most of it the calls' own
+cost on a handful of values. The C module makes the same draws through numpy's C random API
+(numpy ships it for this: `numpy/random/lib/libnpyrandom.a`, the functions its Generator calls)
+on the same bit generators, so pictures and streams are the same bit for bit (tests/test_vision.py
+compares them with the numpy path over seeds, effects and shapes).
+
+It is built with `$CC` (or gcc) against this Python's headers and numpy's random API into the
+softhil cache, keyed by numpy's version. Without a compiler, the headers or numpy's archive, or
+with ``SOFTHIL_CAMERA=python``, the camera draws through numpy's Python API (`failure()` says why):
+the same pictures.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from types import ModuleType
+
+import numpy as np
+
+from controllers.cbuild import (
+    LIBRARY_FLAGS,
+    CompileError,
+    CPart,
+    compile_extension,
+    load_extension,
+)
+
+SOURCE = Path(__file__).with_name("_cvision.c")
+MODULE = "_softhil_cvision"
+ENV = "SOFTHIL_CAMERA"  # "python": pictures drawn through numpy's Python API only
+
+
+def _numpy_random() -> tuple[Path, Path]:
+    """numpy's C headers and its random API's static archive; CompileError if either is not
+    shipped with this numpy."""
+    root = Path(np.__file__).parent
+    include = Path(np.get_include())
+    archive = root / "random" / "lib" / "libnpyrandom.a"
+    if not (include / "numpy" / "random" / "bitgen.h").is_file() or not archive.is_file():
+        raise CompileError(f"numpy {np.__version__} ships no C random API (libnpyrandom.a)")
+    return include, archive
+
+
+def _build() -> Path:
+    include, archive = _numpy_random()
+    return compile_extension(
+        "vision",
+        "cvision",
+        SOURCE,
+        (*LIBRARY_FLAGS, f"-I{include}"),
+        link=(str(archive), "-lm"),
+        salt=f"numpy {np.__version__} {archive.stat().st_size}",
+    )
+
+
+_part: CPart[ModuleType] = CPart(
+    ENV,
+    "pictures drawn in C where it builds",
+    lambda: load_extension(MODULE, _build),
+    logging.getLogger(__name__),
+    "camera pictures are drawn through numpy's Python API (slower, the same pictures)",
+)
+
+
+def setting() -> str:
+    """SOFTHIL_CAMERA: "c" (unset or empty) or "python"; ValueError naming it for any other."""
+    return _part.setting()
+
+
+def load() -> ModuleType | None:
+    """The C module, built if needed; None if it cannot be (why: `failure()`)."""
+    return _part.get()
+
+
+def failure() -> str | None:
+    """Why the C module is not in use (None: it is, or it was not tried yet)."""
+    return _part.failure
