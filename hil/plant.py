@@ -416,12 +416,14 @@ class Plant:
             self.signals.begin_row(self.sim_time, self._sourced())
         self.can_log.flush()
         if self.scenario.controller.policy == "strict":
-            self._count()
             self._strict(outgoing)
 
+    def _at(self) -> str:
+        """The SYNC and time, for a message."""
+        return f"at SYNC {self.cycle} (t = {self.sim_time:.3f} s)"
+
     def _count(self) -> None:
-        """The device nodes' counts into the stats: when the run ends, however it ends, and at
-        every SYNC under the strict policy (which stops on them)."""
+        """The device nodes' counts into the stats: when the run ends, however it ends."""
         stats = self.stats
         stats.commands_missed = sum(getattr(n, "missed", 0) for n in self.nodes)
         stats.commands_stale = sum(getattr(n, "stale", 0) for n in self.nodes)
@@ -435,17 +437,21 @@ class Plant:
             stats.first_clamped = f"{name} at t = {at:.3f} s, setpoint {setpoint:.6g} m"
 
     def _strict(self, sent: list[tuple[int, Frame]]) -> None:
-        """Under the strict policy a missed or stale command, or an EMCY, ends the run."""
-        at = f"at SYNC {self.cycle} (t = {self.sim_time:.3f} s)"
+        """Under the strict policy a missed or stale command, or an EMCY, ends the run (the
+        stats are counted as it ends, `_count`)."""
         for _, frame in sent:
             if isinstance(frame, Emcy):
                 raise ProtocolError(
                     f"EMCY 0x{frame.error_code:04X} ({EMCY_REASONS.get(frame.error_code, 'fault')})"
-                    f" from drive {frame.node} {at}; the strict policy stops the run"
+                    f" from drive {frame.node} {self._at()}; the strict policy stops the run"
                 )
-        stats = self.stats
-        if stats.commands_missed or stats.commands_stale:
-            what = "missed" if stats.commands_missed else "stale"
+        missed = stale = 0
+        for node in self.nodes:
+            missed += getattr(node, "missed", 0)
+            stale += getattr(node, "stale", 0)
+        if missed or stale:
+            what = "missed" if missed else "stale"
+            at = self._at()
             raise ProtocolError(
                 f"a drive command was {what} {at}: the controller did not command the last "
                 "period; the strict policy stops the run"
