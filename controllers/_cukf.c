@@ -13,6 +13,8 @@
  */
 #include <math.h>
 #include <stddef.h>
+#include <stdint.h>
+#include <string.h>
 
 #define EXPORT __attribute__((visibility("default")))
 
@@ -100,11 +102,17 @@ EXPORT int softhil_ukf_predict(struct softhil_ukf *f) {
     return 0;
 }
 
-/* The segment-end markers of one state (theta = s[0..N-1]) into ends (N x 2). */
-static void segment_ends(const struct softhil_ukf *f, const double *s, double *ends) {
+/* The segment-end markers of one state (theta = s[0..N-1]) into ends (N x 2), from segment
+ * `from` on, the chain's pose before it in pose[3 from .. 3 from + 2] (heading, x, y); the pose
+ * before each segment computed is stored there. */
+static void segment_ends(const struct softhil_ukf *f, const double *s, int from, double *pose,
+                         double *ends) {
     const int N = f->segments;
-    double heading = f->base[2], px = f->base[0], py = f->base[1];
-    for (int i = 0; i < N; i++) {
+    double heading = pose[3 * from], px = pose[3 * from + 1], py = pose[3 * from + 2];
+    for (int i = from; i < N; i++) {
+        pose[3 * i] = heading;
+        pose[3 * i + 1] = px;
+        pose[3 * i + 2] = py;
         double theta = s[i], half = 0.5 * theta, direction = heading + half;
         double chord = f->lengths[i] * (half == 0.0 ? 1.0 : sin(half) / half);
         px += chord * cos(direction);
@@ -113,6 +121,13 @@ static void segment_ends(const struct softhil_ukf *f, const double *s, double *e
         ends[2 * i + 1] = py;
         heading += theta;
     }
+}
+
+static int same_bits(double a, double b) {
+    uint64_t x, y;
+    memcpy(&x, &a, sizeof x);
+    memcpy(&y, &b, sizeof y);
+    return x == y;
 }
 
 /* The correction by the visible markers of `points`. Returns 0 (x_out, P_out, gated, measured,
@@ -150,8 +165,25 @@ EXPORT int softhil_ukf_correct(struct softhil_ukf *f) {
             sigmas[(1 + n + k) * n + j] = f->x[j] - L[j * n + k];
         }
     const int Z = 2 * V;
+    /* The sigma points' segment ends. U is triangular, so x + U[k] and x - U[k] differ from x
+     * in entries k.. only: a sigma point's segments before its first theta that differs from
+     * x's (bit for bit) end where x's do, and only the rest of its chain is computed, from x's
+     * pose there (half of the sigma points have x's thetas). The same operations on the same
+     * values: the same bits as the whole chain. */
+    double mean_pose[3 * 64], mean_ends[2 * 64], pose[3 * 64];
+    mean_pose[0] = f->base[2];
+    mean_pose[1] = f->base[0];
+    mean_pose[2] = f->base[1];
+    segment_ends(f, sigmas, 0, mean_pose, mean_ends);
     for (int s = 0; s < S_n; s++) {
-        segment_ends(f, sigmas + (size_t)s * n, ends);
+        const double *sigma = sigmas + (size_t)s * n;
+        int from = 0;
+        while (from < N && same_bits(sigma[from], sigmas[from])) from++;
+        memcpy(ends, mean_ends, sizeof(double) * 2 * (size_t)from);
+        if (from < N) {
+            memcpy(pose + 3 * from, mean_pose + 3 * from, sizeof(double) * 3);
+            segment_ends(f, sigma, from, pose, ends);
+        }
         for (int v = 0; v < V; v++) {
             pred[s * Z + 2 * v] = ends[2 * (visible[v] - 1)];
             pred[s * Z + 2 * v + 1] = ends[2 * (visible[v] - 1) + 1];
