@@ -186,6 +186,19 @@ def test_bad_values_raise_one_line_errors_naming_the_key(change: dict, message: 
         Camera(dataclasses.replace(CameraEffects(), **change), np.random.default_rng(0), PERIOD, H)
 
 
+def test_the_c_camera_builds_where_gcc_and_numpys_random_api_are() -> None:
+    """Where gcc is (and SOFTHIL_CAMERA is not python) the C camera loads: a failed build or
+    link would otherwise only fall back, silently slower."""
+    import shutil
+
+    from hil import cvision
+
+    module = cvision.load()
+    if shutil.which("gcc") is None or cvision.failure() == f"{cvision.ENV}=python":
+        pytest.skip("no gcc, or SOFTHIL_CAMERA=python")
+    assert module is not None, cvision.failure()
+
+
 @pytest.mark.parametrize(
     "effects",
     [
