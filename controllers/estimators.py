@@ -120,13 +120,12 @@ def _pressure_inputs(
 ) -> np.ndarray:
     """h(p_a) - h(p_b) per segment [Pa] (the torque per G_a, `BendModel.effective_pressure`)
     from drives 1..N; a missing drive keeps its last value."""
-    u = np.zeros(len(bends)) if previous is None else previous.copy()
+    u = [0.0] * len(bends) if previous is None else previous.tolist()
     for n, bend in enumerate(bends, start=1):
-        if n in drives:
-            u[n - 1] = bend.effective_pressure(drives[n].p_a) - bend.effective_pressure(
-                drives[n].p_b
-            )
-    return u
+        reading = drives.get(n)
+        if reading is not None:
+            u[n - 1] = bend.effective_pressure(reading.p_a) - bend.effective_pressure(reading.p_b)
+    return np.array(u, dtype=float)
 
 
 class RawEstimator:

@@ -24,6 +24,8 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from hil.errors import FmuError, HilError
 from hil.fmu.build import CFLAGS, compile_library
 from hil.fmu.slave import FmuSlave
@@ -381,7 +383,9 @@ class Kernel:
         failed = self._library.softhil_worker_wait(self._handle.worker, *self._outcome)
         self._job = None  # only now: an interrupt before this leaves the job to `stop`
         width = len(self.values)
-        rows = [self._samples[i * width : (i + 1) * width] for i in range(samples)]
+        # as floats in one conversion (numpy's view of the buffer), not a ctypes slice a row
+        view = np.frombuffer(self._samples, dtype=np.float64, count=samples * width)
+        rows: list[list[float]] = view.reshape(samples, width).tolist()
         if failed:
             return rows, self._error(before)
         self._stepped(k_begin, k_end)
