@@ -405,6 +405,7 @@ class CameraAssembler:
 
     def __init__(self, markers: int) -> None:
         self.markers = markers
+        self._all_markers = (1 << markers) - 1  # the mask bits of markers 0 .. markers - 1
         self._headers: dict[int, CameraFrame] = {}
         self._pending: dict[int, dict[int, CameraMarker]] = {}
 
@@ -419,7 +420,12 @@ class CameraAssembler:
         if header is None:
             return False
         have = self._pending.get(index % COUNTER_MODULO, {})
-        return all(m in have for m in range(self.markers) if header.marker_mask >> m & 1)
+        mask = header.marker_mask & self._all_markers
+        # asked after every frame of a picture: fewer markers in than it holds is the usual
+        # answer, found without the look-ups
+        if len(have) < mask.bit_count():
+            return False
+        return all(m in have for m in range(self.markers) if mask >> m & 1)
 
     def take(self, index: int, sync_time: float) -> MarkerFrame:
         """The picture `index` (complete) stamped with its exposure time; markers it does not

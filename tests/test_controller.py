@@ -138,6 +138,26 @@ def test_markers_beyond_the_robots_are_ignored() -> None:
     assert not assembler.complete(1)
 
 
+def test_a_picture_is_complete_with_the_markers_its_mask_names() -> None:
+    """Only the markers its header's mask names (and the robot has) complete a picture: a
+    marker it does not name counts for nothing, a mask bit beyond the robot's markers is no
+    marker to wait for."""
+    assembler = CameraAssembler(markers=3)
+    assembler.add(CameraFrame(4, 0.006, 0b101, 2))  # markers 0 and 2 seen
+    assembler.add(marker(0, 4))
+    assembler.add(marker(1, 4))  # as many markers in as the mask names, but not the right ones
+    assert not assembler.complete(4)
+    assembler.add(marker(2, 4))
+    assert assembler.complete(4)
+    points = assembler.take(4, 1.0).points
+    assert np.isnan(points[1]).all() and not np.isnan(points[[0, 2]]).any()
+    assembler.add(CameraFrame(5, 0.006, 0b11011, 4))  # bits 3 and 4: no such markers
+    assembler.add(marker(0, 5))
+    assert not assembler.complete(5)
+    assembler.add(marker(1, 5))
+    assert assembler.complete(5)
+
+
 # ---------------------------------------------------------------------------- raw estimator
 
 LENGTHS = (0.06, 0.05)
