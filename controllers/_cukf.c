@@ -41,7 +41,7 @@ struct softhil_ukf {
     double *y;            /* innovation: 2 m entries, m markers fused */
     double *S;            /* innovation covariance, 2m x 2m */
     int gated, measured;  /* markers gated out, markers fused */
-    /* work: at least (2n + 1) (n + 2N + 2) + n n + 8 N n + 4 N N + 2 N doubles */
+    /* work: at least (2n + 1) (n + 4N) + 24 N N + 4 N doubles */
     double *work;
 };
 
@@ -140,6 +140,7 @@ EXPORT int softhil_ukf_correct(struct softhil_ukf *f) {
     double *L = w;                w += (size_t)n * n;
     double *ends = w;             w += 2 * N;
     double *pred = w;             w += (size_t)S_n * 2 * N; /* S_n x 2V, the visible markers */
+    double *dw = w;               w += (size_t)S_n * 2 * N; /* pred's deviations, weighted */
     double *zp = w;               w += 2 * N;
     double *K = w;                w += (size_t)n * 2 * N;
     double *Pxz = w;              w += (size_t)n * 2 * N;
@@ -194,14 +195,25 @@ EXPORT int softhil_ukf_correct(struct softhil_ukf *f) {
         for (int s = 0; s < S_n; s++) t += f->Wm[s] * pred[s * Z + c];
         zp[c] = t;
     }
+    /* Every covariance below sums (a - mean) * Wc[s] * (b - mean) over the sigma points: the
+     * deviations and their weighted copies made once (pred and sigmas become them in place),
+     * the same values as made in each sum, so the same bits. */
+    for (int s = 0; s < S_n; s++) {
+        for (int c = 0; c < Z; c++) {
+            pred[s * Z + c] -= zp[c];
+            dw[s * Z + c] = pred[s * Z + c] * f->Wc[s];
+        }
+        for (int i = 0; i < n; i++)
+            sigmas[s * n + i] = (sigmas[s * n + i] - f->x[i]) * f->Wc[s];
+    }
     /* the gate: each marker's 2 x 2 block of the innovation covariance, in closed form */
     for (int v = 0; v < V; v++) {
         double s00 = 0.0, s01 = 0.0, s11 = 0.0;
         for (int s = 0; s < S_n; s++) {
-            double d0 = pred[s * Z + 2 * v] - zp[2 * v], d1 = pred[s * Z + 2 * v + 1] - zp[2 * v + 1];
-            s00 += d0 * f->Wc[s] * d0;
-            s01 += d0 * f->Wc[s] * d1;
-            s11 += d1 * f->Wc[s] * d1;
+            const double *d = pred + s * Z + 2 * v, *e = dw + s * Z + 2 * v;
+            s00 += e[0] * d[0];
+            s01 += e[0] * d[1];
+            s11 += e[1] * d[1];
         }
         s00 += f->noise;
         s11 += f->noise;
@@ -220,8 +232,7 @@ EXPORT int softhil_ukf_correct(struct softhil_ukf *f) {
         for (int b = 0; b <= a; b++) {
             int cb = 2 * keep[b / 2] + b % 2;
             double t = 0.0;
-            for (int s = 0; s < S_n; s++)
-                t += (pred[s * Z + ca] - zp[ca]) * f->Wc[s] * (pred[s * Z + cb] - zp[cb]);
+            for (int s = 0; s < S_n; s++) t += dw[s * Z + ca] * pred[s * Z + cb];
             if (a == b) t += f->noise;
             f->S[a * M + b] = f->S[b * M + a] = t;
         }
@@ -231,8 +242,7 @@ EXPORT int softhil_ukf_correct(struct softhil_ukf *f) {
         for (int a = 0; a < M; a++) {
             int ca = 2 * keep[a / 2] + a % 2;
             double t = 0.0;
-            for (int s = 0; s < S_n; s++)
-                t += (sigmas[s * n + i] - f->x[i]) * f->Wc[s] * (pred[s * Z + ca] - zp[ca]);
+            for (int s = 0; s < S_n; s++) t += sigmas[s * n + i] * pred[s * Z + ca];
             Pxz[i * M + a] = t;
         }
     /* K = Pxz S^-1: S = LS LS', each row k of K solves S k' = Pxz[row]' */

@@ -60,7 +60,7 @@ class Workspace(ctypes.Structure):
 def work_size(segments: int) -> int:
     """Doubles the C code's `work` buffer needs for `segments` segments."""
     n = 2 * segments
-    return (2 * n + 1) * (n + 2 * segments) + 4 * segments + 24 * segments**2 + 16
+    return (2 * n + 1) * (n + 4 * segments) + 4 * segments + 24 * segments**2 + 16
 
 
 def _load() -> ctypes.CDLL:
