@@ -195,7 +195,9 @@ class Master:
         # plant's loop reads what it needs from the array (`reader`, `inputs_of`)
         self._values: dict[str, float] = {}
         self._stale = False  # the kernel stepped since its values were copied into `_values`
-        self._snapshot: list[float] | None = None  # the kernel's array as floats (`_current`)
+        # the kernel's array as floats (`_current`): read only while stale, made anew after each
+        # kernel step, kept up to date by `_publish` in between
+        self._snapshot: list[float] | None = None
         self._view = MappingProxyType(self._values)  # what observers get: read-only
         self._kernel: kernel_module.Kernel | None = None
         self._kernel_synced = False
@@ -474,7 +476,6 @@ class Master:
             kernel.load_last_inputs([p._last_inputs for p in self._fast])
             for key, slot in self._slots.items():
                 kernel.values[slot] = self._values[key]
-            self._snapshot = None
             self._kernel_synced = True
 
     def start_advance(self, tick: int, spin: float = 0.0) -> bool:

@@ -30,9 +30,9 @@ def test_the_c_ukf_builds_where_gcc_is() -> None:
     assert cukf.load() is not None, cukf.failure()
 
 
-def estimator(segments: int) -> ArmUnscentedEstimator:
+def estimator(segments: int, base: tuple[float, float, float] = BASE) -> ArmUnscentedEstimator:
     return ArmUnscentedEstimator(
-        [SEGMENT] * segments, BASE, camera_noise(CameraEffects(noise=5e-4)), 0.01
+        [SEGMENT] * segments, base, camera_noise(CameraEffects(noise=5e-4)), 0.01
     )
 
 
@@ -47,7 +47,7 @@ def cases(est: ArmUnscentedEstimator, count: int, seed: int):  # noqa: ANN201
         P = A @ A.T + 1e-6 * np.eye(n)
         truth = x[:N] + rng.normal(0.0, 0.02, N)
         points = est._segment_ends(np.concatenate([truth, x[N:]])[np.newaxis])[0]
-        points = np.vstack([[BASE[0], BASE[1]], points]) + rng.normal(0.0, 5e-4, (N + 1, 2))
+        points = np.vstack([est.base[:2], points]) + rng.normal(0.0, 5e-4, (N + 1, 2))
         points[rng.random(N + 1) < 0.2] = np.nan
         if rng.random() < 0.3:
             points[1 + rng.integers(N)] += 0.05  # an outlier
@@ -60,8 +60,9 @@ def cases(est: ArmUnscentedEstimator, count: int, seed: int):  # noqa: ANN201
 
 @needs_c
 @pytest.mark.parametrize("segments", [1, 2, 6])
-def test_the_c_correction_equals_numpys(segments: int) -> None:
-    est = estimator(segments)
+@pytest.mark.parametrize("base", [BASE, (0.013, -0.021, 1.2)])
+def test_the_c_correction_equals_numpys(segments: int, base: tuple[float, float, float]) -> None:
+    est = estimator(segments, base)
     assert est._c is not None
     seen = {"fused": 0, "gated": 0, "all gated": 0, "none seen": 0}
     for x, P, points, _ in cases(est, 60, segments):

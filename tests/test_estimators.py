@@ -21,6 +21,7 @@ from controllers.estimation import DriveReading, MarkerFrame
 from controllers.estimators import (
     OfflineEstimates,
     _inverse,
+    _pressure_inputs,
     _robust_sqrt,
     make_estimator,
     run_offline,
@@ -300,3 +301,17 @@ def test_inverse_and_square_root_are_numpys_bit_for_bit() -> None:
     U = _robust_sqrt(P)
     assert np.allclose(U.T @ U, np.diag([1.0, 4.0, 0.0]))
     assert np.isfinite(U).all()
+
+
+def test_pressure_inputs_keep_a_missing_drives_last_value() -> None:
+    """h(p_a) - h(p_b) per segment from the drives heard this cycle; a drive not heard keeps its
+    last value (zero before its first), and the last inputs are not changed in place."""
+    import dataclasses
+
+    bends = [SEGMENT, dataclasses.replace(SEGMENT, vacuum_factor=0.5, p_collapse=5e3), SEGMENT]
+    first = _pressure_inputs({2: DriveReading(0.02, 3e4, -2e4)}, None, bends)
+    expected = 3e4 - bends[1].effective_pressure(-2e4)
+    assert first.tolist() == [0.0, expected, 0.0] and expected != 5e4  # the collapse counts
+    second = _pressure_inputs({1: DriveReading(0.02, 1e4, 0.0)}, first, bends)
+    assert second.tolist() == [1e4, expected, 0.0]
+    assert first.tolist() == [0.0, expected, 0.0] and second.dtype == np.float64

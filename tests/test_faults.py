@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import dataclasses
 import errno
 import json
 import os
@@ -447,6 +448,32 @@ def test_a_controller_that_stops_commanding(tmp_path: Path, monkeypatch, capsys,
     else:
         assert code == 0 and s["frames"]["missed"] > 0 and s["frames"]["emcy"] == 1
         assert any("missed" in w for w in s["warnings"])
+
+
+class StaleAfter(ControllerNode):
+    """The real controller whose drive commands, after `cycles_ok` cycles, carry the counter of
+    the cycle before (a controller one period behind): every command arrives, stale."""
+
+    cycles_ok = 20
+
+    def _send(self, frame, sim_time: float) -> None:  # type: ignore[override]
+        if isinstance(frame, DriveCommand) and frame.counter >= self.cycles_ok:
+            frame = dataclasses.replace(frame, counter=frame.counter - 1)
+        super()._send(frame, sim_time)
+
+
+def test_a_stale_command_stops_a_strict_run(tmp_path: Path, monkeypatch, capsys) -> None:
+    """Under the strict policy a stale command (present, but of an earlier period) ends the run
+    at the SYNC that finds it, as a missed one does."""
+    monkeypatch.setattr("hil.run.ControllerNode", StaleAfter)
+    out = tmp_path / "run"
+    code, lines = run_cli(
+        capsys, str(scenario_file(tmp_path, 1.0)), "--inprocess", "--out", str(out)
+    )
+    s = summary(out)
+    readable(out)
+    assert code == 1 and len(lines) == 1 and "a drive command was stale" in lines[0]
+    assert s["status"] == "failed" and "SYNC 21" in s["error"]
 
 
 # ------------------------------------------------------------------ real time

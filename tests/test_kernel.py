@@ -248,6 +248,91 @@ def test_what_the_loop_reads_after_the_worker_is_what_values_says(
         Master([], [], H).reader(["segment1.nope"])
 
 
+class Watcher:
+    """A Python participant with no outputs that reads a device node's output (published) and
+    an FMU's: what it is given must be what the Python master gives it."""
+
+    name = "watcher"
+    decimation = SYNC_TICKS
+
+    def input_names(self) -> list[str]:
+        return ["x_ref", "kappa"]
+
+    def output_names(self) -> list[str]:
+        return []
+
+    def set_inputs(self, values: Mapping[str, float]) -> None:
+        pass
+
+    def step(self, time: float, step: float) -> None:
+        pass
+
+    def get_outputs(self) -> dict[str, float]:
+        return {}
+
+
+def test_every_reader_after_a_period_in_c_sees_the_python_masters_values(
+    drive_cylinder_fmu: BuiltFmu, fea_segment_fmu: BuiltFmu
+) -> None:
+    """After a period on the worker thread the master's mapping is brought up to date only when
+    read. Whatever reads first sees what the Python master holds: a participant's inputs after a
+    device node published (from the kernel's array), an observer added at once, and an observer
+    appended to `observers` directly, whose ticks then run in Python."""
+
+    class Recorder:
+        def __init__(self) -> None:
+            self.calls: list[tuple[int, dict[str, float]]] = []
+
+        def observe(self, tick: int, values: Mapping[str, float]) -> None:
+            self.calls.append((tick, dict(values)))
+
+    def run(kernel: bool) -> tuple[list[object], list[object], bool]:
+        with (
+            FmuSlave(drive_cylinder_fmu, "cylinder1") as cylinder,
+            FmuSlave(fea_segment_fmu, "segment1") as segment,
+        ):
+            firmware = Firmware()
+            firmware.decimation = SYNC_TICKS
+            participants = [FmuParticipant(cylinder), FmuParticipant(segment), firmware, Watcher()]
+            connections = [
+                Connection("drive.x_ref", "cylinder1.x_ref"),
+                Connection("cylinder1.x", "drive.x"),
+                Connection("cylinder1.x", "segment1.x_piston"),
+                Connection("segment1.p_a", "cylinder1.p_a"),
+                Connection("segment1.p_b", "cylinder1.p_b"),
+                Connection("drive.x_ref", "watcher.x_ref", gain=2.0),
+                Connection("segment1.kappa", "watcher.kappa"),
+            ]
+            master = Master(participants, connections, H, kernel=kernel)
+            seen: list[object] = []
+            for sync in range(1, 13):
+                if kernel:
+                    assert master.start_advance(sync * SYNC_TICKS, 0.0)
+                master.advance_to(sync * SYNC_TICKS)
+                seen.append(master.inputs_of("watcher"))
+                firmware.setpoint = 0.02 + 0.001 * sync
+                master.publish("drive")
+                seen.append(master.inputs_of("watcher"))  # the setpoint just published
+            first, direct = Recorder(), Recorder()
+            master.add_observer(first)  # right after a period: no read in between
+            master.observers.clear()
+            if kernel:
+                assert master.start_advance(13 * SYNC_TICKS, 0.0)
+            master.advance_to(13 * SYNC_TICKS)
+            master.observers.append(direct)  # not through add_observer: nothing refreshed
+            master.advance_to(13 * SYNC_TICKS + 4)  # these ticks in Python
+            used = master.uses_kernel
+            master.settle()
+            return seen, [first.calls, direct.calls, dict(master.values)], used
+
+    python = run(False)
+    kernel = run(True)
+    assert not python[2] and kernel[2]
+    assert kernel[0] == python[0]
+    assert kernel[1] == python[1]
+    assert len({str(inputs) for inputs in python[0]}) > 12  # the values moved
+
+
 def test_kernel_and_python_master_are_bit_identical_at_every_tick(
     drive_cylinder_fmu: BuiltFmu, fea_segment_fmu: BuiltFmu
 ) -> None:
@@ -583,7 +668,7 @@ def test_an_fmu_error_inside_a_period_on_the_worker_thread_is_the_python_paths(
             with pytest.raises(FmuError) as info:
                 for sync in range(1, 100):
                     master.advance_to(sync * SYNC_TICKS)
-                    firmware.setpoint = setpoint(sync)
+                    firmware.setpoint = 0.02 + 0.001 * sync
                     master.publish("drive")
                     if ahead:
                         assert master.start_advance((sync + 1) * SYNC_TICKS, 0.0)
