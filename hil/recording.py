@@ -239,6 +239,10 @@ class CanLogger:
         self._stamp_text = ""
         module = cformat.load()  # the lines of classic data frames in C
         self._lines = module.candump_lines if module is not None else None
+        # frames `log` took at one time and direction, written together (`_write_held`) before
+        # anything else is written: the plant receives a period's commands one by one
+        self._held: list[can.Message] = []
+        self._held_at = (0.0, False)  # their (time, received)
 
     def _stamp_prefix(self, stamp: float) -> str:
         """The "(seconds) channel " that CanutilsLogWriter writes before a frame stamped `stamp`
@@ -266,6 +270,11 @@ class CanLogger:
 
     def log_all(self, messages: Sequence[can.Message], time: float, received: bool) -> None:
         """`log` of each message in turn (frames sent or received together, at one time)."""
+        if self._held:
+            self._write_held()
+        self._log_all(messages, time, received)
+
+    def _log_all(self, messages: Sequence[can.Message], time: float, received: bool) -> None:
         if self._record is None:
             for message in messages:
                 self._write(message, time, received)
@@ -282,19 +291,20 @@ class CanLogger:
             self._line(prefix, message, end, received)
 
     def log(self, message: can.Message, time: float, received: bool) -> None:
-        """One frame the plant sent (T) or received (R), stamped start + `time`."""
-        if self._record is None:
-            self._write(message, time, received)
-            return
-        prefix = self._stamp_prefix(self.start + time)
-        end = _DIRECTION[received]
-        if self._lines is not None:
-            done = self._lines(prefix, (message,), end, _FRAME_BITS)
-            if done is not None:
-                self._record.write(done[0])
-                self._count(done[1], 1, received)
-                return
-        self._line(prefix, message, end, received)
+        """One frame the plant sent (T) or received (R), stamped start + `time`: held with the
+        frames logged before it at the same time and direction, and written with them, in order,
+        before anything else is written (`log_all`, `flush`, `close`, another time)."""
+        if self._held and (
+            (time, received) != self._held_at or self.start + time == 0.0  # -0.0 prints apart
+        ):
+            self._write_held()
+        if not self._held:
+            self._held_at = (time, received)
+        self._held.append(message)
+
+    def _write_held(self) -> None:
+        messages, self._held = self._held, []
+        self._log_all(messages, *self._held_at)
 
     def _line(self, prefix: str, message: can.Message, end: str, received: bool) -> None:
         """The candump line of one frame, in Python: a classic data frame's as CanutilsLogWriter
@@ -348,6 +358,8 @@ class CanLogger:
     def flush(self, force: bool = False) -> None:
         """Whole records on disk, in blocks (every FLUSH_INTERVAL of wall time, or now with
         `force`) for the line formats; binary formats (BLF, MF4) are complete when closed."""
+        if self._held:
+            self._write_held()
         now = time.monotonic()
         if self._record is not None and (force or now - self._flushed > FLUSH_INTERVAL):
             self._record.flush()
@@ -356,6 +368,8 @@ class CanLogger:
     def close(self) -> None:
         """Close the log; a log that already failed closes quietly (the failure was raised)."""
         try:
+            if self._held:
+                self._write_held()
             self._writer.stop()
         except OSError as exc:
             raise WriteError(f"{self.path}: cannot write: {exc.strerror or exc}") from None

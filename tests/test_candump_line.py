@@ -186,3 +186,27 @@ def test_frames_python_can_writes_keep_the_logs_stamps(tmp_path: Path, lines_in:
         "(5.000000) can0 081#R R",
         "(1.000000) can0 081#R R",
     ]
+
+
+def test_frames_held_by_log_are_written_in_order_and_on_flush(tmp_path: Path) -> None:
+    """`log` holds the frames of one time and direction and writes them together: before any
+    frame logged otherwise (`log_all`, another time or direction), and on `flush` (the file has
+    them then, not only when closed), in the order they were logged."""
+    frames = [
+        can.Message(arbitration_id=0x100 + k, is_extended_id=False, data=bytes([k]))
+        for k in range(6)
+    ]
+    logger = CanLogger(tmp_path / "x.log", start=100.0)
+    logger.log(frames[0], 0.01, True)
+    logger.log_all(frames[1:3], 0.01, True)  # the same time and direction: after frame 0
+    logger.log(frames[3], 0.01, True)
+    logger.log(frames[4], 0.01, False)  # another direction
+    logger.flush(force=True)
+    lines = (tmp_path / "x.log").read_text().splitlines()
+    assert [line.split()[2][:3] for line in lines] == ["100", "101", "102", "103", "104"]
+    assert [line[-1] for line in lines] == ["R", "R", "R", "R", "T"]
+    logger.log(frames[5], 0.02, True)
+    assert (logger.sent, logger.received) == (1, 4)  # counted when written
+    logger.close()
+    assert (tmp_path / "x.log").read_text().splitlines()[-1] == "(100.020000) can0 105#05 R"
+    assert (logger.sent, logger.received) == (1, 5)
