@@ -647,6 +647,9 @@ class Protocol:
         # of each (class, int index) met
         self._index_fields: dict[type, str | None] = {}
         self._typed: dict[tuple[type, Any], _Entry] = {}
+        # `encode`'s first lines: by the same (class, index) keys, a typed frame's CAN id and
+        # its encoder's `_parts`, for the frames encoded before whose message has a codec
+        self._encoders: dict[tuple[type, Any], tuple[int, Any, Any, Callable[[Any], Any]]] = {}
         made_in_c = c_messages()  # the message of a frame the C codec packed, made in C too
         self._data_message = data_message if made_in_c is None else made_in_c.data_message
         for message in database.messages:
@@ -752,15 +755,32 @@ class Protocol:
 
     def encode(self, frame: Frame, timestamp: float = 0.0) -> can.Message:
         """The CAN message of `frame`; out-of-range values raise FrameError naming the signal."""
+        cls = type(frame)
+        field = self._index_fields.get(cls, _UNSEEN)
+        if field is not _UNSEEN:  # a typed frame met before: its encoder at once
+            try:
+                fast = self._encoders.get((cls, None if field is None else getattr(frame, field)))
+            except TypeError:  # an unhashable index: `_entry_of` says what is wrong
+                fast = None
+            if fast is not None:
+                frame_id, c_pack, capsule, pack = fast
+                given = frame.__dict__
+                data = c_pack(capsule, given)
+                return self._data_message(
+                    frame_id, pack(given) if data is None else data, timestamp
+                )
         entry = self._entry_of(frame)
         message = entry.message
-        given: Mapping[str, Any] = (
-            frame.signals if isinstance(frame, GenericFrame) else frame.__dict__
-        )
+        given = frame.signals if isinstance(frame, GenericFrame) else frame.__dict__
         if entry.codec is not None:  # the checks below and the encoding, in one call
             parts = self._packs.get(message.frame_id)
             if parts is None:
                 parts = self._packs[message.frame_id] = _parts(entry.codec.pack)
+            field = self._index_fields.get(cls, _UNSEEN)
+            if field is not _UNSEEN:  # `_entry_of` remembered this class and index
+                key = (cls, None if field is None else getattr(frame, field))
+                if self._typed.get(key) is entry:
+                    self._encoders[key] = (message.frame_id, *parts)
             c_pack, capsule, pack = parts  # the C codec's plain case called directly
             data = c_pack(capsule, given)
             return self._data_message(
