@@ -24,7 +24,10 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from controllers.records import fast_init
 
+
+@fast_init
 @dataclass(frozen=True)
 class DriveReading:
     """One drive's status as sampled at a SYNC (the DriveStatus frame), SI units."""
@@ -35,6 +38,7 @@ class DriveReading:
     fault: int = 0
 
 
+@fast_init
 @dataclass(frozen=True)
 class MarkerFrame:
     """One camera picture: marker positions at `exposure_time`.
@@ -52,6 +56,7 @@ class MarkerFrame:
         return ~np.isnan(self.points).any(axis=1)
 
 
+@fast_init
 @dataclass(frozen=True)
 class Estimate:
     """The configuration at a SYNC time: per-segment curvature [1/m], its rate [1/(m s)] and the

@@ -23,7 +23,7 @@ import math
 import re
 import typing
 from collections.abc import Callable, Mapping
-from dataclasses import MISSING, dataclass, field, fields
+from dataclasses import dataclass, field, fields
 from importlib.resources import files
 from pathlib import Path
 from typing import Any, ClassVar
@@ -34,6 +34,7 @@ from cantools.database.can import Database, Message
 
 from controllers import ccodec
 from controllers.canbus import c_messages, unchecked_message
+from controllers.records import replace_init
 
 DBC_PATH = Path(str(files("controllers") / "softhil.dbc"))
 Data = bytes | bytearray  # a frame's payload: python-can gives either
@@ -102,38 +103,10 @@ def frame_type(kind: str, index: str | None = None) -> Callable[[type], type]:
 
 
 def _fast_init(cls: type) -> None:
-    """Give a frozen frame dataclass an `__init__` that fills the instance's dict in one call.
-
-    The one dataclasses generates for a frozen class sets each field through
-    `object.__setattr__`: 2.9 us for a DriveStatus against 1.1 us, and some fifty frames are
-    built a SYNC. Same signature, same instance (its fields in its dict), still frozen (the
-    class's `__setattr__` is untouched); only for classes whose fields are plain: no defaults,
-    no `__post_init__`, no slots."""
-    params = getattr(cls, "__dataclass_params__", None)
-    plain = all(
-        f.default is MISSING and f.default_factory is MISSING and f.init for f in fields(cls)
-    )
-    if (
-        params is None
-        or not params.frozen
-        or not plain
-        or hasattr(cls, "__post_init__")
-        or hasattr(cls, "__slots__")
-    ):
-        return
-    names = [f.name for f in fields(cls)]
-    arguments = ", ".join(names)
-    source = (
-        f"def __init__(self, {arguments}):\n"
-        f"    self.__dict__.update({', '.join(f'{n}={n}' for n in names)})\n"
-    )
-    space: dict[str, Any] = {}
-    exec(source, space)  # noqa: S102 - built from the dataclass's field names
-    init = space["__init__"]
-    init.__qualname__ = f"{cls.__qualname__}.__init__"
-    init.__doc__ = cls.__init__.__doc__  # type: ignore[misc]
-    cls.__init__ = init  # type: ignore[misc]
-    _PLAIN.add(cls)
+    """A frame class's quicker `__init__` (`controllers.records`): some fifty frames are built
+    a SYNC. A class that has it is remembered in `_PLAIN`."""
+    if replace_init(cls):
+        _PLAIN.add(cls)
 
 
 # the frame classes `_fast_init` handled: an instance is its fields in its dict, nothing more,

@@ -36,6 +36,7 @@ from controllers.protocol import (
     Heartbeat,
 )
 from controllers.protocol import Protocol as CanProtocol
+from controllers.records import fast_init
 from hil.master import Participant
 from hil.vision import Camera, Picture
 
@@ -49,6 +50,7 @@ FAULT_OVER_PRESSURE = 16  # plant-side fault bits, above the DriveCylinder's own
 FAULT_COMMAND_TIMEOUT = 32
 
 
+@fast_init
 @dataclass(frozen=True)
 class SyncContext:
     """One SYNC as the devices see it: cycle c, its wire counter, its tick and time."""

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from controllers.records import fast_init
 from hil import cvision
 
 SCOPES = ("frame", "marker")
@@ -97,6 +98,7 @@ def check_effects(
         raise fail("jitter", f"must be below the frame period {period} s, got {effects.jitter}")
 
 
+@fast_init
 @dataclass(frozen=True)
 class Picture:
     """One picture: measured points (NaN rows for missing markers), shape (M, dims) [m], the
