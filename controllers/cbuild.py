@@ -109,7 +109,9 @@ def compile_library(
     `error` (CompileError by default), with the compiler's first line, if it cannot be built."""
     code = source.read_text() if isinstance(source, Path) else source
     cc = compiler()
-    h = hashlib.sha256(" ".join((cc, *flags, *link)).encode())
+    # the command line's shape, the source's place in it included (an archive before the source
+    # links nothing from it)
+    h = hashlib.sha256(" ".join((cc, *flags, "{source}", *link)).encode())
     h.update(salt.encode())
     h.update(code.encode())
     target = cache_root() / kind / f"{stem}-{h.hexdigest()[:16]}{suffix}"

@@ -264,7 +264,8 @@ def test_compiled_libraries_are_cached_by_compiler_flags_salt_and_source(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """`compile_library` (the kernel, the C codec, the benchmarks): built once per compiler,
-    flags, salt and source; a compiler error is one BuildError line and leaves nothing behind."""
+    command line (flags, and what is linked after the source), salt and source; a compiler
+    error is one BuildError line and leaves nothing behind."""
     monkeypatch.setenv("SOFTHIL_CACHE_DIR", str(tmp_path))
     code = "int answer(void) { return 42; }\n"
     flags = ("-O2", "-fPIC", "-shared")
@@ -274,8 +275,10 @@ def test_compiled_libraries_are_cached_by_compiler_flags_salt_and_source(
         compile_library("t", "lib", code, flags, salt="abi"),
         compile_library("t", "lib", code + "\n", flags),
         compile_library("t", "lib", code, (*flags, "-O1")),
+        compile_library("t", "lib", code, (*flags, "-lm")),  # -lm before the source
+        compile_library("t", "lib", code, flags, link=("-lm",)),  # after it
     }
-    assert built not in others and len(others) == 3
+    assert built not in others and len(others) == 5
     assert ctypes.CDLL(str(built)).answer() == 42
     with pytest.raises(BuildError, match=r"compiling lib\.c failed: .*error"):
         compile_library("t", "lib", "int broken(", flags)
