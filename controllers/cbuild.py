@@ -89,6 +89,9 @@ def compiler() -> str:
     return os.environ.get("CC", "gcc")
 
 
+_SOURCE = "{source}"  # where the C file goes in a command line
+
+
 def compile_library(
     kind: str,
     stem: str,
@@ -109,9 +112,10 @@ def compile_library(
     `error` (CompileError by default), with the compiler's first line, if it cannot be built."""
     code = source.read_text() if isinstance(source, Path) else source
     cc = compiler()
-    # the command line's shape, the source's place in it included (an archive before the source
-    # links nothing from it)
-    h = hashlib.sha256(" ".join((cc, *flags, "{source}", *link)).encode())
+    # the command line, keyed as it is run: the source's place in it included (an archive
+    # before the source links nothing from it)
+    command = [cc, *flags, _SOURCE, *link]
+    h = hashlib.sha256(" ".join(command).encode())
     h.update(salt.encode())
     h.update(code.encode())
     target = cache_root() / kind / f"{stem}-{h.hexdigest()[:16]}{suffix}"
@@ -126,7 +130,9 @@ def compile_library(
             c_file.write_text(code)
         built = Path(work) / f"{stem}{suffix}"
         result = subprocess.run(
-            [cc, *flags, str(c_file), *link, "-o", str(built)], capture_output=True, text=True
+            [str(c_file) if part is _SOURCE else part for part in command] + ["-o", str(built)],
+            capture_output=True,
+            text=True,
         )
         if result.returncode != 0:
             first = (result.stderr.strip().splitlines() or ["(no output)"])[0]
