@@ -1,11 +1,11 @@
 """The camera's picture in C (`_cvision.c`): its draws and points in one call.
 
 `hil.vision.Camera.picture` draws each marker's noise, dropout and outlier from numpy random
-streams and adds them up in some fifteen numpy calls, 11.5 us a picture (4.1 us in C), most of it the calls' own
-cost on a handful of values. The C module makes the same draws through numpy's C random API
-(numpy ships it for this: `numpy/random/lib/libnpyrandom.a`, the functions its Generator calls)
-on the same bit generators, so pictures and streams are the same bit for bit (tests/test_vision.py
-compares them with the numpy path over seeds, effects and shapes).
+streams and adds them up in some fifteen numpy calls, 11.5 us a picture (4.1 us in C), most of
+it the calls' own cost on a handful of values. The C module makes the same draws through numpy's
+C random API (numpy ships it for this: `numpy/random/lib/libnpyrandom.a`, the functions its
+Generator calls) on the same bit generators, so pictures and streams are the same bit for bit
+(tests/test_vision.py compares them with the numpy path over seeds, effects and shapes).
 
 It is built with `$CC` (or gcc) against this Python's headers and numpy's random API into the
 softhil cache, keyed by numpy's version. Without a compiler, the headers or numpy's archive, or
