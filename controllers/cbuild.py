@@ -214,7 +214,12 @@ class CPart(Generic[T]):
         ValueError naming it for any other value."""
         return c_or_python(self.variable, self._c_means, self._python_means)
 
+    def why(self) -> str | None:
+        """Why the part is not in use (None: it is, or it was not tried yet)."""
+        return self.failure
+
     def get(self) -> T | None:
+        """The part, loaded (built if needed) on first use; None if it cannot be (`why`)."""
         if self.value is not None or self.failure is not None:
             return self.value
         with self._lock:

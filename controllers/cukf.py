@@ -89,17 +89,9 @@ _part: CPart[ctypes.CDLL] = CPart(
 )
 
 
-def setting() -> str:
-    """SOFTHIL_UKF: "c" (unset or empty: C wherever it builds) or "python"; ValueError naming
-    the variable for any other value."""
-    return _part.setting()
-
-
-def load() -> ctypes.CDLL | None:
-    """The library, built if needed; None if it cannot be (why: `failure()`)."""
-    return _part.get()
-
-
-def failure() -> str | None:
-    """Why the C UKF is not in use (None: it is, or it was not tried yet)."""
-    return _part.failure
+# the C part's interface: `setting()` its variable's value ("c" or "python"; ValueError naming
+# it for any other), `load()` the part (built if needed; None if it cannot be) and `failure()`
+# why it is not in use (None: it is, or it was not tried yet)
+setting = _part.setting
+load = _part.get
+failure = _part.why

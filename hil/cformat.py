@@ -84,16 +84,9 @@ _part: CPart[ModuleType] = CPart(
 )
 
 
-def setting() -> str:
-    """SOFTHIL_FORMAT: "c" (unset or empty) or "python"; ValueError naming it for any other."""
-    return _part.setting()
-
-
-def load() -> ModuleType | None:
-    """The C module, built if needed; None if it cannot be (why: `failure()`)."""
-    return _part.get()
-
-
-def failure() -> str | None:
-    """Why the C module is not in use (None: it is, or it was not tried yet)."""
-    return _part.failure
+# the C part's interface: `setting()` its variable's value ("c" or "python"; ValueError naming
+# it for any other), `load()` the part (built if needed; None if it cannot be) and `failure()`
+# why it is not in use (None: it is, or it was not tried yet)
+setting = _part.setting
+load = _part.get
+failure = _part.why
