@@ -73,13 +73,13 @@ from unittest import mock
 
 import numpy as np
 
-from controllers.canbus import BusSpec, open_bus
 from hil.bus.loopback import HubProcess
 from hil.fmu.build import CFLAGS, compile_library
 from hil.fmu.slave import FmuSlave
 from hil.master import Connection, FmuParticipant, Master
 from hil.run import RunOptions, run_scenario
 from hil.scenario import Scenario, load_scenario
+from rigbus.canbus import BusSpec, open_bus
 
 PURE_LOOP = Path(__file__).with_name("pure_loop.c")
 ROOT = Path(__file__).resolve().parents[1]
@@ -90,7 +90,7 @@ EXAMPLE_CONTROLLER = (
 TRANSPORTS = {"socketcand": "loopback", "binary": "softhil"}  # name: bus spec kind
 ECHO = """
 import sys
-from controllers.canbus import BusSpec, open_bus
+from rigbus.canbus import BusSpec, open_bus
 bus = open_bus(BusSpec(sys.argv[1], "softhil", "127.0.0.1", int(sys.argv[2])))
 print("ready", flush=True)
 while True:
@@ -437,12 +437,12 @@ def budget_wrappers(budget: LayerBudget) -> None:
     plant's driven run starts (`Plant.run_driven`'s driver is the controller node's `run`),
     which also brackets the budget's total."""
     from controllers.node import ControllerNode
-    from controllers.protocol import Protocol
     from hil.bus.direct import DirectBus
     from hil.devices import CameraNode
     from hil.kernel import Kernel
     from hil.plant import Plant
     from hil.recording import CanLogger, SignalRecorder
+    from rigbus.protocol import Protocol
 
     for owner, names, layer in (
         (Kernel, ("advance", "start", "finish"), "FMUs (kernel)"),

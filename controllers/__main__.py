@@ -16,8 +16,7 @@ from typing import Any
 
 import can
 
-from controllers import ccodec, cukf
-from controllers.canbus import BusOpenError, BusSpec, open_bus
+from controllers import cukf
 from controllers.node import (
     ControllerError,
     ControllerNode,
@@ -26,7 +25,9 @@ from controllers.node import (
     read_config,
     write_report,
 )
-from controllers.protocol import FrameError
+from rigbus import ccodec
+from rigbus.canbus import BusOpenError, BusSpec, open_bus
+from rigbus.protocol import FrameError
 
 EXAMPLES = """examples:
   python -m controllers --config runs/default-1/controller.json --bus loopback:29536

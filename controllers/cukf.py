@@ -8,7 +8,7 @@ numpy's to rounding (tests/test_cukf.py), not bit for bit: numpy's BLAS picks it
 sums and uses fused multiply-adds where the CPU has them, so numpy's bits differ between hosts,
 while this code, built with -ffp-contract=off, gives the same bits on every one.
 
-The library is compiled with `$CC` (or gcc) into the softhil cache (`controllers.cbuild`, keyed
+The library is compiled with `$CC` (or gcc) into the softhil cache (`rigbus.cbuild`, keyed
 by a digest of the source, the flags and the compiler) and loaded from there. Without a
 compiler, or with ``SOFTHIL_UKF=python``, numpy does everything (`failure()` says why).
 """
@@ -19,7 +19,7 @@ import ctypes
 import logging
 from pathlib import Path
 
-from controllers.cbuild import LIBRARY_FLAGS, CPart, compile_library
+from rigbus.cbuild import LIBRARY_FLAGS, CPart, compile_library
 
 SOURCE = Path(__file__).with_name("_cukf.c")
 FLAGS = (*LIBRARY_FLAGS, "-lm")

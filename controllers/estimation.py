@@ -24,7 +24,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from controllers.records import fast_init
+from rigbus.records import fast_init
 
 
 @fast_init

@@ -32,7 +32,7 @@ from filterpy.kalman import KalmanFilter
 
 from controllers.estimation import MarkerFrame
 from controllers.node import CameraTiming
-from controllers.protocol import GenericFrame, Protocol
+from rigbus.protocol import GenericFrame, Protocol
 
 TASKS = ("escape", "swim", "heading")
 MODES = ("idle", "escape", "swim", "turn", "hold", "venting", "no gas")  # FishState.mode

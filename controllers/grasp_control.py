@@ -40,8 +40,8 @@ from controllers.estimation import DriveReading, Estimate
 from controllers.gripper import grasp_point
 from controllers.ik import solve_ik
 from controllers.planar_arm import CurvatureControl
-from controllers.protocol import ControllerState, DriveCommand, Protocol, TaskState
 from controllers.tasks import PHASE, CurvatureMove
+from rigbus.protocol import ControllerState, DriveCommand, Protocol, TaskState
 
 if TYPE_CHECKING:
     from controllers.node import ControllerConfig

@@ -28,7 +28,6 @@ from typing import Any
 import can
 import numpy as np
 
-from controllers.canbus import connection_closed, failure_text, send_all
 from controllers.curvature import PiGains
 from controllers.estimation import (
     BendModel,
@@ -38,7 +37,10 @@ from controllers.estimation import (
     MarkerFrame,
 )
 from controllers.gripper import GripperGeometry
-from controllers.protocol import (
+from controllers.tasks import TaskPlan
+from controllers.trajectories import CurvatureProfile, Sine
+from rigbus.canbus import connection_closed, failure_text, send_all
+from rigbus.protocol import (
     COUNTER_MODULO,
     CameraFrame,
     CameraMarker,
@@ -53,8 +55,6 @@ from controllers.protocol import (
     TaskState,
     frame_key,
 )
-from controllers.tasks import TaskPlan
-from controllers.trajectories import CurvatureProfile, Sine
 
 POLICIES = ("strict", "hold")
 OWN_FRAMES = (

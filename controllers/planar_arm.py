@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING, Any
 
 from controllers.curvature import CurvaturePI
 from controllers.estimation import DriveReading, Estimate
-from controllers.protocol import ControllerState, DriveCommand, Protocol
+from rigbus.protocol import ControllerState, DriveCommand, Protocol
 
 if TYPE_CHECKING:
     from controllers.node import ControllerConfig

@@ -34,8 +34,8 @@ from controllers import kinematics
 from controllers.estimation import DriveReading, Estimate
 from controllers.ik import solve_ik
 from controllers.planar_arm import CurvatureControl
-from controllers.protocol import ControllerState, DriveCommand, Protocol, TaskState
 from controllers.tasks import PHASE, CurvatureMove, path_timing, trapezoid_fraction
+from rigbus.protocol import ControllerState, DriveCommand, Protocol, TaskState
 
 if TYPE_CHECKING:
     from controllers.node import ControllerConfig

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from controllers import kinematics
-from controllers.protocol import TASK_PHASES
+from rigbus.protocol import TASK_PHASES
 
 PHASE = {name: code for code, name in enumerate(TASK_PHASES)}
 TASK_KINDS = ("point_to_point", "path", "pipe", "grasp")

@@ -27,9 +27,7 @@ import cantools
 
 # the protocol: what hil run gives its programs (SOFTHIL_DBC, also the {dbc} placeholder), or
 # the checkout's when run by hand beside it
-DBC = (
-    os.environ.get("SOFTHIL_DBC") or Path(__file__).resolve().parents[1] / "controllers/softhil.dbc"
-)
+DBC = os.environ.get("SOFTHIL_DBC") or Path(__file__).resolve().parents[1] / "rigbus/softhil.dbc"
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -20,7 +20,7 @@ import logging
 from pathlib import Path
 from types import ModuleType
 
-from controllers.cbuild import (
+from rigbus.cbuild import (
     LIBRARY_FLAGS,
     CPart,
     compile_extension,

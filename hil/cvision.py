@@ -21,7 +21,7 @@ from types import ModuleType
 
 import numpy as np
 
-from controllers.cbuild import (
+from rigbus.cbuild import (
     LIBRARY_FLAGS,
     CompileError,
     CPart,

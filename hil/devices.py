@@ -22,7 +22,9 @@ from typing import ClassVar, Protocol
 
 import numpy as np
 
-from controllers.protocol import (
+from hil.master import Participant
+from hil.vision import Camera, Picture
+from rigbus.protocol import (
     COUNTER_MODULO,
     EMCY_COMMAND_TIMEOUT,
     EMCY_OVER_PRESSURE,
@@ -35,10 +37,8 @@ from controllers.protocol import (
     Frame,
     Heartbeat,
 )
-from controllers.protocol import Protocol as CanProtocol
-from controllers.records import fast_init
-from hil.master import Participant
-from hil.vision import Camera, Picture
+from rigbus.protocol import Protocol as CanProtocol
+from rigbus.records import fast_init
 
 # send phases: the documented order of a SYNC's answer
 EMERGENCY, HEARTBEAT, MEASUREMENT, STATUS = 0, 1, 2, 3

@@ -25,11 +25,11 @@ from controllers import kinematics
 from controllers.estimation import DriveReading, MarkerFrame
 from controllers.estimators import make_estimator
 from controllers.node import ESTIMATORS, CameraAssembler, ControllerConfig
-from controllers.protocol import CameraFrame, CameraMarker, DriveStatus, Protocol
 from hil.bustools.logs import has_direction
 from hil.errors import HilError
 from hil.replay import CSV_HAS_NO_DIRECTION, config_beside, read_cycles, read_log
 from hil.summary import read_signals
+from rigbus.protocol import CameraFrame, CameraMarker, DriveStatus, Protocol
 
 Cycle = tuple[float, dict[int, DriveReading], list[MarkerFrame]]
 

@@ -20,8 +20,14 @@ from typing import NamedTuple
 
 import can
 
-from controllers.canbus import connection_closed, failure_text, send_all
-from controllers.protocol import (
+from hil.devices import DeviceNode, SyncContext
+from hil.errors import BusError, FmuError, HilError, ProtocolError
+from hil.master import Master
+from hil.recording import CanLogger, SignalRecorder
+from hil.robots import Rig
+from hil.scenario import Scenario
+from rigbus.canbus import connection_closed, failure_text, send_all
+from rigbus.protocol import (
     COUNTER_MODULO,
     EMCY_COMMAND_TIMEOUT,
     EMCY_OVER_PRESSURE,
@@ -39,12 +45,6 @@ from controllers.protocol import (
     frame_key,
     frame_signals,
 )
-from hil.devices import DeviceNode, SyncContext
-from hil.errors import BusError, FmuError, HilError, ProtocolError
-from hil.master import Master
-from hil.recording import CanLogger, SignalRecorder
-from hil.robots import Rig
-from hil.scenario import Scenario
 
 # frames only the plant sends: on its bus they come from an intruder (no bus echoes own frames)
 PLANT_FRAMES = (DriveStatus, CameraMarker, CameraMarker3D, CameraFrame, Emcy, Heartbeat)

@@ -14,7 +14,7 @@
   same bus as python-can's arguments (for the run's own hub: python-can's ``socketcand``
   interface, which the hub speaks on the same port; an empty host and port off the hub);
   ``{realtime}`` ``1`` if the run is paced by the wall clock, else ``0``; ``{dbc}`` the protocol's
-  DBC file (softhil's ``controllers/softhil.dbc``), for a program that decodes with it.
+  DBC file (softhil's ``rigbus/softhil.dbc``), for a program that decodes with it.
   ``{{`` and ``}}`` are literal braces; nothing else goes inside braces (no format specs, no
   indexing). Paths are absolute. The same values are in the program's environment as
   ``SOFTHIL_CONFIG``, ``SOFTHIL_REPORT``, ``SOFTHIL_BUS``, ``SOFTHIL_INTERFACE``,
@@ -36,9 +36,9 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import IO
 
-from controllers.canbus import HUB_KINDS, BusSpec
-from controllers.protocol import DBC_PATH
 from hil.errors import HilError
+from rigbus.canbus import HUB_KINDS, BusSpec
+from rigbus.protocol import DBC_PATH
 
 SOFTHIL = "softhil"
 USER_LINGER = 5.0  # [s] a user's program has after the final SYNC to exit, before it is stopped

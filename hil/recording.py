@@ -28,11 +28,11 @@ from typing import TextIO, cast
 
 import can
 
-from controllers.protocol import frame_bits
 from hil import cformat
 from hil.errors import HilError
 from hil.results import RecordFile, WriteError, write_file
 from hil.robots import SignalSpec
+from rigbus.protocol import frame_bits
 
 UNITS_SUFFIX = ".units.csv"
 _NUMBERS = (float, int)  # the types of a row's cells written by `",".join(map(repr, ...))`

@@ -30,12 +30,12 @@ from typing import Any
 
 import can
 
-from controllers.canbus import BusSpec, open_bus
 from controllers.node import ControllerConfig, ControllerNode, read_config
-from controllers.protocol import COUNTER_MODULO, SYNC_ID, FrameError, Protocol, Sync
 from hil.bustools.logs import DIRECTED, NO_DIRECTION, has_direction
 from hil.errors import HilError
 from hil.program import SOFTHIL, USER_LINGER, check_controller, last_words, start, stop
+from rigbus.canbus import BusSpec, open_bus
+from rigbus.protocol import COUNTER_MODULO, SYNC_ID, FrameError, Protocol, Sync
 
 WAIT = 60.0  # s for the controller's SYNC(0), as `hil run --wait`: a program may load slowly
 MAX_WAIT = 86400.0
@@ -156,7 +156,7 @@ def check_served(cycles: Sequence[Cycle], config: Any, protocol: Protocol, sourc
     if getattr(config, "policy", "strict") != "strict":
         return  # `hold` goes on past a missing frame, as it did in the run
     from controllers.node import CameraAssembler, robot_module
-    from controllers.protocol import CameraFrame, CameraMarker, GenericFrame, frame_key
+    from rigbus.protocol import CameraFrame, CameraMarker, GenericFrame, frame_key
 
     expected = robot_module(config.robot).expected(config)
     kinds = {kind for kind, _ in expected}

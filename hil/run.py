@@ -32,7 +32,6 @@ from typing import Any
 
 from threadpoolctl import threadpool_limits
 
-from controllers.canbus import HUB_KINDS, BusOpenError, BusSpec, open_bus
 from controllers.node import (
     ControllerConfig,
     ControllerError,
@@ -40,9 +39,7 @@ from controllers.node import (
     LockstepClock,
     RealtimeClock,
 )
-from controllers.protocol import SYNC_ID, Protocol
 from hil.animation import check_format
-from hil.bus.binary import busy_poll_seconds
 from hil.bus.direct import direct_pair
 from hil.bus.hosted import HostedBus
 from hil.bus.loopback import HubProcess, LoopbackHub
@@ -66,6 +63,9 @@ from hil.results import RESULT_FILES, ResultsFolder, note, write_file
 from hil.robots import robot_kind
 from hil.scenario import Scenario, can_log_problem, log_start
 from hil.summary import read_signals, realtime_failure, summarise
+from rigbus.binary import busy_poll_seconds
+from rigbus.canbus import HUB_KINDS, BusOpenError, BusSpec, open_bus
+from rigbus.protocol import SYNC_ID, Protocol
 
 
 @dataclass(frozen=True)

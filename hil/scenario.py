@@ -20,13 +20,13 @@ from importlib.resources import files
 from pathlib import Path
 from typing import Any
 
-from controllers.canbus import KINDS as BUS_KINDS
 from controllers.node import ESTIMATORS, POLICIES
-from controllers.protocol import Protocol
 from controllers.trajectories import CurvatureProfile, Sine
 from hil.errors import HilError, ScenarioError
 from hil.results import is_result_file
 from hil.vision import CameraEffects, check_effects
+from rigbus.canbus import KINDS as BUS_KINDS
+from rigbus.protocol import Protocol
 
 SCENARIO_FOLDER = Path(str(files("hil") / "scenarios"))  # the built-in scenarios
 DEFAULT_SCENARIO = SCENARIO_FOLDER / "default.toml"

@@ -18,12 +18,12 @@ from typing import Any
 
 import numpy as np
 
-from controllers.protocol import Protocol, bus_load
 from hil.errors import HilError
 from hil.plant import PlantStats
 from hil.recording import CanLogger
 from hil.robots import robot_kind
 from hil.scenario import Scenario
+from rigbus.protocol import Protocol, bus_load
 
 SETTLING_BAND = 0.05
 BUS_LOAD_WARNING = 0.70

@@ -15,8 +15,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from controllers.records import fast_init
 from hil import cvision
+from rigbus.records import fast_init
 
 SCOPES = ("frame", "marker")
 

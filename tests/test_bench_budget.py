@@ -92,10 +92,10 @@ def test_instance_wrap_and_calls_outside_the_window() -> None:
 def test_a_short_run_adds_up(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """Two segments for 0.1 s in-process: every layer of the loop is entered, the layers add
     up to the total, and the classes are as before afterwards."""
-    from controllers.protocol import Protocol
     from hil.plant import Plant
     from hil.run import RunOptions, run_scenario
     from hil.scenario import load_scenario
+    from rigbus.protocol import Protocol
 
     monkeypatch.setattr("hil.plots.plot_run", lambda *args: None)  # post-run: not timed
     before = (Protocol.encode, Plant.run_driven, Plant.handle)

@@ -1,4 +1,4 @@
-"""softhil's binary CAN transport (hil.bus.binary) on the loopback hub beside socketcand.
+"""softhil's binary CAN transport (rigbus.binary) on the loopback hub beside socketcand.
 
 Laws under test: every frame reaches every *other* member of its hub channel whatever protocol
 each speaks, in the hub's order, unchanged (id, extended flag, data); records are exactly the
@@ -26,10 +26,10 @@ from pathlib import Path
 import can
 import pytest
 
-from controllers.canbus import BusSpec, connection_closed, open_bus, send_all
-from hil.bus import wire
-from hil.bus.binary import SofthilBus, parse_channel
 from hil.bus.loopback import HubProcess, LoopbackHub
+from rigbus import wire
+from rigbus.binary import SofthilBus, parse_channel
+from rigbus.canbus import BusSpec, connection_closed, open_bus, send_all
 from tests.helpers import blocking_sockets_time_out, interruptible
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -399,7 +399,7 @@ def _entry_point_path(tmp_path: Path) -> str:
     (info / "METADATA").write_text(
         "Metadata-Version: 2.1\nName: softhil-can-interface\nVersion: 0\n"
     )
-    (info / "entry_points.txt").write_text("[can.interface]\nsofthil = hil.bus.binary:SofthilBus\n")
+    (info / "entry_points.txt").write_text("[can.interface]\nsofthil = rigbus.binary:SofthilBus\n")
     return os.pathsep.join([str(tmp_path), str(ROOT)])
 
 

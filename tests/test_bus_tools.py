@@ -1,7 +1,7 @@
 """Tests of the bus tools (`hil bus dump/record/replay/send/load/up`, hil.bustools).
 
 Logs are made here with the run's own CAN logger (hil.recording.CanLogger) from frames encoded
-by controllers.protocol, so they are softhil logs as `hil run` writes them. Live tests use the
+by rigbus.protocol, so they are softhil logs as `hil run` writes them. Live tests use the
 loopback hub on 127.0.0.1 with a free port; waits are receive timeouts, never sleeps.
 """
 
@@ -21,16 +21,6 @@ from pathlib import Path
 import can
 import pytest
 
-from controllers.protocol import (
-    CameraMarker,
-    ControllerState,
-    DriveCommand,
-    DriveStatus,
-    Heartbeat,
-    Protocol,
-    Sync,
-    frame_bits,
-)
 from hil.bus.loopback import LoopbackHub
 from hil.bustools.dump import dump, live_frames
 from hil.bustools.frames import FrameFilter, load_database, open_spec
@@ -43,6 +33,16 @@ from hil.bustools.vcan import socketcan_available
 from hil.cli import build_parser, main
 from hil.errors import BusError, HilError
 from hil.recording import CanLogger
+from rigbus.protocol import (
+    CameraMarker,
+    ControllerState,
+    DriveCommand,
+    DriveStatus,
+    Heartbeat,
+    Protocol,
+    Sync,
+    frame_bits,
+)
 from tests.helpers import blocking_sockets_time_out, interruptible
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -1070,10 +1070,10 @@ def test_dump_attached_to_a_run_on_an_external_hub_sees_every_frame(tmp_path: Pa
     import threading
     import time
 
-    from controllers.canbus import BusSpec, open_bus
     from hil.bus.loopback import LoopbackHub
     from hil.run import RunOptions, run_scenario
     from hil.scenario import DEFAULT_SCENARIO, load_scenario
+    from rigbus.canbus import BusSpec, open_bus
 
     text = DEFAULT_SCENARIO.read_text().replace("duration = 10.0", "duration = 0.5")
     scenario_path = tmp_path / "short.toml"

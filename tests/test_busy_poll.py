@@ -16,15 +16,15 @@ from pathlib import Path
 import can
 import pytest
 
-import hil.bus.binary as binary_module
 import hil.bus.hosted as hosted_module
-from controllers.canbus import BusOpenError, BusSpec, open_bus
+import rigbus.binary as binary_module
 from hil import run as run_module
-from hil.bus.binary import SofthilBus, busy_poll_seconds
 from hil.bus.hosted import HostedBus
 from hil.bus.loopback import LoopbackHub
 from hil.errors import HilError
 from hil.run import BUSY_POLL, RunOptions
+from rigbus.binary import SofthilBus, busy_poll_seconds
+from rigbus.canbus import BusOpenError, BusSpec, open_bus
 from tests.test_binary_bus import (  # noqa: F401 - the autouse guard applies here too
     TIMEOUT,
     _guard_blocking_sockets,

@@ -9,9 +9,9 @@ from pathlib import Path
 import can
 import pytest
 
-from controllers.protocol import frame_bits
 from hil import cformat
 from hil.recording import CanLogger
+from rigbus.protocol import frame_bits
 
 FD_LENGTHS = (12, 16, 20, 24, 32, 48, 64)
 

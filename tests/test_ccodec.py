@@ -1,4 +1,4 @@
-"""The DBC codec's C path (`controllers.ccodec`) against the generated Python codec it speeds up:
+"""The DBC codec's C path (`rigbus.ccodec`) against the generated Python codec it speeds up:
 the same bytes, the same frames (values, types, field order) and the same errors, value by value,
 for every message of our DBC and for a DBC with offsets; the plain case taken in C, everything
 else handed to Python."""
@@ -16,8 +16,8 @@ import cantools
 import numpy as np
 import pytest
 
-from controllers import ccodec
-from controllers.protocol import (
+from rigbus import ccodec
+from rigbus.protocol import (
     _PLAIN,
     _REGISTRY,
     DriveStatus,
@@ -325,8 +325,8 @@ FIELDS = [name for name in can.Message.__slots__ if name != "__weakref__"]
 def test_messages_made_in_c_are_unchecked_message_s() -> None:
     """new_message and copy_message fill python-can's slots as `unchecked_message` and the direct
     bus's `_copy` set them: every field, its type, and a copy of the data of its own."""
-    from controllers.canbus import c_messages, unchecked_message
     from hil.bus.direct import _copy
+    from rigbus.canbus import c_messages, unchecked_message
 
     made = c_messages()
     assert made is not None
@@ -356,7 +356,7 @@ def test_messages_made_in_c_are_unchecked_message_s() -> None:
 def test_a_message_c_does_not_copy_is_left_to_python() -> None:
     """Another class (a subclass too) or a field never set: None, and Python copies it (or
     fails as it always did); a class whose fields are not plain slots is not bound."""
-    from controllers.canbus import c_messages
+    from rigbus.canbus import c_messages
 
     made = c_messages()
     assert made is not None

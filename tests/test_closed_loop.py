@@ -22,9 +22,16 @@ import cantools
 import numpy as np
 import pytest
 
-from controllers.canbus import BusSpec, open_bus
 from controllers.node import ControllerError, ControllerNode
-from controllers.protocol import (
+from hil.errors import BusError
+from hil.plant import Plant
+from hil.recording import CanLogger, SignalRecorder
+from hil.robots import build_rig, robot_kind
+from hil.run import RunOptions, controller_config, run_scenario
+from hil.scenario import DEFAULT_SCENARIO, Scenario, load_scenario
+from hil.summary import read_signals
+from rigbus.canbus import BusSpec, open_bus
+from rigbus.protocol import (
     DBC_PATH,
     EMCY_COMMAND_TIMEOUT,
     EMCY_OVER_PRESSURE,
@@ -34,13 +41,6 @@ from controllers.protocol import (
     Protocol,
     Sync,
 )
-from hil.errors import BusError
-from hil.plant import Plant
-from hil.recording import CanLogger, SignalRecorder
-from hil.robots import build_rig, robot_kind
-from hil.run import RunOptions, controller_config, run_scenario
-from hil.scenario import DEFAULT_SCENARIO, Scenario, load_scenario
-from hil.summary import read_signals
 
 DEFAULT_TEXT = DEFAULT_SCENARIO.read_text()
 

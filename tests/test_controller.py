@@ -14,7 +14,6 @@ import numpy as np
 import pytest
 
 from controllers import kinematics
-from controllers.canbus import DEFAULT_CHANNEL, DEFAULT_LOOPBACK_PORT, BusSpec
 from controllers.curvature import CurvaturePI, PiGains
 from controllers.estimation import BendModel, Estimate, MarkerFrame
 from controllers.estimators import RawEstimator
@@ -26,7 +25,8 @@ from controllers.node import (
     ControllerNode,
     RealtimeClock,
 )
-from controllers.protocol import CameraFrame, CameraMarker, DriveStatus, Frame, Protocol, Sync
+from rigbus.canbus import DEFAULT_CHANNEL, DEFAULT_LOOPBACK_PORT, BusSpec
+from rigbus.protocol import CameraFrame, CameraMarker, DriveStatus, Frame, Protocol, Sync
 
 # ---------------------------------------------------------------------------- CameraTiming
 

@@ -1,6 +1,6 @@
 """The controller never imports the plant (`controllers/__init__.py`): every module of the
 controller side, its C codec built and used, loads no `hil` module; opening the run's bus loads
-only softhil's python-can interface (`hil.bus.binary`, what `can.Bus(interface="softhil")` loads
+only softhil's python-can interface (`rigbus.binary`, what `can.Bus(interface="softhil")` loads
 through its entry point) and the wire format it speaks."""
 
 from __future__ import annotations
@@ -15,11 +15,11 @@ ROOT = Path(__file__).resolve().parents[1]
 PROBE = """
 import importlib, json, pkgutil, sys
 import controllers
-from controllers import ccodec
+from rigbus import ccodec
 for info in pkgutil.iter_modules(controllers.__path__):
     importlib.import_module(f"controllers.{info.name}")
 assert ccodec.load() is not None, ccodec.failure()
-from controllers.protocol import DriveStatus, Protocol
+from rigbus.protocol import DriveStatus, Protocol
 protocol = Protocol()
 status = DriveStatus(node=2, piston_position=0.01, p_a=1.5e4, p_b=-2e3, fault=0, counter=7)
 assert protocol.decode(protocol.encode(status)) == status
@@ -28,7 +28,7 @@ before = plant()
 from hil.bus.loopback import LoopbackHub  # the test's own hub, not the controller's import
 hub = LoopbackHub(handshake_grace=0.0).start()
 loaded = set(sys.modules)
-from controllers.canbus import BusSpec, open_bus
+from rigbus.canbus import BusSpec, open_bus
 bus = open_bus(BusSpec.parse(f"softhil:{hub.port}"))
 bus.shutdown()
 hub.stop()
@@ -43,4 +43,4 @@ def test_the_controller_side_imports_nothing_of_the_plant() -> None:
     assert result.returncode == 0, result.stderr[-2000:]
     before, by_the_bus = json.loads(result.stdout.strip().splitlines()[-1])
     assert before == []
-    assert set(by_the_bus) <= {"hil.bus.binary"}  # hil, hil.bus, hil.bus.wire came with the hub
+    assert set(by_the_bus) <= {"rigbus.binary"}  # hil, hil.bus, rigbus.wire came with the hub

@@ -16,18 +16,6 @@ import numpy as np
 import pytest
 
 from controllers.node import CameraTiming
-from controllers.protocol import (
-    EMCY_COMMAND_TIMEOUT,
-    EMCY_OVER_PRESSURE,
-    NMT_OPERATIONAL,
-    CameraMarker,
-    DriveCommand,
-    DriveStatus,
-    Emcy,
-    Heartbeat,
-    Protocol,
-    Sync,
-)
 from hil.devices import (
     EMERGENCY,
     FAULT_COMMAND_TIMEOUT,
@@ -41,6 +29,18 @@ from hil.devices import (
     SyncContext,
 )
 from hil.vision import Camera, CameraEffects
+from rigbus.protocol import (
+    EMCY_COMMAND_TIMEOUT,
+    EMCY_OVER_PRESSURE,
+    NMT_OPERATIONAL,
+    CameraMarker,
+    DriveCommand,
+    DriveStatus,
+    Emcy,
+    Heartbeat,
+    Protocol,
+    Sync,
+)
 
 NODE = 3
 X_SEAL = 0.025  # [m]

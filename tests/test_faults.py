@@ -29,11 +29,11 @@ import pytest
 
 import hil.results
 from controllers.node import ControllerNode, RealtimeClock
-from controllers.protocol import DriveCommand, Protocol, Sync
 from hil.cli import main as hil_main
 from hil.run import controller_config
 from hil.scenario import DEFAULT_SCENARIO, load_scenario
 from hil.summary import realtime_failure
+from rigbus.protocol import DriveCommand, Protocol, Sync
 from tests.helpers import interruptible
 
 DEFAULT_TEXT = DEFAULT_SCENARIO.read_text()
@@ -374,7 +374,7 @@ def test_injected_commands_on_the_hub_from_a_second_client(tmp_path: Path) -> No
             "--out", str(tmp_path / "run"), "--no-progress",
         )  # fmt: skip
         wait_for(lambda: rows(tmp_path / "run" / "signals.csv") > 2, "progress")
-        from controllers.canbus import BusSpec, open_bus
+        from rigbus.canbus import BusSpec, open_bus
 
         intruder = Intruder(open_bus(BusSpec.parse(f"loopback:{port}")), foreign_command)
         try:

@@ -17,12 +17,12 @@ import pytest
 
 from controllers.fish import CALIBRATION, FishConfig, open_time_for
 from controllers.node import read_config
-from controllers.protocol import GenericFrame
 from hil.cli import main
 from hil.devices import SyncContext
 from hil.robots.fish_devices import CLOSED, OPEN, OPENING, VENTING, ValveNode
 from hil.run import RunOptions, controller_config, run_scenario
 from hil.scenario import ScenarioError, load_scenario, resolve_scenario
+from rigbus.protocol import GenericFrame
 
 OPEN_TIMES = (0.02, 0.04, 0.06, 0.08, 0.10, 0.12)
 
@@ -342,7 +342,7 @@ def test_heading_hold_lengthens_the_strokes_that_turn_towards_the_reference() ->
     """In the hold, a heading below the reference (error > 0, turn left) lengthens valve 1's
     strokes (channel a turns the head left) and shortens valve 2's, and the reverse."""
     from controllers.fish import FishControl, FishEstimate
-    from controllers.protocol import Protocol
+    from rigbus.protocol import Protocol
 
     config = controller_config(load_scenario(resolve_scenario("fish-heading")))
     vented = {
@@ -374,7 +374,7 @@ def test_a_corrective_stroke_turns_towards_the_reference_by_the_calibration(
     lengthened to the calibration's open time for the error; a stroke on the other side is not,
     and a correction waits a beat before the next."""
     from controllers.fish import FishControl
-    from controllers.protocol import Protocol
+    from rigbus.protocol import Protocol
 
     config = controller_config(load_scenario(resolve_scenario("fish-heading")))
     error = math.radians(error_deg)

@@ -14,10 +14,10 @@ import pytest
 from controllers import grasp_control, kinematics
 from controllers.estimation import DriveReading, Estimate
 from controllers.grasp_control import GraspControl
-from controllers.protocol import Protocol
 from controllers.tasks import PHASE
 from hil.run import controller_config
 from hil.scenario import load_scenario, resolve_scenario
+from rigbus.protocol import Protocol
 
 PERIOD = 0.01
 

@@ -78,7 +78,7 @@ def write_tmp(text: str) -> Path:
 
 
 def test_the_camera_reports_the_object_marker_after_the_arms(approach_run) -> None:
-    from controllers.protocol import Protocol
+    from rigbus.protocol import Protocol
 
     _, signals, folder = approach_run
     protocol = Protocol()

@@ -12,8 +12,8 @@ from collections.abc import Callable, Iterator
 import can
 import pytest
 
-from hil.bus.binary import SofthilBus
 from hil.bus.hosted import HostedBus
+from rigbus.binary import SofthilBus
 from tests.test_binary_bus import (  # noqa: F401 - the autouse guard applies here too
     TIMEOUT,
     _guard_blocking_sockets,

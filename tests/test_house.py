@@ -13,13 +13,13 @@ import can
 import numpy as np
 import pytest
 
-from controllers.canbus import BusOpenError, BusSpec, open_bus
-from controllers.protocol import GenericFrame, Protocol
 from hil.cli import main
 from hil.errors import HilError, ScenarioError
 from hil.robots import build_rig, known_kinds, robot_kind
 from hil.run import RunOptions, run_scenario
 from hil.scenario import DEFAULT_SCENARIO, load_scenario
+from rigbus.canbus import BusOpenError, BusSpec, open_bus
+from rigbus.protocol import GenericFrame, Protocol
 
 START = 1433116800.0  # 2015-06-01T00:00:00Z, the documented default log start
 
@@ -452,7 +452,7 @@ def test_direct_in_process_bus_equals_the_virtual_bus_with_a_thread(
 
 def test_camera_pictures_complete_by_their_header_whatever_the_order() -> None:
     from controllers.node import CameraAssembler, CameraTiming
-    from controllers.protocol import CameraFrame, CameraMarker
+    from rigbus.protocol import CameraFrame, CameraMarker
 
     assembler = CameraAssembler(3)
     # picture 300 (256 + 44 on the wire) holds markers 0 and 2; marker 2 arrives first, the

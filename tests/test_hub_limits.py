@@ -153,8 +153,8 @@ def test_a_client_on_a_full_hub_is_not_taken_for_gone_and_a_newcomer_is_told_why
     """max_clients 1, held by a recorder: its hub-alive probe is refused, which meant 'the
     hub is gone' (it recorded nothing and exited 0), and a second tool's probe refusal read as
     'not a socketcand hub'; `hil bus send` to the full hub exits 1 saying so."""
-    from controllers.canbus import BusOpenError, BusSpec, connection_closed, open_bus
     from hil.cli import main as hil_main
+    from rigbus.canbus import BusOpenError, BusSpec, connection_closed, open_bus
 
     with LoopbackHub(max_clients=1, max_buffer_bytes=64 * 1024) as hub:
         spec = BusSpec.parse(f"loopback:127.0.0.1:{hub.port}")
@@ -187,7 +187,7 @@ def test_an_idle_tool_on_a_full_hub_probes_it_once_a_second(
 def test_a_probe_returns_only_once_the_hub_has_closed_its_side() -> None:
     """A hub slow to read the probe's close (as one is under load) still holds the place when
     a probe that only closed returns; the probe half-closes and waits for the hub's close."""
-    from controllers.canbus import BusSpec, _probe_hub
+    from rigbus.canbus import BusSpec, _probe_hub
 
     listener = socket.create_server(("127.0.0.1", 0))
     hub_closed = threading.Event()
@@ -215,7 +215,7 @@ def test_a_probe_frees_its_place_before_it_returns() -> None:
     place until the hub happened to read its close, so `hil bus record` on a `--max-clients 1`
     hub was refused at random (seen on CI). Once the probe returns, its place is free, and
     the hub-alive probe of connection_closed leaves it free as well."""
-    from controllers.canbus import BusSpec, _probe_hub, connection_closed
+    from rigbus.canbus import BusSpec, _probe_hub, connection_closed
 
     with LoopbackHub(max_clients=1, max_buffer_bytes=64 * 1024) as hub:
         spec = BusSpec.parse(f"loopback:127.0.0.1:{hub.port}")

@@ -11,11 +11,11 @@ from pathlib import Path
 import pytest
 
 from controllers.__main__ import main as controller_main
-from controllers.protocol import FrameError, Protocol
 from hil.cli import main as hil_main
 from hil.errors import HilError
 from hil.run import controller_config
 from hil.scenario import DEFAULT_SCENARIO, load_scenario
+from rigbus.protocol import FrameError, Protocol
 
 DEFAULT_TEXT = DEFAULT_SCENARIO.read_text()
 

@@ -1,4 +1,4 @@
-"""Tests for controllers.protocol and the DBC file: ids, ranges, round trips, errors, bus load.
+"""Tests for rigbus.protocol and the DBC file: ids, ranges, round trips, errors, bus load.
 
 Round trips run over every node (1..8) and every marker (0..15) with seeded random values; the
 decoded value must lie within half a scaling step of the encoded one (cantools rounds). The
@@ -19,7 +19,9 @@ import numpy as np
 import pytest
 from cantools.database.can import Database
 
-from controllers.protocol import (
+from hil.fmu.build import model_folder
+from hil.fmu.spec import load_spec
+from rigbus.protocol import (
     DBC_PATH,
     EMCY_COMMAND_TIMEOUT,
     EMCY_FMU_FAULT,
@@ -45,8 +47,6 @@ from controllers.protocol import (
     frame_key,
     frame_signals,
 )
-from hil.fmu.build import model_folder
-from hil.fmu.spec import load_spec
 
 NODES = range(1, 9)
 MARKERS = range(16)
@@ -738,10 +738,10 @@ def test_a_frame_finds_its_message_the_same_way_the_second_time() -> None:
 @pytest.mark.parametrize("data", [b"", b"\x01\x02\x03", bytes(range(8))])
 def test_data_message_is_can_message_field_for_field(data: bytes, maker: str) -> None:
     """The encoder's quick `can.Message` (no checks to pass again), made in Python or in C
-    (`controllers.canbus.c_messages`), has every field python-can's constructor gives, of the
+    (`rigbus.canbus.c_messages`), has every field python-can's constructor gives, of the
     same types; the encoder uses the C one where the C codec is in use."""
-    from controllers.canbus import c_messages
-    from controllers.protocol import data_message
+    from rigbus.canbus import c_messages
+    from rigbus.protocol import data_message
 
     if maker == "c":
         module = c_messages()

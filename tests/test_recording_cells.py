@@ -108,8 +108,8 @@ def test_the_plant_records_a_frames_signals_only(tmp_path: Path) -> None:
     empty, and a frame with no recorded signal is not recorded."""
     from types import SimpleNamespace
 
-    from controllers.protocol import ControllerState
     from hil.plant import Plant
+    from rigbus.protocol import ControllerState
 
     specs = [
         SignalSpec("kappa_ref", "1/m", "reference", frame=("ControllerState", 1, "kappa_ref")),

@@ -1,4 +1,4 @@
-"""Frozen dataclasses with the quicker `__init__` (controllers/records.py): the same signature,
+"""Frozen dataclasses with the quicker `__init__` (rigbus/records.py): the same signature,
 instances equal to the ones dataclasses' own `__init__` builds, still frozen; classes it cannot
 give one keep theirs."""
 
@@ -11,10 +11,10 @@ from dataclasses import InitVar, dataclass, field
 import pytest
 
 from controllers.estimation import DriveReading, Estimate, MarkerFrame
-from controllers.protocol import CameraMarker, DriveStatus
-from controllers.records import fast_init, replace_init
 from hil.devices import SyncContext
 from hil.vision import Picture
+from rigbus.protocol import CameraMarker, DriveStatus
+from rigbus.records import fast_init, replace_init
 
 
 def twin(cls: type) -> type:

@@ -182,8 +182,8 @@ def test_a_log_lacking_a_frame_the_controller_waits_for_is_named_before_the_repl
     a frame missing here from a log of another robot (which never holds the frame)."""
     import dataclasses
 
-    from controllers.protocol import Protocol
     from hil.replay import check_served, read_cycles, read_log
+    from rigbus.protocol import Protocol
 
     lines = recorded.read_text().splitlines()
     config = load_scenario_config(recorded.parent / "scenario.toml")
@@ -364,8 +364,8 @@ def test_bad_logs_get_one_line(recorded: Path, tmp_path: Path) -> None:
 
 def test_compare_checks_every_signal_of_every_frame() -> None:
     """A difference in a frame's last signal only is found and named."""
-    from controllers.protocol import ControllerState, DriveCommand, Protocol
     from hil.replay import Cycle, compare
+    from rigbus.protocol import ControllerState, DriveCommand, Protocol
 
     protocol = Protocol()
     recorded = [

@@ -11,7 +11,6 @@ import pytest
 
 from controllers import kinematics
 from controllers.estimation import Estimate
-from controllers.protocol import ControllerState, DriveCommand, Protocol, TaskState
 from controllers.tasks import (
     PHASE,
     CurvatureMove,
@@ -23,6 +22,7 @@ from controllers.tasks import (
     trapezoid_fraction,
 )
 from hil.scenario import DEFAULT_SCENARIO, load_scenario
+from rigbus.protocol import ControllerState, DriveCommand, Protocol, TaskState
 
 LENGTHS = [0.06] * 6
 BASE = (0.0, 0.0, math.pi / 2)

@@ -23,10 +23,10 @@ from typing import Any
 import numpy as np
 import pytest
 
-from controllers.protocol import DBC_PATH
 from hil.cli import main as hil_main
 from hil.run import RunOptions, run_scenario
 from hil.scenario import SCENARIO_FOLDER, load_scenario
+from rigbus.protocol import DBC_PATH
 from tests.test_closed_loop import shortened
 
 ROOT = Path(__file__).resolve().parents[1]

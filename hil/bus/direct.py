@@ -19,7 +19,7 @@ from collections.abc import Callable
 
 import can
 
-from controllers.canbus import c_messages, unchecked_message
+from rigbus.canbus import c_messages, unchecked_message
 
 Handler = Callable[[can.Message], None]
 

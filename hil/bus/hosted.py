@@ -15,7 +15,7 @@ connected client, the same limits. The hub stamps the frames it forwards with it
 as before; the plant logs simulation time.
 
 With `busy_poll` a receive turns the hub without sleeping for up to that long before it waits
-in ``select`` (see `hil.bus.binary.SofthilBus`): across processes the plant and the controller
+in ``select`` (see `rigbus.binary.SofthilBus`): across processes the plant and the controller
 each wait for the other once a SYNC, and on a virtual machine a sleeping process takes hundreds
 of microseconds to wake.
 """
@@ -28,8 +28,8 @@ from collections.abc import Sequence
 
 import can
 
-from hil.bus.binary import busy_poll_seconds, classic_data
 from hil.bus.loopback import DEFAULT_HANDSHAKE_GRACE, LoopbackHub
+from rigbus.binary import busy_poll_seconds, classic_data
 
 
 class HostedBus(can.BusABC):

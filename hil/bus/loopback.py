@@ -10,7 +10,7 @@ is exactly what python-can's client needs::
 Every frame a client sends on a channel is forwarded to every *other* rawmode client that
 opened the same channel (no echo to the sender, like a CAN socket without RECV_OWN_MSGS).
 
-The same port also serves softhil's binary transport (`hil.bus.binary`, python-can interface
+The same port also serves softhil's binary transport (`rigbus.binary`, python-can interface
 ``softhil``): a connection whose first bytes are the binary hello instead of ``< open NAME >``
 joins the named channel and exchanges length-prefixed records. Both kinds of client share the
 channels: each frame is encoded once per protocol that some receiver speaks. The limits below
@@ -74,14 +74,14 @@ from collections.abc import Callable, Iterable
 from types import FrameType, TracebackType
 from typing import Self
 
-from hil.bus.wire import FLAG_EXTENDED as _FLAG_EXTENDED
-from hil.bus.wire import HEADER as _RECORD_HEADER
-from hil.bus.wire import HELLO_MAGIC as _HELLO_MAGIC
-from hil.bus.wire import SIZE_FIELD as _SIZE_FIELD
-from hil.bus.wire import VERSION as _BINARY_VERSION
-from hil.bus.wire import ack as _binary_ack
-from hil.bus.wire import encode_record
 from hil.errors import BusError, HilError
+from rigbus.wire import FLAG_EXTENDED as _FLAG_EXTENDED
+from rigbus.wire import HEADER as _RECORD_HEADER
+from rigbus.wire import HELLO_MAGIC as _HELLO_MAGIC
+from rigbus.wire import SIZE_FIELD as _SIZE_FIELD
+from rigbus.wire import VERSION as _BINARY_VERSION
+from rigbus.wire import ack as _binary_ack
+from rigbus.wire import encode_record
 
 __all__ = ["DEFAULT_PORT", "HubProcess", "HubSettingError", "LoopbackHub", "main"]
 
@@ -292,7 +292,7 @@ class _Client:
         self.hold_until = 0.0
         self.channel: bytes | None = None
         self.rawmode = False  # joined a channel (socketcand rawmode, or a binary hello)
-        self.binary = False  # speaks softhil's binary records (hil.bus.binary)
+        self.binary = False  # speaks softhil's binary records (rigbus.binary)
         self.want_write = False
         self.closed = False
         self.local = False
@@ -962,7 +962,7 @@ class LoopbackHub:
     # ------------------------------------------------------------------ binary protocol
 
     def _on_binary_input(self, client: _Client) -> None:
-        """Handle a binary client's input: its hello, then whole records (hil.bus.binary).
+        """Handle a binary client's input: its hello, then whole records (rigbus.binary).
 
         A binary stream cannot be resynchronised, so anything malformed is logged and the
         client disconnected (unlike socketcand text, where the hub skips to the next '<').

@@ -108,7 +108,7 @@ PROBE_INTERVAL = 1.0  # [s] between two probes of a quiet bus's hub
 
 def live_frames(bus: can.BusABC, idle_timeout: float | None) -> Iterable[can.Message]:
     """Frames from a bus until `idle_timeout` seconds pass without one (None: forever)."""
-    from controllers.canbus import connection_closed
+    from rigbus.canbus import connection_closed
 
     last = probed = time.monotonic()
     while True:

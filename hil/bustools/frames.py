@@ -14,9 +14,9 @@ from typing import Any
 import can
 from cantools.database.can import Database, Message
 
-from controllers.canbus import BusOpenError, BusSpec, open_bus
-from controllers.protocol import Protocol
 from hil.errors import BusError, HilError
+from rigbus.canbus import BusOpenError, BusSpec, open_bus
+from rigbus.protocol import Protocol
 
 
 def parse_id(text: str) -> int:

@@ -1,7 +1,7 @@
 """Bus load measured from frames (a log, or live traffic) rather than implied by a scenario.
 
 Load = sum over frames of their bits on the wire / (span in seconds * bitrate), with the bits of
-`controllers.protocol.frame_bits` (worst-case bit stuffing); an extended id adds 20 frame bits
+`rigbus.protocol.frame_bits` (worst-case bit stuffing); an extended id adds 20 frame bits
 and their worst-case stuff bits (25 in all). The span is the time from the first to the last
 frame (a log) or the listening time (live). Rates are frames / span.
 """
@@ -14,9 +14,9 @@ from dataclasses import dataclass
 import can
 from cantools.database.can import Database
 
-from controllers.protocol import frame_bits
 from hil.bustools.frames import dbc_message
 from hil.errors import HilError
+from rigbus.protocol import frame_bits
 
 EXTENDED_EXTRA_BITS = 25
 

@@ -33,10 +33,10 @@ from dataclasses import dataclass
 import can
 from cantools.database.can import Database
 
-from controllers.protocol import SYNC_ID
 from hil.bustools.frames import FrameFilter, counter_of, dbc_message
 from hil.bustools.send import send_one
 from hil.errors import BusError, HilError
+from rigbus.protocol import SYNC_ID
 
 DIRECTIONS = ("R", "T", "all")
 ACK_PREFIXES = ("SYNC", "DriveStatus", "DriveCommand", "ControllerState")

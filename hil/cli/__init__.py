@@ -14,7 +14,6 @@ import sys
 import threading
 from collections.abc import Callable, Sequence
 
-from controllers.protocol import FrameError
 from hil.cli import batch as batch_command
 from hil.cli import bus as bus_command
 from hil.cli import controller as controller_command
@@ -25,6 +24,7 @@ from hil.cli import run as run_command
 from hil.cli import scenarios as scenarios_command
 from hil.environment import check as check_environment
 from hil.errors import HilError, Terminated
+from rigbus.protocol import FrameError
 
 SUBCOMMANDS = (
     run_command,

@@ -228,10 +228,10 @@ def _load(args: argparse.Namespace) -> int:
         return _measured_load(args)
     from dataclasses import replace
 
-    from controllers.protocol import Protocol
     from hil.bustools.load import check_bitrate
     from hil.scenario import load_scenario, resolve_scenario
     from hil.summary import BUS_LOAD_WARNING, bus_load_of
+    from rigbus.protocol import Protocol
 
     scenario = load_scenario(resolve_scenario(args.scenario) if args.scenario else None)
     if args.bitrate is not None:

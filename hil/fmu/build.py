@@ -34,11 +34,11 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import fmus
-from controllers import cbuild
-from controllers.cbuild import cache_folder, cache_root, compiler
 from hil.errors import BuildError
 from hil.fmu import spec as spec_module
 from hil.fmu.spec import ModelSpec, generate_header, generate_model_description, guid, load_spec
+from rigbus import cbuild
+from rigbus.cbuild import cache_folder, cache_root, compiler
 
 CFLAGS = (
     "-std=c99",
@@ -65,7 +65,7 @@ class BuiltFmu:
     guid: str
 
 
-# a C file compiled into a cached shared library (`controllers.cbuild`), failing with BuildError
+# a C file compiled into a cached shared library (`rigbus.cbuild`), failing with BuildError
 compile_library = functools.partial(cbuild.compile_library, error=BuildError)
 
 

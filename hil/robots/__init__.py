@@ -28,9 +28,9 @@ from hil.errors import HilError
 from hil.master import Connection, FmuParticipant, Participant
 
 if TYPE_CHECKING:
-    from controllers.protocol import Protocol as CanProtocol
     from hil.scenario import Scenario
     from hil.vision import Camera
+    from rigbus.protocol import Protocol as CanProtocol
 
 KINDS = {"planar_arm": "hil.robots.planar_arm:ROBOT", "fish": "hil.robots.fish:ROBOT"}
 

@@ -30,12 +30,12 @@ import numpy as np
 
 from controllers.fish import CALIBRATION, TASKS, FishConfig
 from controllers.node import CameraTiming
-from controllers.protocol import Protocol
 from hil.devices import HEARTBEAT_PERIOD, CameraNode
 from hil.master import Connection, FmuParticipant, Participant
 from hil.robots import PlotSpec, Rig, SignalSpec, fmu_ref, scenario_camera
 from hil.robots.fish_devices import CanisterNode, ValveNode
 from hil.vision import exposure_delay_bound
+from rigbus.protocol import Protocol
 
 if TYPE_CHECKING:
     from hil.scenario import Scenario

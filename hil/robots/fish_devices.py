@@ -14,8 +14,8 @@ import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
-from controllers.protocol import COUNTER_MODULO, NMT_OPERATIONAL, Frame, GenericFrame, Heartbeat
 from hil.devices import HEARTBEAT, STATUS, SyncContext, clamp
+from rigbus.protocol import COUNTER_MODULO, NMT_OPERATIONAL, Frame, GenericFrame, Heartbeat
 
 # ValveStatus.state (the DBC's value table)
 CLOSED, OPENING, OPEN, VENTING = 0, 1, 2, 3

@@ -22,12 +22,12 @@ from controllers.curvature import PiGains, SegmentModel
 from controllers.estimation import BendModel, CameraNoise
 from controllers.loop_design import effective_delay, estimator_delay, outer_loop_gains
 from controllers.node import CameraTiming, ControllerConfig, GripperConfig
-from controllers.protocol import Protocol
 from controllers.tasks import TASK_KINDS, TaskPlan, draw_paths, draw_targets
 from hil.devices import HEARTBEAT_PERIOD, CameraNode, DriveNode
 from hil.master import Connection, FmuParticipant, Participant
 from hil.robots import PlotSpec, Rig, SignalSpec, environment, fmu_ref, gripper, scenario_camera
 from hil.vision import exposure_delay_bound
+from rigbus.protocol import Protocol
 
 if TYPE_CHECKING:
     from hil.scenario import Scenario

@@ -25,14 +25,14 @@ from pathlib import Path
 
 import can
 
-from controllers.canbus import BusSpec, open_bus
-from controllers.protocol import Protocol
 from hil.devices import HEARTBEAT_PERIOD
 from hil.plant import Plant
 from hil.recording import CanLogger, SignalRecorder
 from hil.robots import build_rig
 from hil.run import RunOptions, run_scenario
 from hil.scenario import DEFAULT_SCENARIO, Scenario, load_scenario, log_start
+from rigbus.canbus import BusSpec, open_bus
+from rigbus.protocol import Protocol
 
 GOLDEN_DIR = Path(__file__).resolve().parent
 DEFAULT_LOG = GOLDEN_DIR / "default.log"

@@ -2,7 +2,7 @@
 
 Specs:
 - `softhil[:[HOST:]PORT][,busy_poll=SECONDS]`: the inter-process hub that `hil` serves on
-  127.0.0.1, reached with softhil's binary records (`hil.bus.binary`, python-can interface
+  127.0.0.1, reached with softhil's binary records (`rigbus.binary`, python-can interface
   `softhil`); what `hil run` gives its plant and controller. `busy_poll`: how long a receive
   polls before it sleeps (`SofthilBus`).
 - `loopback[:[HOST:]PORT]`: the same hub, reached with python-can's `socketcand` client (ASCII;
@@ -127,7 +127,7 @@ def open_bus(spec: BusSpec, timeout: float = 2.0) -> can.BusABC:
         if spec.kind == "softhil":
             # imported here, not through can.Bus(interface="softhil"): the run must not depend
             # on the installed entry point's metadata being current
-            from hil.bus.binary import SofthilBus
+            from rigbus.binary import SofthilBus
 
             return SofthilBus(
                 f"{spec.host}:{spec.port}",
@@ -282,12 +282,12 @@ def unchecked_message(
 
 
 def c_messages() -> Any | None:
-    """The C codec module (`controllers.ccodec`) with `can.Message` bound: its
+    """The C codec module (`rigbus.ccodec`) with `can.Message` bound: its
     `data_message(arbitration_id, data, timestamp)` and `copy_message(message, channel)` make
     messages as `unchecked_message` does, filling python-can's slots in place (0.2 us, against
     1 us here); None where the C codec is not in use, or python-can's Message is not made of
     plain slots, and the messages are made in Python."""
-    from controllers import ccodec
+    from rigbus import ccodec
 
     module = ccodec.load()
     if module is None or not module.bind_message(can.Message):

@@ -1,6 +1,6 @@
 """The DBC codec's plain case in C (`_ccodec.c`), built on first use with the FMU toolchain.
 
-`controllers.protocol._Codec` encodes and decodes through it when it is available: a frame's
+`rigbus.protocol._Codec` encodes and decodes through it when it is available: a frame's
 values to bytes and a payload to its typed frame in one C call each (a DriveStatus: about 0.5 us
 each way, against 3-4 us for the generated Python codec and 14 us for cantools' encode). It
 handles the plain case only (every value present, a float, int or bool, finite and in range; a
@@ -8,7 +8,7 @@ payload whose index matches) and returns None for anything else, which the Pytho
 encodes or rejects with the error it always gave: results and errors are the same bit for bit.
 
 The module is compiled with `$CC` (or gcc) against this Python's headers into the softhil cache
-(`controllers.cbuild`, shared with the plant's kernel: the controller never imports `hil`),
+(`rigbus.cbuild`, shared with the plant's kernel: the controller never imports `hil`),
 keyed by a digest of the source, the flags, the compiler and the Python ABI, and loaded from
 there. Without a compiler or the headers, or with
 ``SOFTHIL_CODEC=python``, the Python codec does everything (`available()` says which).
@@ -20,7 +20,7 @@ import logging
 from pathlib import Path
 from types import ModuleType
 
-from controllers.cbuild import (
+from rigbus.cbuild import (
     LIBRARY_FLAGS,
     CPart,
     compile_extension,

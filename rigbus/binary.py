@@ -42,7 +42,7 @@ from typing import Any
 
 import can
 
-from hil.bus.wire import (
+from rigbus.wire import (
     DEFAULT_PORT,
     FLAG_EXTENDED,
     GREETING,

@@ -1,6 +1,6 @@
-/* softhil's DBC codec in C: the common case of `controllers.protocol._Codec`, one call a frame.
+/* softhil's DBC codec in C: the common case of `rigbus.protocol._Codec`, one call a frame.
 
-   A plan (built in Python from the DBC, `controllers.ccodec`) is compiled once per message into
+   A plan (built in Python from the DBC, `rigbus.ccodec`) is compiled once per message into
    a capsule; `pack(capsule, values)` and `unpack(capsule, data)` then encode a frame's values
    and decode a payload into its typed frame with the same arithmetic as the generated Python
    codec, in the same order, so the bytes and the values are the same bit for bit.
@@ -504,7 +504,7 @@ done:
 
 /* ------------------------------------------------------------------ can.Message, made here
 
-   `controllers.canbus.unchecked_message` in C: a can.Message with every field given and none
+   `rigbus.canbus.unchecked_message` in C: a can.Message with every field given and none
    checked, as `object.__new__(can.Message)` and twelve attribute stores make it. python-can
    declares the fields as __slots__, so `bind_message(can.Message)` finds each field's place in
    the object once (its member descriptor's offset) and the message is filled in place. It binds
@@ -573,7 +573,7 @@ static PyObject *new_message(PyObject *self, PyObject *const *args, Py_ssize_t n
 }
 
 /* data_message(arbitration_id, data, timestamp): a classic data frame with an 11-bit id, received
-   flag set, as controllers.protocol.data_message makes it */
+   flag set, as rigbus.protocol.data_message makes it */
 static PyObject *data_message(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
     (void)self;
     if (nargs != 3) {

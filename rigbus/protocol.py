@@ -32,11 +32,11 @@ import can
 import cantools
 from cantools.database.can import Database, Message
 
-from controllers import ccodec
-from controllers.canbus import c_messages, unchecked_message
-from controllers.records import replace_init
+from rigbus import ccodec
+from rigbus.canbus import c_messages, unchecked_message
+from rigbus.records import replace_init
 
-DBC_PATH = Path(str(files("controllers") / "softhil.dbc"))
+DBC_PATH = Path(str(files("rigbus") / "softhil.dbc"))
 Data = bytes | bytearray  # a frame's payload: python-can gives either
 
 SYNC_ID = 0x080  # the SYNC message's id in the DBC (CANopen's); checked by the tests
@@ -103,7 +103,7 @@ def frame_type(kind: str, index: str | None = None) -> Callable[[type], type]:
 
 
 def _fast_init(cls: type) -> None:
-    """A frame class's quicker `__init__` (`controllers.records`): some fifty frames are built
+    """A frame class's quicker `__init__` (`rigbus.records`): some fifty frames are built
     a SYNC. A class that has it is remembered in `_PLAIN`."""
     if replace_init(cls):
         _PLAIN.add(cls)
@@ -315,14 +315,14 @@ class _Codec:
         self.decode: Callable[[Data], dict[str, Any]] = self._compile_decode()
         self._pack: Callable[[Mapping[str, Any]], bytes] | None = None
         self._unpackers: dict[tuple[type, int | None], Callable[[Data], Any]] = {}
-        # the C codec's compiled plans (`controllers.ccodec`), once made: for the tests
+        # the C codec's compiled plans (`rigbus.ccodec`), once made: for the tests
         self.c_encoder: Any = None
         self.c_decoders: dict[tuple[type, int | None], Any] = {}
 
     @property
     def pack(self) -> Callable[[Mapping[str, Any]], bytes]:
         """`encode` with `Protocol.encode`'s checks of a frame's values first: the plain case
-        in C where it is available (`controllers.ccodec`), everything else in Python."""
+        in C where it is available (`rigbus.ccodec`), everything else in Python."""
         if self._pack is None:
             self._pack = self._with_c_encoder(lambda: self._compile_encode(checked=True))
         return self._pack

@@ -1,8 +1,8 @@
 """The wire format of softhil's binary CAN transport, shared by the hub and the client.
 
-Kept apart from `hil.bus.binary` (the python-can bus) so that the hub, which may run as its own
+Kept apart from `rigbus.binary` (the python-can bus) so that the hub, which may run as its own
 small process, starts without importing python-can. The format is described in
-`hil.bus.binary`; invariant: every record is ``HEADER`` followed by exactly ``dlc`` data bytes,
+`rigbus.binary`; invariant: every record is ``HEADER`` followed by exactly ``dlc`` data bytes,
 and its size field counts the bytes after itself (``HEADER.size - SIZE_FIELD + dlc``).
 """
 
