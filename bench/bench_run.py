@@ -6,8 +6,8 @@ all: the physical limit). For 1, 2, 4 and 6 planar-arm segments (DriveCylinder +
 coupled as in hil.robots.planar_arm: cylinder.x -> segment.x_piston, segment.p_a/p_b ->
 cylinder.p_a/p_b, a constant x_ref input), the same simulated time is stepped by
   pure C        one call of the C loop over every tick
-  kernel        hil.master.Master with the C kernel, advanced SYNC by SYNC (10 macro steps)
-  python        hil.master.Master(kernel=False), advanced SYNC by SYNC: the reference
+  kernel        hil.cosim.Algorithm with the C kernel, advanced SYNC by SYNC (10 macro steps)
+  python        hil.cosim.Algorithm(kernel=False), advanced SYNC by SYNC: the reference
   fmpy          fmpy alone: the same FMI calls from a Python loop, no master
 reported as microseconds per FMU macro step, the ratio to the pure-C loop, and per layer the
 fitted cost slope in microseconds per segment per SYNC. The issue 8 target: the kernel within 1.5x
@@ -74,9 +74,9 @@ from unittest import mock
 import numpy as np
 
 from hil.bus.loopback import HubProcess
+from hil.cosim import Algorithm, Connection, FmuParticipant
 from hil.fmu.build import CFLAGS, compile_library
 from hil.fmu.slave import FmuSlave
-from hil.master import Connection, FmuParticipant, Master
 from hil.run import RunOptions, run_scenario
 from hil.scenario import Scenario, load_scenario
 from rigbus.canbus import BusSpec, open_bus
@@ -189,7 +189,7 @@ def master_layer(segments: int, ticks: int, h: float, kernel: bool, sync_ticks: 
                 Connection(f"segment{n}.p_a", f"cylinder{n}.p_a"),
                 Connection(f"segment{n}.p_b", f"cylinder{n}.p_b"),
             ]
-        master = Master(participants, connections, h, kernel=kernel)
+        master = Algorithm(participants, connections, h, kernel=kernel)
         assert master.uses_kernel == kernel
         for n in range(1, segments + 1):
             master.set_input(f"cylinder{n}", "x_ref", X_REF)
@@ -438,8 +438,8 @@ def budget_wrappers(budget: LayerBudget) -> None:
     which also brackets the budget's total."""
     from controllers.node import ControllerNode
     from hil.bus.direct import DirectBus
+    from hil.cosim.kernel import Kernel
     from hil.devices import CameraNode
-    from hil.kernel import Kernel
     from hil.plant import Plant
     from hil.recording import CanLogger, SignalRecorder
     from rigbus.protocol import Protocol
@@ -447,7 +447,7 @@ def budget_wrappers(budget: LayerBudget) -> None:
     for owner, names, layer in (
         (Kernel, ("advance", "start", "finish"), "FMUs (kernel)"),
         (FmuParticipant, ("step", "set_inputs", "get_outputs"), "FMUs (kernel)"),
-        (Master, ("advance_to", "publish", "inputs_of"), "master"),
+        (Algorithm, ("advance_to", "publish", "inputs_of"), "master"),
         (CameraNode, ("step", "act"), "camera"),
         (Protocol, ("encode", "decode"), "codec"),
         (DirectBus, ("send", "recv"), "bus"),

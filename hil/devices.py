@@ -22,7 +22,7 @@ from typing import ClassVar, Protocol
 
 import numpy as np
 
-from hil.master import Participant
+from hil.cosim import Participant
 from hil.vision import Camera, Picture
 from rigbus.protocol import (
     COUNTER_MODULO,
@@ -118,7 +118,7 @@ class DriveNode:
     decimation: int = 1  # ticks between master steps: its outputs change only at SYNC
     setpoint: float = field(init=False)
     # its step never changes its outputs (they change in `act`, which the plant publishes): the
-    # master may step it after the FMUs' tick (hil.master.start_advance)
+    # master may step it after the FMUs' tick (hil.cosim.algorithm.Algorithm.start_advance)
     outputs_hold: ClassVar[bool] = True
 
     def __post_init__(self) -> None:

@@ -11,7 +11,7 @@ from hil.errors import HilError
 KERNEL = "SOFTHIL_KERNEL"  # "0": step FMUs in Python; "1" (the default): the C kernel
 # "1": a run with plant and controller in one thread steps the FMUs on the kernel's worker thread
 # while the controller computes; "0": in that thread, in turn; unset: on the thread where two
-# cores are free and a period costs enough to step (hil.plant.OVERLAP_MIN_COST)
+# cores are free and a period costs enough to step (hil.cosim.execution.OVERLAP_MIN_COST)
 KERNEL_THREAD = "SOFTHIL_KERNEL_THREAD"
 # [s] how long the plant waiting for the worker polls before it sleeps: a job takes 0.1-0.3 ms,
 # waking a sleeping thread costs hundreds of microseconds on a virtual machine

@@ -20,9 +20,10 @@ from typing import NamedTuple
 
 import can
 
+from hil.cosim import Algorithm, Execution, StepAhead
+from hil.cosim.execution import OVERLAP_MIN_COST
 from hil.devices import DeviceNode, SyncContext
 from hil.errors import BusError, FmuError, HilError, ProtocolError
-from hil.master import Master
 from hil.recording import CanLogger, SignalRecorder
 from hil.robots import Rig
 from hil.scenario import Scenario
@@ -59,10 +60,6 @@ class _Route(NamedTuple):
 
 
 STARTUP_TIMEOUT = 60.0  # [s] wall clock for the controller's first SYNC
-# the periods an in-process run steps in turn, timed, before it chooses the kernel's worker
-# thread (a median of at least OVERLAP_MIN_COST [s] a period) or stays in turn
-OVERLAP_PROBES = 12
-OVERLAP_MIN_COST = 70e-6
 EMCY_REASONS = {EMCY_OVER_PRESSURE: "over-pressure", EMCY_COMMAND_TIMEOUT: "command timeout"}
 
 
@@ -106,29 +103,26 @@ class Plant:
         self.scenario = scenario
         self.bus = bus
         self.rig = rig
-        self.master = Master(rig.participants, rig.connections, scenario.timing.step)
+        self.algorithm = Algorithm(rig.participants, rig.connections, scenario.timing.step)
+        # the step-ahead policy: IN_TURN serving a controller in another process (`run`),
+        # AT_SYNC or WORKER for one in this thread (`run_driven`)
+        self.execution = Execution(self.algorithm, scenario.control_ticks, scenario.cycles)
         self.signals = signals
         self.can_log = can_log
         self.protocol = protocol or Protocol()
         self.stats = PlantStats()
         self.nodes = rig.nodes
-        # the recorded master values, read at every SYNC in the recorder's order
+        # the recorded values, read at every SYNC in the recorder's order
         source_of = {s.column: s.source for s in rig.signals if s.source is not None}
         unknown = [c for c in signals.source_columns if c not in source_of]
         if unknown:
             raise HilError(f"{signals.path.name}: no source for column {unknown[0]!r} in the rig")
-        self._sourced = self.master.reader([source_of[c] for c in signals.source_columns])
+        self._sourced = self.algorithm.reader([source_of[c] for c in signals.source_columns])
         self.sim_time = 0.0
         self.cycle = -1
         self.heartbeat_every = heartbeat_every
         self._progress: Callable[[int], None] | None = None
         self._heard: set[tuple[int, int]] = set()  # (CAN id, counter) received this period
-        # what stepping ahead (`_step_ahead`) raised, reported when that period's SYNC comes
-        self._ahead_error: FmuError | None = None
-        # run_driven on the kernel's worker thread: how long it polls [s]; None: not at all
-        self._overlap: float | None = None
-        self._stepping_costs: list[float] = []  # [s] the first periods, stepped in turn, timed
-        self._overlap_min_cost = OVERLAP_MIN_COST
         self._routes: dict[int, _Route] = {}  # by CAN id (`_route`)
 
     def run(
@@ -144,6 +138,7 @@ class Plant:
         started = time.perf_counter()
         last_heard = time.monotonic()
         final = self.scenario.cycles
+        self.execution.policy = StepAhead.IN_TURN  # while the controller's process computes
         if startup_timeout is None:
             startup_timeout = max(STARTUP_TIMEOUT, self.scenario.controller.timeout)
         try:
@@ -181,10 +176,7 @@ class Plant:
                     first = time.perf_counter()
                     self.stats.startup_time = first - started
                     started = first
-                cycle = self.cycle
                 self._handle(message, progress)
-                if self.cycle != cycle:
-                    self._step_ahead()
         finally:
             self._count()
             self.stats.wall_time = time.perf_counter() - started
@@ -212,12 +204,14 @@ class Plant:
         each frame it sends reaches `handle` synchronously; `driver` returns when it is done.
         With `overlap` (seconds this thread polls for the worker before it sleeps) the FMUs step
         to the next SYNC on the kernel's worker thread while the controller computes in this
-        one (its commands act from that SYNC on, so nothing changes by a bit), where a period
-        costs at least `overlap_min_cost` [s] to step (0: always; see `_start_ahead`)."""
+        one (`StepAhead.WORKER`: nothing changes by a bit), where a period costs at least
+        `overlap_min_cost` [s] to step (0: always); without, at each SYNC (`AT_SYNC`)."""
         started = time.perf_counter()
         self._progress = progress
-        self._overlap = overlap
-        self._overlap_min_cost = overlap_min_cost
+        execution = self.execution
+        if overlap is not None:
+            execution.policy, execution.spin = StepAhead.WORKER, overlap
+            execution.min_cost = overlap_min_cost
         try:
             driver()
             if self.cycle < self.scenario.cycles:
@@ -225,9 +219,8 @@ class Plant:
                     f"the controller stopped after SYNC {self.cycle} of {self.scenario.cycles}"
                 )
         finally:
-            self._overlap = None
             try:
-                self.master.settle()  # no FMU steps on after the run, nor into a forked child
+                execution.settle()  # no FMU steps on after the run, nor into a forked child
             finally:
                 self._count()
                 self.stats.wall_time = time.perf_counter() - started
@@ -271,8 +264,7 @@ class Plant:
             self._on_sync(self.cycle)
             if progress is not None:
                 progress(self.cycle)
-            if self._overlap is not None:
-                self._start_ahead(self._overlap)
+            self.execution.after_sync(self.cycle)  # the step-ahead policy's work, if any
             return
         self.can_log.log(message, self.sim_time, received=True)
         route = self._routes.get(message.arbitration_id)
@@ -352,60 +344,18 @@ class Plant:
             raise BusError(f"sending {ids}: {exc}") from exc
         self.can_log.log_all(messages, at, received=False)
 
-    def _step_ahead(self) -> None:
-        """Step the physics to the next SYNC while the controller computes (a separate process).
-        The period's commands act from that SYNC on, so nothing the controller sends can change
-        this period: the results are those of stepping when the SYNC comes, bit for bit. An FMU
-        failure is held until then, and raised where it would have been."""
-        if self.cycle < 0 or self.cycle >= self.scenario.cycles:
-            return
-        try:
-            self.master.advance_to((self.cycle + 1) * self.scenario.control_ticks)
-        except FmuError as exc:
-            self._ahead_error = exc
-
-    def _start_ahead(self, spin: float) -> None:
-        """`_step_ahead` on the kernel's worker thread: the FMUs step while the controller, in
-        this thread, computes; the next SYNC's `advance_to` waits for them. Where the master
-        cannot (Python participants with outputs inside the period), the SYNC steps as before.
-        The first OVERLAP_PROBES periods are stepped ahead in turn, the kernel's stepping timed
-        (what the thread would take over): a rig whose period steps in less than
-        OVERLAP_MIN_COST goes on in turn, since handing the work to the thread and waking it
-        costs more than it saves (1 segment: 22x real time in turn, 18x on the thread; 6
-        segments: 10.5x and 11.7x). Either way every value is the same."""
-        if self.cycle < 0 or self.cycle >= self.scenario.cycles:
-            return
-        costs = self._stepping_costs
-        target = (self.cycle + 1) * self.scenario.control_ticks
-        try:
-            if self._overlap_min_cost > 0.0 and len(costs) < OVERLAP_PROBES:
-                # the kernel's share only: Python participants (the camera) step here either way
-                before = self.master.kernel_seconds
-                self.master.advance_to(target)
-                costs.append(self.master.kernel_seconds - before)
-                if len(costs) == OVERLAP_PROBES and (
-                    sorted(costs)[len(costs) // 2] < self._overlap_min_cost
-                ):
-                    self._overlap = None  # in turn from here on
-            elif self.master.start_advance(target, spin):
-                self.stats.periods_on_thread += 1
-        except FmuError as exc:
-            self._ahead_error = exc
-
     def _on_sync(self, cycle: int) -> None:
-        sync_tick = cycle * self.scenario.control_ticks
-        master = self.master
         try:
-            if self._ahead_error is not None:
-                raise self._ahead_error
-            master.advance_to(sync_tick)
+            self.execution.to_sync(cycle)
         except FmuError as exc:
             raise FmuError(f"at t = {self.sim_time:.3f} s: {exc}") from exc
+        algorithm = self.algorithm
+        sync_tick = cycle * self.scenario.control_ticks
         sync = SyncContext(cycle, sync_tick, self.sim_time, cycle % self.heartbeat_every == 0)
         outgoing: list[tuple[int, Frame]] = []
         for node in self.nodes:
-            outgoing += node.act(sync, master.inputs_of(node.name))
-            master.publish(node.name)
+            outgoing += node.act(sync, algorithm.inputs_of(node.name))
+            algorithm.publish(node.name)
         outgoing.sort(key=lambda phase_frame: phase_frame[0])  # stable: rig order within a phase
         try:
             self._send([frame for _, frame in outgoing])
@@ -425,6 +375,7 @@ class Plant:
     def _count(self) -> None:
         """The device nodes' counts into the stats: when the run ends, however it ends."""
         stats = self.stats
+        stats.periods_on_thread = self.execution.periods_on_thread
         stats.commands_missed = sum(getattr(n, "missed", 0) for n in self.nodes)
         stats.commands_stale = sum(getattr(n, "stale", 0) for n in self.nodes)
         stats.emcy_sent = sum(getattr(n, "emcy_sent", 0) for n in self.nodes)

@@ -43,10 +43,11 @@ from hil.animation import check_format
 from hil.bus.direct import direct_pair
 from hil.bus.hosted import HostedBus
 from hil.bus.loopback import HubProcess, LoopbackHub
+from hil.cosim.execution import OVERLAP_MIN_COST
 from hil.devices import HEARTBEAT_PERIOD
 from hil.environment import KERNEL_THREAD_SPIN, kernel_thread, two_cores
 from hil.errors import BusError, HilError, ProtocolError, Terminated
-from hil.plant import OVERLAP_MIN_COST, STARTUP_TIMEOUT, Plant, when
+from hil.plant import STARTUP_TIMEOUT, Plant, when
 from hil.program import (
     EXTERNAL,
     SOFTHIL,

@@ -1,5 +1,5 @@
 """Compiling one C file into a shared library in softhil's per-user cache, the same way for the
-plant's stepping kernel (`hil.kernel`), the controller's DBC codec (`rigbus.ccodec`) and the
+plant's stepping kernel (`hil.cosim.kernel`), the controller's DBC codec (`rigbus.ccodec`) and the
 benchmarks. It lives here, not in `hil`, because the controller never imports `hil`; `hil` uses
 it through `hil.fmu.build`, which raises its own BuildError.
 

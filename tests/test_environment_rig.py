@@ -183,9 +183,9 @@ def test_a_segment_that_starts_bent_starts_at_rest(tmp_path: Path) -> None:
     assert pistons[0] > 0.025 > pistons[1] and pistons[2] == 0.025  # bent ways, straight at mid
     rig = build_rig(scenario)
     try:
-        from hil.master import Master
+        from hil.cosim import Algorithm
 
-        master = Master(rig.participants, rig.connections, scenario.timing.step)
+        master = Algorithm(rig.participants, rig.connections, scenario.timing.step)
         start = [master.values[f"segment{n}.kappa"] for n in (1, 2)]
         # the initial outputs follow the connected inputs (the master's initialisation), not
         # the inputs' declared starts: the bent segment's pressure at t = 0 is its start's

@@ -1,4 +1,4 @@
-"""Tests for the stepping kernel (hil/kernel): the C inner loop against the Python master.
+"""Tests for the stepping kernel (hil/cosim/kernel): the C inner loop against the Python master.
 
 The Python master is the reference. The same coupled system (two segments of DriveCylinder and
 FeaSegment, one FMU at decimation 2, a connection with gain and offset, a Python probe stepping at
@@ -20,11 +20,11 @@ from time import perf_counter
 
 import pytest
 
+from hil.cosim import Algorithm, Connection, FmuParticipant
 from hil.environment import kernel_thread
 from hil.errors import FmuError, HilError
 from hil.fmu.build import BuiltFmu
 from hil.fmu.slave import FmuSlave
-from hil.master import Connection, FmuParticipant, Master
 from hil.run import RunOptions, run_scenario
 from hil.scenario import load_scenario
 
@@ -126,7 +126,7 @@ def coupled(
     firmware_decimation: int = 1,
     probe_decimation: int = 10,
     piston_offset: float = 0.0,
-) -> tuple[Master, Probe, Firmware, list[FmuSlave]]:
+) -> tuple[Algorithm, Probe, Firmware, list[FmuSlave]]:
     """The coupled rig; `firmware_decimation` SYNC_TICKS (the device nodes' own) lets the
     worker thread step whole periods, 1 keeps it off (outputs due at every tick);
     `piston_offset` [m] shifts what segment 1 is told of its piston (far enough, and the
@@ -158,7 +158,7 @@ def coupled(
             Connection(f"segment{n}.p_a", f"cylinder{n}.p_a"),
         ]
     connections.append(Connection("segment2.p_b", "cylinder2.p_b"))
-    master = Master(participants, connections, H, kernel=kernel)
+    master = Algorithm(participants, connections, H, kernel=kernel)
     master.set_input("segment2", "tau_ext", 0.002)
     return master, probe, firmware, slaves
 
@@ -168,9 +168,9 @@ def run_syncs(
     segment: BuiltFmu,
     kernel: bool,
     syncs: int,
-    advance: Callable[[Master, int], None] | None = None,
+    advance: Callable[[Algorithm, int], None] | None = None,
     firmware_decimation: int = 1,
-    after_sync: Callable[[Master, int], None] | None = None,
+    after_sync: Callable[[Algorithm, int], None] | None = None,
     probe_decimation: int = 10,
 ) -> tuple[list[dict[str, float]], Probe, bool]:
     master, probe, firmware, slaves = coupled(
@@ -226,7 +226,7 @@ def test_what_the_loop_reads_after_the_worker_is_what_values_says(
     reads: dict[bool, list[object]] = {False: [], True: []}
     stale: list[bool] = []
 
-    def ahead(master: Master, target: int) -> None:
+    def ahead(master: Algorithm, target: int) -> None:
         read = master.__dict__.setdefault("_test_read", master.reader(keys))
         one = master.__dict__.setdefault("_test_one", master.reader(["cylinder1.x"]))
         if master.uses_kernel:
@@ -245,7 +245,7 @@ def test_what_the_loop_reads_after_the_worker_is_what_values_says(
     assert stale.count(True) == 20  # the kernel's reads all came from its array
     assert len({got[0] for got in reads[True]}) > 10  # the values moved
     with pytest.raises(HilError, match="no value 'segment1.nope'"):
-        Master([], [], H).reader(["segment1.nope"])
+        Algorithm([], [], H).reader(["segment1.nope"])
 
 
 class Watcher:
@@ -303,7 +303,7 @@ def test_every_reader_after_a_period_in_c_sees_the_python_masters_values(
                 Connection("drive.x_ref", "watcher.x_ref", gain=2.0),
                 Connection("segment1.kappa", "watcher.kappa"),
             ]
-            master = Master(participants, connections, H, kernel=kernel)
+            master = Algorithm(participants, connections, H, kernel=kernel)
             seen: list[object] = []
             for sync in range(1, 13):
                 if kernel:
@@ -338,7 +338,7 @@ def test_kernel_and_python_master_are_bit_identical_at_every_tick(
 ) -> None:
     ticks: dict[bool, list[dict[str, float]]] = {False: [], True: []}
 
-    def tick_by_tick(master: Master, target: int) -> None:
+    def tick_by_tick(master: Algorithm, target: int) -> None:
         while master.tick < target:
             master.advance_to(master.tick + 1)
             ticks[master.uses_kernel].append(dict(master.values))
@@ -360,7 +360,7 @@ def test_switching_to_python_for_an_observer_and_back_keeps_identity(
         def observe(self, tick: int, values: Mapping[str, float]) -> None:
             self.calls.append((tick, dict(values)))
 
-    def observed(master: Master, target: int) -> None:
+    def observed(master: Algorithm, target: int) -> None:
         # the periods ending at SYNC 2 and 33 run with an observer (every tick in Python), the
         # others in C. The firmware's setpoint is 0.025 in both Python periods and 0.03 in the C
         # period just before the second, so the kernel must hand back what it last sent, or the
@@ -388,23 +388,23 @@ def test_environment_variable_and_argument_select_the_python_path(
     with FmuSlave(drive_cylinder_fmu, "cylinder1") as slave:
         participants = [FmuParticipant(slave)]
         monkeypatch.delenv("SOFTHIL_KERNEL", raising=False)
-        assert Master(participants, [], H).uses_kernel
-        assert not Master(participants, [], H, kernel=False).uses_kernel
+        assert Algorithm(participants, [], H).uses_kernel
+        assert not Algorithm(participants, [], H, kernel=False).uses_kernel
         monkeypatch.setenv("SOFTHIL_KERNEL", "0")
-        master = Master(participants, [], H)
+        master = Algorithm(participants, [], H)
         assert not master.uses_kernel
         master.advance_to(3)
         assert master.tick == 3
         monkeypatch.setenv("SOFTHIL_KERNEL", "1")
-        assert Master(participants, [], H).uses_kernel
+        assert Algorithm(participants, [], H).uses_kernel
         for value in ("yes", "off", "2", ""):  # a misspelt switch is not silently "on"
             monkeypatch.setenv("SOFTHIL_KERNEL", value)
             with pytest.raises(HilError, match=rf"^SOFTHIL_KERNEL='{value}': must be 1 .* or 0"):
-                Master(participants, [], H)
+                Algorithm(participants, [], H)
 
 
 def test_master_without_fmus_does_not_use_the_kernel() -> None:
-    assert not Master([Probe()], [], H, kernel=True).uses_kernel
+    assert not Algorithm([Probe()], [], H, kernel=True).uses_kernel
 
 
 def failing_run(cylinder: BuiltFmu, segment: BuiltFmu, kernel: bool) -> tuple[str, int]:
@@ -435,7 +435,7 @@ def test_fmu_error_inside_the_kernel_is_the_python_paths_fmu_error(
 
 def test_a_closed_instance_is_an_error_not_a_crash(drive_cylinder_fmu: BuiltFmu) -> None:
     slave = FmuSlave(drive_cylinder_fmu, "cylinder1")
-    master = Master([FmuParticipant(slave)], [], H, kernel=True)
+    master = Algorithm([FmuParticipant(slave)], [], H, kernel=True)
     master.advance_to(2)
     slave.close()
     with pytest.raises(FmuError, match=r"^cylinder1: the FMU instance is closed$"):
@@ -453,13 +453,13 @@ def test_closed_loop_files_are_identical_with_and_without_the_kernel(
     files = {}
     threads = os_threads()
     started: list[bool] = []
-    real = Master.start_advance
+    real = Algorithm.start_advance
 
-    def spy(self: Master, tick: int, spin: float = 0.0) -> bool:
+    def spy(self: Algorithm, tick: int, spin: float = 0.0) -> bool:
         started.append(real(self, tick, spin))
         return started[-1]
 
-    monkeypatch.setattr(Master, "start_advance", spy)
+    monkeypatch.setattr(Algorithm, "start_advance", spy)
     # the Python path, the kernel in turn with the controller, the kernel on its worker thread
     for kernel, worker in (("0", "0"), ("1", "0"), ("1", "1")):
         monkeypatch.setenv("SOFTHIL_KERNEL", kernel)
@@ -526,7 +526,7 @@ def test_stepping_ahead_on_the_worker_thread_is_bit_identical(
     declines the thread and nothing changes."""
     started = []
 
-    def ahead(master: Master, tick: int) -> None:
+    def ahead(master: Algorithm, tick: int) -> None:
         # after the SYNC's work (publish, set_input): the next period on the worker thread;
         # the next SYNC's advance_to waits for it (none after the last SYNC, as in the plant)
         if tick == 40 * SYNC_TICKS:
@@ -631,10 +631,10 @@ def test_stopping_the_worker_during_a_job_waits_for_it() -> None:
 import time
 from hil.fmu.build import build_fmu
 from hil.fmu.slave import FmuSlave
-from hil.master import FmuParticipant, Master
+from hil.cosim import Algorithm, FmuParticipant
 
 slave = FmuSlave(build_fmu("DriveCylinder"), "cylinder1")
-master = Master([FmuParticipant(slave)], [], 1e-3, kernel=True)
+master = Algorithm([FmuParticipant(slave)], [], 1e-3, kernel=True)
 assert master.start_advance(2_000_000, 0.0)
 time.sleep(0.2)  # the worker has taken the job (a stop before that ends the thread at once)
 master._kernel.stop()  # as after an interrupt: no finish
@@ -693,7 +693,7 @@ def test_a_participant_with_outputs_due_inside_the_period_declines_the_worker(
     with FmuSlave(drive_cylinder_fmu, "cylinder2") as slave:
         probe = Probe()
         probe.decimation = 3
-        master = Master(
+        master = Algorithm(
             [FmuParticipant(slave), probe],
             [Connection("probe.x_ref", "cylinder2.x_ref"), Connection("cylinder2.x", "probe.x")],
             H,
@@ -711,7 +711,7 @@ def test_a_participant_with_outputs_due_inside_the_period_declines_the_worker(
 
 def test_the_worker_thread_stops_when_settled(drive_cylinder_fmu: BuiltFmu) -> None:
     with FmuSlave(drive_cylinder_fmu, "cylinder1") as slave:
-        master = Master([FmuParticipant(slave)], [], H, kernel=True)
+        master = Algorithm([FmuParticipant(slave)], [], H, kernel=True)
         before = os_threads()
         assert master.start_advance(10, 0.0)
         assert os_threads() == before + 1
@@ -722,7 +722,7 @@ def test_the_worker_thread_stops_when_settled(drive_cylinder_fmu: BuiltFmu) -> N
         master.settle()  # waits for the job, then stops the thread
         assert master.tick == 20
         assert os_threads() == before
-        assert not Master([FmuParticipant(slave)], [], H, kernel=False).start_advance(30)
+        assert not Algorithm([FmuParticipant(slave)], [], H, kernel=False).start_advance(30)
 
 
 @pytest.mark.parametrize("spin, gap", [(0.0, 0.0), (0.002, 0.0), (0.002, 0.01)])
@@ -736,7 +736,7 @@ def test_the_worker_takes_jobs_whether_it_polls_or_sleeps(
     import time
 
     with FmuSlave(drive_cylinder_fmu, "cylinder1") as slave:
-        master = Master([FmuParticipant(slave)], [], H, kernel=True)
+        master = Algorithm([FmuParticipant(slave)], [], H, kernel=True)
         for k in range(1, 16):
             assert master.start_advance(10 * k, spin)
             time.sleep(gap)
@@ -744,7 +744,7 @@ def test_the_worker_takes_jobs_whether_it_polls_or_sleeps(
         threaded = dict(master.values)
         master.settle()
     with FmuSlave(drive_cylinder_fmu, "cylinder1") as slave:
-        master = Master([FmuParticipant(slave)], [], H, kernel=False)
+        master = Algorithm([FmuParticipant(slave)], [], H, kernel=False)
         master.advance_to(150)
         assert dict(master.values) == threaded
 
@@ -766,7 +766,7 @@ def test_closing_an_instance_the_worker_steps_waits_for_it(drive_cylinder_fmu: B
     """A run that fails between starting the worker and waiting for it closes its FMUs while
     the worker may be stepping them: closing waits for the job and stops the thread."""
     slave = FmuSlave(drive_cylinder_fmu, "cylinder1")
-    master = Master([FmuParticipant(slave)], [], H, kernel=True)
+    master = Algorithm([FmuParticipant(slave)], [], H, kernel=True)
     before = os_threads()
     assert master.start_advance(5000, 0.0)
     assert os_threads() == before + 1
@@ -782,20 +782,20 @@ def test_unset_the_switch_times_the_first_periods_and_uses_the_thread_where_it_p
     """SOFTHIL_KERNEL_THREAD unset: the first OVERLAP_PROBES periods are stepped in turn and
     timed; a rig whose median period costs at least the threshold goes on on the thread (every
     later period started there), one that costs less stays in turn. Files as in turn."""
-    from hil import plant as plant_module
+    from hil.cosim import execution
 
-    assert plant_module.OVERLAP_PROBES == 12
+    assert execution.OVERLAP_PROBES == 12
     monkeypatch.delenv("SOFTHIL_KERNEL_THREAD", raising=False)
     monkeypatch.setattr("hil.run.OVERLAP_MIN_COST", min_cost)
     monkeypatch.setattr("hil.run.two_cores", lambda: True)
     calls = []
-    real = Master.start_advance
+    real = Algorithm.start_advance
 
-    def spy(self: Master, tick: int, spin: float = 0.0) -> bool:
+    def spy(self: Algorithm, tick: int, spin: float = 0.0) -> bool:
         calls.append(tick)
         return real(self, tick, spin)
 
-    monkeypatch.setattr(Master, "start_advance", spy)
+    monkeypatch.setattr(Algorithm, "start_advance", spy)
     scenario = load_scenario()
     scenario = replace(scenario, duration=1.0, robot=replace(scenario.robot, segments=2), seed=3)
     run_scenario(scenario, RunOptions(out=tmp_path / "auto", inprocess=True, progress=False))
@@ -823,7 +823,7 @@ def test_kernel_seconds_count_the_kernels_stepping_only(drive_cylinder_fmu: Buil
     with FmuSlave(drive_cylinder_fmu, "cylinder2") as slave:
         slow = Slow()
         slow.decimation = 5
-        master = Master(
+        master = Algorithm(
             [FmuParticipant(slave), slow], [Connection("cylinder2.x", "sampler.x")], H, kernel=True
         )
         started = perf_counter()
@@ -832,7 +832,7 @@ def test_kernel_seconds_count_the_kernels_stepping_only(drive_cylinder_fmu: Buil
         assert len(slow.received) == 4
         assert 0.0 < master.kernel_seconds < 0.005 < wall - master.kernel_seconds
     with FmuSlave(drive_cylinder_fmu, "cylinder3") as slave:
-        python = Master([FmuParticipant(slave)], [], H, kernel=False)
+        python = Algorithm([FmuParticipant(slave)], [], H, kernel=False)
         python.advance_to(25)
         assert python.kernel_seconds == 0.0
 
@@ -853,7 +853,7 @@ def test_the_run_chooses_the_thread_by_the_kernels_stepping_time(
             return self.now
 
     monkeypatch.delenv("SOFTHIL_KERNEL_THREAD", raising=False)
-    monkeypatch.setattr("hil.master.time", Clock())
+    monkeypatch.setattr("hil.cosim.algorithm.time", Clock())
     monkeypatch.setattr("hil.run.OVERLAP_MIN_COST", min_cost)
     monkeypatch.setattr("hil.run.two_cores", lambda: True)
     scenario = replace(load_scenario(), duration=0.3, seed=3)
@@ -871,7 +871,7 @@ def test_the_worker_keeps_each_instances_time_as_stepping_in_turn(
     times = []
     for ahead, kernel in ((True, True), (False, True), (False, False)):
         with FmuSlave(drive_cylinder_fmu, "a") as a, FmuSlave(drive_cylinder_fmu, "b") as b:
-            master = Master(
+            master = Algorithm(
                 [FmuParticipant(a), FmuParticipant(b, decimation)], [], H, kernel=kernel
             )
             for tick in (7, 10):

@@ -2,7 +2,7 @@
 
 The DriveCylinder and FeaSegment FMUs, coupled the same way (piston position to the segment,
 chamber pressures back to the cylinder), are stepped at 1 ms by libcosim's fixed-step algorithm
-and by `hil.master.Master`. Both are Jacobi-type fixed-step masters with integer time, so the
+and by `hil.cosim.Algorithm`. Both are Jacobi-type fixed-step masters with integer time, so the
 trajectories must agree to rounding. (This test found that the FMUs did not compute their outputs
 in initialisation mode, where libcosim propagates start values through the connections.)
 libcosim is run in a subprocess pinned to one core, as libcosimpy requires here.
@@ -16,9 +16,9 @@ import sys
 
 import numpy as np
 
+from hil.cosim import Algorithm, Connection, FmuParticipant
 from hil.fmu.build import build_fmu
 from hil.fmu.slave import FmuSlave
-from hil.master import Connection, FmuParticipant, Master
 
 SAMPLES, EVERY = 30, 50  # 30 samples, one every 50 ms, over 1.5 s
 
@@ -82,7 +82,7 @@ def test_libcosim_and_our_master_agree_on_the_coupled_fmus() -> None:
         FmuParticipant(FmuSlave(cylinder, "cylinder1", {"x_ref": 0.040})),
         FmuParticipant(FmuSlave(segment, "segment1")),
     ]
-    master = Master(
+    master = Algorithm(
         participants,
         [
             Connection("cylinder1.x", "segment1.x_piston"),

@@ -1,4 +1,5 @@
-"""Tests for hil.master: Jacobi transfer, connections, decimation, integer time, observers, errors.
+"""Tests for hil.cosim.algorithm: Jacobi transfer, connections, decimation, integer time, observers,
+errors.
 
 The master is driven by small mock participants (as in libcosim's tests), never by FMUs, so every
 expected value below follows from the stepping rules alone.
@@ -12,8 +13,8 @@ from collections.abc import Mapping
 
 import pytest
 
+from hil.cosim import Algorithm, Connection, Participant
 from hil.errors import HilError
-from hil.master import Connection, Master, Participant
 
 H = 1e-3  # macro step [s]
 
@@ -83,7 +84,7 @@ class Recorder:
         self.calls.append((tick, dict(values)))
 
 
-def chain(order: tuple[str, ...]) -> tuple[Master, Recorder]:
+def chain(order: tuple[str, ...]) -> tuple[Algorithm, Recorder]:
     """src -> a -> b, with the participants and connections listed in the given order."""
     parts: dict[str, Participant] = {
         "src": Counter("src"),
@@ -93,7 +94,7 @@ def chain(order: tuple[str, ...]) -> tuple[Master, Recorder]:
     links = [Connection("src.y", "a.u"), Connection("a.y", "b.u")]
     if order[0] != "src":
         links.reverse()
-    master = Master([parts[name] for name in order], links, H)
+    master = Algorithm([parts[name] for name in order], links, H)
     recorder = Recorder()
     master.add_observer(recorder)
     return master, recorder
@@ -123,7 +124,7 @@ def test_jacobi_result_independent_of_participant_order() -> None:
 
 def test_gain_and_offset_are_applied_to_the_source_output() -> None:
     src, relay = Counter("src"), Relay("r")
-    master = Master([src, relay], [Connection("src.y", "r.u", gain=-2.5, offset=0.75)], H)
+    master = Algorithm([src, relay], [Connection("src.y", "r.u", gain=-2.5, offset=0.75)], H)
     master.advance_to(4)
     # tick k reads src.y = k (the value at the start of the tick)
     assert [values["u"] for values in relay.received] == [-2.5 * k + 0.75 for k in range(4)]
@@ -137,7 +138,7 @@ def test_default_connection_is_identity() -> None:
 
 def test_decimated_participant_steps_only_at_multiples_of_its_decimation() -> None:
     src, slow = Counter("src"), Relay("slow", decimation=5)
-    master = Master([src, slow], [Connection("src.y", "slow.u")], H)
+    master = Algorithm([src, slow], [Connection("src.y", "slow.u")], H)
     master.advance_to(23)
     assert [time for time, _ in slow.steps] == [k * H for k in (0, 5, 10, 15, 20)]
     assert {step for _, step in slow.steps} == {5 * H}
@@ -151,7 +152,7 @@ def test_decimated_participant_steps_only_at_multiples_of_its_decimation() -> No
 def test_time_is_integer_tick_times_step_never_a_float_sum() -> None:
     n = 100_000
     src, slow = Counter("src"), Relay("slow", decimation=5)
-    master = Master([src, slow], [Connection("src.y", "slow.u")], H)
+    master = Algorithm([src, slow], [Connection("src.y", "slow.u")], H)
     master.advance_to(n)
     assert master.tick == n
     assert master.time == n * H
@@ -165,7 +166,7 @@ def test_time_is_integer_tick_times_step_never_a_float_sum() -> None:
 
 def test_advance_to_a_past_tick_does_nothing() -> None:
     src = Counter("src")
-    master = Master([src], [], H)
+    master = Algorithm([src], [], H)
     master.advance_to(5)
     master.advance_to(3)
     assert master.tick == 5
@@ -174,7 +175,7 @@ def test_advance_to_a_past_tick_does_nothing() -> None:
 
 def test_observer_called_at_registration_and_once_per_tick() -> None:
     src = Counter("src")
-    master = Master([src], [], H)
+    master = Algorithm([src], [], H)
     master.advance_to(3)
     recorder = Recorder()
     master.add_observer(recorder)
@@ -184,7 +185,7 @@ def test_observer_called_at_registration_and_once_per_tick() -> None:
 
 
 def test_initial_values_are_published_before_the_first_tick() -> None:
-    master = Master([Counter("src"), Relay("r", initial=4.5)], [], H)
+    master = Algorithm([Counter("src"), Relay("r", initial=4.5)], [], H)
     assert master.values == {"src.y": 0.0, "r.y": 4.5}
     assert master.tick == 0
     assert master.time == 0.0
@@ -192,7 +193,7 @@ def test_initial_values_are_published_before_the_first_tick() -> None:
 
 def test_external_input_persists_until_changed() -> None:
     relay = Relay("r")
-    master = Master([relay], [], H)
+    master = Algorithm([relay], [], H)
     master.set_input("r", "u", 3.0)
     master.advance_to(4)
     master.set_input("r", "u", -7.0)
@@ -203,14 +204,14 @@ def test_external_input_persists_until_changed() -> None:
 
 def test_external_input_and_connection_reach_the_same_participant() -> None:
     src, relay = Counter("src"), Relay("r")
-    master = Master([src, relay], [Connection("src.y", "r.u")], H)
+    master = Algorithm([src, relay], [Connection("src.y", "r.u")], H)
     master.set_input("r", "w", 9.0)
     master.advance_to(3)
     assert relay.received == [{"w": 9.0, "u": float(k)} for k in range(3)]
 
 
 def test_participant_without_inputs_is_not_sent_an_empty_mapping() -> None:
-    master = Master([Counter("src")], [], H)
+    master = Algorithm([Counter("src")], [], H)
     master.advance_to(3)  # Counter.set_inputs raises if called
     assert master.values["src.y"] == 3.0
 
@@ -230,38 +231,38 @@ def test_connection_to_unknown_participant_or_variable(
     connection: Connection, message: str
 ) -> None:
     with pytest.raises(HilError) as info:
-        Master([Counter("src"), Relay("r")], [connection], H)
+        Algorithm([Counter("src"), Relay("r")], [connection], H)
     assert str(info.value) == message
 
 
 def test_input_driven_by_two_connections() -> None:
     links = [Connection("src.y", "r.u"), Connection("other.y", "r.u")]
     with pytest.raises(HilError, match=r"connection to r\.u: the input is already driven"):
-        Master([Counter("src"), Counter("other"), Relay("r")], links, H)
+        Algorithm([Counter("src"), Counter("other"), Relay("r")], links, H)
 
 
 def test_set_input_on_a_driven_input() -> None:
-    master = Master([Counter("src"), Relay("r")], [Connection("src.y", "r.u")], H)
+    master = Algorithm([Counter("src"), Relay("r")], [Connection("src.y", "r.u")], H)
     with pytest.raises(HilError, match=r"^r\.u is driven by a connection"):
         master.set_input("r", "u", 1.0)
     master.set_input("r", "w", 1.0)  # the undriven input of the same participant is fine
 
 
 def test_set_input_on_an_unknown_variable() -> None:
-    master = Master([Relay("r")], [], H)
+    master = Algorithm([Relay("r")], [], H)
     with pytest.raises(HilError, match=r"^r has no input 'y'$"):
         master.set_input("r", "y", 1.0)
 
 
 def test_set_input_on_an_unknown_participant() -> None:
-    master = Master([Relay("r")], [], H)
+    master = Algorithm([Relay("r")], [], H)
     with pytest.raises(HilError, match="ghost"):
         master.set_input("ghost", "u", 1.0)
 
 
 def test_duplicate_participant_names() -> None:
     with pytest.raises(HilError, match="participant names must be unique"):
-        Master([Relay("r"), Counter("r")], [], H)
+        Algorithm([Relay("r"), Counter("r")], [], H)
 
 
 def test_observer_cannot_change_the_values_participants_read() -> None:
@@ -271,7 +272,7 @@ def test_observer_cannot_change_the_values_participants_read() -> None:
                 values["src.y"] = 99.0  # type: ignore[index]
 
     src, relay = Counter("src"), Relay("r")
-    master = Master([src, relay], [Connection("src.y", "r.u")], H)
+    master = Algorithm([src, relay], [Connection("src.y", "r.u")], H)
     master.add_observer(Vandal())
     master.advance_to(3)
     assert [values["u"] for values in relay.received] == [0.0, 1.0, 2.0]
@@ -303,8 +304,8 @@ def test_initial_outputs_follow_connected_inputs_through_a_chain() -> None:
     """Two segments in initialisation mode, the first fed by the second's pressure, the second
     by a constant piston position: listed against the chain's order, the start values need two
     passes; afterwards each initial pressure is that of its connected piston position."""
+    from hil.cosim import FmuParticipant
     from hil.fmu.slave import FmuSlave
-    from hil.master import FmuParticipant
 
     first = FmuSlave("FeaSegment", "first", exit_initialization=False)
     second = FmuSlave("FeaSegment", "second", exit_initialization=False)
@@ -314,7 +315,7 @@ def test_initial_outputs_follow_connected_inputs_through_a_chain() -> None:
             Connection("source.y", "second.x_piston"),
         ]
         parts = [FmuParticipant(first), FmuParticipant(second), Constant("source", 0.04)]
-        master = Master(parts, links, 1e-3)
+        master = Algorithm(parts, links, 1e-3)
         assert not first.initializing and not second.initializing
         for name in ("first", "second"):
             x = master.inputs_of(name)["x_piston"]

@@ -19,7 +19,14 @@ import pytest
 pytest_plugins = ["pytester"]
 
 ROOT = Path(__file__).resolve().parents[1]
-PROJECT = ("pyproject.toml", "README.md", "fmus", "hil", "controllers", "rigbus")  # what a build reads
+PROJECT = (
+    "pyproject.toml",
+    "README.md",
+    "fmus",
+    "hil",
+    "controllers",
+    "rigbus",
+)  # what a build reads
 
 
 def copy_project(target: Path) -> Path:
@@ -67,7 +74,7 @@ def test_non_editable_install_ships_fmu_sources_and_builds(tmp_path: Path) -> No
         "fmus/DriveCylinder/model.toml",
         "fmus/FeaSegment/model.c",
         "hil/cli/fmu.py",
-        "hil/kernel/kernel.c",
+        "hil/cosim/kernel/kernel.c",
         "rigbus/_ccodec.c",
         "controllers/_cukf.c",
         "hil/_cformat.c",

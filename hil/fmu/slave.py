@@ -98,7 +98,7 @@ class FmuSlave:
         self._variables = {v.name: v for v in self.description.modelVariables}
         self.time = start_time
         self._alive = False
-        # the stepping kernel whose worker thread may step this instance (hil.kernel.Kernel):
+        # the stepping kernel whose worker thread may step this instance (hil.cosim.kernel.Kernel):
         # closing waits for it
         self.stepped_by: Any = None
         try:
@@ -254,7 +254,7 @@ class FmuSlave:
 
     def fmi_handles(self) -> tuple[ctypes.CDLL, int]:
         """The FMU's loaded shared library and its instance pointer, for the stepping kernel
-        (hil/kernel), which calls the FMI functions directly from C."""
+        (hil/cosim/kernel), which calls the FMI functions directly from C."""
         component = self._fmu.component
         return self._fmu.dll, int(getattr(component, "value", component) or 0)
 

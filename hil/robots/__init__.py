@@ -23,9 +23,9 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
+from hil.cosim import Connection, FmuParticipant, Participant
 from hil.devices import DeviceNode
 from hil.errors import HilError
-from hil.master import Connection, FmuParticipant, Participant
 
 if TYPE_CHECKING:
     from hil.scenario import Scenario

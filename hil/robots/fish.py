@@ -30,8 +30,8 @@ import numpy as np
 
 from controllers.fish import CALIBRATION, TASKS, FishConfig
 from controllers.node import CameraTiming
+from hil.cosim import Connection, FmuParticipant, Participant
 from hil.devices import HEARTBEAT_PERIOD, CameraNode
-from hil.master import Connection, FmuParticipant, Participant
 from hil.robots import PlotSpec, Rig, SignalSpec, fmu_ref, scenario_camera
 from hil.robots.fish_devices import CanisterNode, ValveNode
 from hil.vision import exposure_delay_bound

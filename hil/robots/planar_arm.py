@@ -23,8 +23,8 @@ from controllers.estimation import BendModel, CameraNoise
 from controllers.loop_design import effective_delay, estimator_delay, outer_loop_gains
 from controllers.node import CameraTiming, ControllerConfig, GripperConfig
 from controllers.tasks import TASK_KINDS, TaskPlan, draw_paths, draw_targets
+from hil.cosim import Connection, FmuParticipant, Participant
 from hil.devices import HEARTBEAT_PERIOD, CameraNode, DriveNode
-from hil.master import Connection, FmuParticipant, Participant
 from hil.robots import PlotSpec, Rig, SignalSpec, environment, fmu_ref, gripper, scenario_camera
 from hil.vision import exposure_delay_bound
 from rigbus.protocol import Protocol
@@ -666,7 +666,7 @@ class PlanarArm:
                 if pistons[n - 1] != cylinders[n - 1]["x_start"]:
                     cylinder_values["x_start"] = pistons[n - 1]  # a segment that starts bent
                 # every FMU stays in initialisation mode until the master has passed the
-                # connected start values along (Master._initialise)
+                # connected start values along (Algorithm._initialise)
                 cylinder = FmuSlave(
                     fmu_ref(scenario.source, r.cylinder_fmu),
                     f"cylinder{n}",

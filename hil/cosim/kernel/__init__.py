@@ -4,8 +4,9 @@
 a digest of the source, the flags and this file) and `Kernel` binds the FMU instances fmpy loaded
 and initialised: their FMI function pointers and component handles, their inputs (connection with
 gain and offset, external value, or none) and outputs (a slot in one array of doubles that mirrors
-`Master.values`). `Kernel.advance(k_begin, k_end)` steps those FMUs exactly as `Master._step_once`
-would, tick by tick; the master keeps everything else (Python participants, observers, events).
+`Algorithm.values`). `Kernel.advance(k_begin, k_end)` steps those FMUs exactly as
+`Algorithm._step_once` would, tick by tick; the algorithm keeps everything else (Python
+participants, observers, events).
 
 `Kernel.start` and `Kernel.finish` do the same on a worker thread of the kernel's own (C, no
 Python), so that the caller computes while the FMUs step; `sample_ticks` copy the values at the

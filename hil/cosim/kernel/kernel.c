@@ -1,6 +1,6 @@
 /* The stepping kernel: Jacobi macro steps of FMU instances between two SYNCs, in C.
  *
- * hil/master.py is the reference; this file does exactly what Master._step_once does for FMU
+ * hil/cosim/algorithm.py is the reference; this file does exactly what Algorithm._step_once does for FMU
  * participants, through the FMI 2.0 function pointers of the libraries fmpy loaded:
  *   for each tick k in [k_begin, k_end):
  *     every FMU due at k (k % decimation == 0) gets each input that has a source
@@ -210,7 +210,7 @@ EXPORT int softhil_advance(const Plan *plan, double *values, long long k_begin, 
  * sees the sleeper or the sleeper sees the change before it sleeps. */
 enum { IDLE = 0, PENDING = 1, DONE = 2, QUIT = 3 };
 
-/* A job, in memory the caller owns (hil.kernel._Job mirrors it): written before each
+/* A job, in memory the caller owns (hil.cosim.kernel._Job mirrors it): written before each
  * softhil_worker_go, read by the thread once it sees PENDING. Passing it so, not as ten
  * arguments of a call, spares the caller ctypes' conversion of each (3 us a job, measured). */
 typedef struct {

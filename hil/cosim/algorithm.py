@@ -1,27 +1,28 @@
-"""The co-simulation master: participants, connections, integer time and observers.
+"""The stepping algorithm: fixed-step Jacobi co-simulation with integer time.
 
-Split as in libcosim: a `Participant` is one simulator (an FMU through fmpy, or anything with the
-same five methods); `Master` is the algorithm (fixed-step Jacobi stepping with connection
-transfer) and the execution (integer tick k, t = k h: time is never accumulated in floats);
-observers see read-only values after every tick. Participant `p` with decimation d steps only at
-ticks that are multiples of d, with step d h, so slow subsystems cost less.
+As libcosim splits a master: participants (`hil.cosim.participant`), this algorithm (stepping
+and connection transfer), the execution (`hil.cosim.execution`: when to step, the named
+step-ahead policy) and observers. Participant `p` with decimation d steps only at ticks that
+are multiples of d, with step d h, so slow subsystems cost less. Time is the integer tick k,
+t = k h, never accumulated in floats.
 
-Between two events nothing crosses the bus, so the FMU participants are stepped by a small C kernel
-(hil/kernel) when it can be used: it makes the same FMI calls with the same arguments as
-`_step_once`, so results are bit-identical. Python participants are still stepped here, at their
-ticks; with observers registered every tick runs in Python. `kernel=False` or SOFTHIL_KERNEL=0
-keeps everything in Python (the reference).
+One algorithm, two implementations of its inner loop. The fast path steps the FMU participants
+in C (`hil.cosim.kernel`) between the ticks where a Python participant or an observer is due: it
+makes the same FMI calls with the same arguments as the Python path (`_step_once`), so results
+are bit-identical. The Python path is kept as the test oracle (`kernel=False`, SOFTHIL_KERNEL=0)
+and for FMUs whose variable types the kernel does not carry. Observers never switch the kernel
+off: it stops at their ticks, or samples its values there when it steps on its worker thread.
 
 `start_advance` begins the same stepping on the kernel's worker thread and returns at once, so
-that the caller (the plant in one thread with the controller) computes while the FMUs step; the
-next call that needs the state (`advance_to`, `publish`, `inputs_of`, `set_input`) waits for it.
-The Python participants due in the interval are stepped afterwards, from the values the thread
-sampled at the start of their ticks, where that changes nothing the FMUs read: they have no
-outputs (samplers, such as the camera) or declare that their step never changes them
-(`outputs_hold`: device nodes, whose outputs change at SYNC, published). Any other participant
-due at the interval's first tick has that tick stepped in turn first; one due inside it declines
-the thread. Either way the FMI calls, the participants' steps and every value are those of
-`advance_to`, an FMU failing on the thread included.
+that the caller computes while the FMUs step; the next call that needs the state (`advance_to`,
+`publish`, `inputs_of`, `set_input`) waits for it. The Python participants due in the interval
+are stepped afterwards, from the values the thread sampled at the start of their ticks, where
+that changes nothing the FMUs read: they have no outputs (samplers, such as the camera) or
+declare that their step never changes them (`outputs_hold`: device nodes, whose outputs change
+at SYNC, published); observers due inside the interval see the sampled values at their ticks.
+Any other participant due at the interval's first tick has that tick stepped in turn first;
+one due inside it declines the thread. Either way the FMI calls, the participants' steps, what
+observers see and every value are those of `advance_to`, an FMU failing on the thread included.
 
 Invariant: within a tick every participant reads the inputs computed from the outputs at the
 start of the tick (Jacobi), so the result does not depend on the order of participants.
@@ -33,105 +34,28 @@ import contextlib
 import operator
 import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
 from types import MappingProxyType
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 
-from hil import kernel as kernel_module
+from hil.cosim import kernel as kernel_module
+from hil.cosim.participant import (
+    Connection,
+    FmuParticipant,
+    Observer,
+    Participant,
+    deferrable,
+    observer_decimation,
+)
 from hil.environment import kernel_enabled
 from hil.errors import BuildError, FmuError, HilError
-from hil.fmu.slave import FmuSlave
+
+# a sampled interval of `start_advance`: (tick, the participants due there, observers watch it)
+_Sample = tuple[int, list[Participant], bool]
 
 
-class Participant(Protocol):
-    """One simulator in the co-simulation."""
-
-    name: str
-    decimation: int
-
-    def input_names(self) -> list[str]: ...
-    def output_names(self) -> list[str]: ...
-    def set_inputs(self, values: Mapping[str, float]) -> None: ...
-    def step(self, time: float, step: float) -> None: ...
-    def get_outputs(self) -> dict[str, float]: ...
-
-
-class Observer(Protocol):
-    """Sees every value after each tick; must not change anything."""
-
-    def observe(self, tick: int, values: Mapping[str, float]) -> None: ...
-
-
-@dataclass(frozen=True)
-class Connection:
-    """`target` input := gain * `source` output + offset (names are "participant.variable")."""
-
-    source: str
-    target: str
-    gain: float = 1.0
-    offset: float = 0.0
-
-
-class FmuParticipant:
-    """An FMU instance as a participant; Real inputs and outputs go by value reference."""
-
-    def __init__(self, slave: FmuSlave, decimation: int = 1) -> None:
-        self.slave = slave
-        self.name = slave.instance_name
-        self.decimation = decimation
-        self._inputs = slave.names("input")
-        self._outputs = slave.names("output")
-        self._real_outputs = [n for n in self._outputs if slave.variable_type(n) == "Real"]
-        self._real_output_vrs = [slave.value_reference(n) for n in self._real_outputs]
-        self._other_outputs = [n for n in self._outputs if slave.variable_type(n) != "Real"]
-        # value reference of each Real input, None for the other types (set by name)
-        self._input_vr = {
-            n: slave.value_reference(n) if slave.variable_type(n) == "Real" else None
-            for n in self._inputs
-        }
-        self._last_inputs: dict[str, float] = {}
-
-    def input_names(self) -> list[str]:
-        return list(self._inputs)
-
-    def output_names(self) -> list[str]:
-        return list(self._outputs)
-
-    def set_inputs(self, values: Mapping[str, float]) -> None:
-        last = self._last_inputs
-        vrs: list[int] = []
-        reals: list[float] = []
-        for name, value in values.items():
-            if last.get(name) == value:
-                continue
-            last[name] = value
-            vr = self._input_vr[name]
-            if vr is None:
-                self.slave.set(name, value)
-            else:
-                vrs.append(vr)
-                reals.append(value)
-        if vrs:
-            self.slave.set_reals(vrs, reals)
-
-    def step(self, time: float, step: float) -> None:
-        self.slave.do_step(time, step)
-
-    def get_outputs(self) -> dict[str, float]:
-        values = dict(
-            zip(self._real_outputs, self.slave.get_reals(self._real_output_vrs), strict=True)
-        )
-        for name in self._other_outputs:
-            values[name] = float(self.slave.get(name))
-        return values
-
-    def close(self) -> None:
-        self.slave.close()
-
-
-class Master:
+class Algorithm:
     """Fixed-step co-simulation of participants joined by connections.
 
     Parameters
@@ -189,7 +113,7 @@ class Master:
         # participants whose step changes no output (none, or `outputs_hold`): a step publishes
         # nothing new, so it is not published after one, and it may be stepped after the FMUs'
         # ticks (`start_advance`)
-        self._held = {p.name for p in participants if _deferrable(p)}
+        self._held = {p.name for p in participants if deferrable(p)}
         # every value by "participant.variable"; after the kernel stepped, its FMUs' values are
         # in the kernel's array and copied here only when asked for (`values`, `_refresh`): the
         # plant's loop reads what it needs from the array (`reader`, `inputs_of`)
@@ -201,8 +125,8 @@ class Master:
         self._view = MappingProxyType(self._values)  # what observers get: read-only
         self._kernel: kernel_module.Kernel | None = None
         self._kernel_synced = False
-        # a started `start_advance`: its last tick and the samplers due inside it, by tick
-        self._ahead: tuple[int, list[tuple[int, list[Participant]]]] | None = None
+        # a started `start_advance`: its first and last tick and what is due inside it, by tick
+        self._ahead: tuple[int, int, list[_Sample]] | None = None
         self._no_thread = False  # the kernel could not start its worker thread
         # [s] of wall time in the kernel's stepping on this thread: what its worker could take
         # over (the plant times its first periods by it)
@@ -443,7 +367,7 @@ class Master:
     def advance_to(self, tick: int) -> None:
         """Step all participants until simulation tick `tick`."""
         self._join()
-        if self._kernel is not None and not self.observers:
+        if self._kernel is not None:
             self._advance_in_kernel(tick)
             return
         while self.tick < tick:
@@ -452,14 +376,22 @@ class Master:
     def _advance_in_kernel(self, tick: int) -> None:
         """The FMUs in C up to the next tick where a Python participant is due; at that tick
         the Python participants read their inputs from the values at its start (Jacobi), the
-        kernel steps the FMUs one tick, then the Python participants step and publish."""
+        kernel steps the FMUs one tick, then the Python participants step and publish. The
+        kernel also stops where an observer is due, which then sees the values there."""
         self._take_over()
         slow = self._slow
         while self.tick < tick:
             k = self.tick
-            next_due = min([tick, *(-(-k // p.decimation) * p.decimation for p in slow)])
+            next_due = min(
+                [
+                    tick,
+                    *(-(-k // p.decimation) * p.decimation for p in slow),
+                    *((k // d + 1) * d for d in map(observer_decimation, self.observers)),
+                ]
+            )
             if next_due > k:
                 self._kernel_advance(k, next_due)
+                self._observe()
                 continue
             due = [p for p in slow if k % p.decimation == 0]
             inputs = [self.inputs_of(p.name) for p in due]
@@ -467,6 +399,27 @@ class Master:
             self.tick = k
             self._step_participants(k, due, inputs)
             self.tick = k + 1
+            self._observe()
+
+    def _observe(self) -> None:
+        """The observers due at the current tick see every value."""
+        t = self.tick
+        due = [o for o in self.observers if t % observer_decimation(o) == 0]
+        if due:
+            self._refresh()
+            for observer in due:
+                observer.observe(t, self._view)
+
+    def _observe_row(self, tick: int, row: Sequence[float]) -> None:
+        """The observers due at `tick` see the values the kernel's worker sampled there (the
+        Python participants' outputs held in the interval, as published)."""
+        due = [o for o in self.observers if tick % observer_decimation(o) == 0]
+        if due:
+            values = dict(self._values)
+            values.update(zip(self._fast_keys, self._fresh(row), strict=True))
+            view = MappingProxyType(values)
+            for observer in due:
+                observer.observe(tick, view)
 
     def _take_over(self) -> None:
         """The kernel takes over the Python path's state, if the Python path stepped last."""
@@ -480,13 +433,13 @@ class Master:
 
     def start_advance(self, tick: int, spin: float = 0.0) -> bool:
         """Begin stepping to `tick` on the kernel's worker thread and return: True if it began
-        (or is done), False if the interval needs Python between its ticks (no kernel, an
-        observer, a participant whose step may change its outputs due after the first tick, no
-        thread to be had), when nothing was done. `spin` [s]: how long the waiting caller polls
-        before it sleeps."""
+        (or is done), False if the interval needs Python between its ticks (no kernel, a
+        participant whose step may change its outputs due after the first tick, no thread to
+        be had), when nothing was done. `spin` [s]: how long the waiting caller polls before it
+        sleeps."""
         self._join()
         k = self.tick
-        if self._kernel is None or self.observers or tick <= k or self._no_thread:
+        if self._kernel is None or tick <= k or self._no_thread:
             return False
         due: dict[int, list[Participant]] = {}
         for p in self._slow:
@@ -503,17 +456,24 @@ class Master:
             self._kernel_advance(k, k + 1)
             self._step_participants(k, first, inputs)
             self.tick = begin = k + 1
+            self._observe()
             del due[k]
             if begin >= tick:
                 return True
-        samplers = sorted(due.items())  # stepped after the worker, from the values sampled
+        watched = {
+            e
+            for d in map(observer_decimation, self.observers)
+            for e in range(begin // d * d + d, tick, d)
+        }
+        # stepped or observed after the worker, from the values sampled at their ticks
+        samples = [(e, due.get(e, []), e in watched) for e in sorted(watched.union(due))]
         try:
-            self._kernel.start(begin, tick, [e for e, _ in samplers], spin)
+            self._kernel.start(begin, tick, [e for e, _, _ in samples], spin)
         except HilError:  # no thread to be had: in turn, now and from here on
             self._no_thread = True
             self.advance_to(tick)
             return True
-        self._ahead = (tick, samplers)
+        self._ahead = (begin, tick, samples)
         return True
 
     def _join(self) -> None:
@@ -522,21 +482,26 @@ class Master:
             self._finish_ahead()
 
     def _finish_ahead(self) -> None:
-        """Wait for `start_advance`'s job, then step the samplers due inside it from the values
-        sampled at their ticks (Jacobi: the start of the tick), up to a failing tick; raise the
-        FmuError `advance_to` would have raised."""
+        """Wait for `start_advance`'s job, then, tick by tick, show the observers due inside it
+        and step the samplers due there, from the values sampled at the tick (Jacobi: its
+        start), up to a failing tick; the observers due at the last tick reached see it; raise
+        the FmuError `advance_to` would have raised."""
         assert self._ahead is not None and self._kernel is not None
-        tick, samplers = self._ahead
+        begin, tick, samples = self._ahead
         self._ahead = None
         kernel = self._kernel
-        rows, error = kernel.finish(len(samplers))
+        rows, error = kernel.finish(len(samples))
         self._kernel_stepped()
         done = kernel.ticks_done
-        for (e, due), row in zip(samplers, rows, strict=True):
+        for (e, due, watched), row in zip(samples, rows, strict=True):
             if e >= done:
                 break
+            if watched:
+                self._observe_row(e, row)
             self._step_participants(e, due, [self._sampled_inputs(p.name, row) for p in due])
         self.tick = done
+        if done > begin:
+            self._observe()
         if error is not None:
             raise error
 
@@ -585,15 +550,7 @@ class Master:
         inputs = [self.inputs_of(p.name) for p in due]
         self._step_participants(k, due, inputs)
         self.tick = k + 1
-        for observer in self.observers:
-            observer.observe(self.tick, self._view)
-
-
-def _deferrable(participant: Participant) -> bool:
-    """Whether stepping `participant` later than the FMUs' ticks changes nothing they read: it
-    has no outputs (a sampler, such as the camera), or its step never changes them (they
-    change only by events, published: `outputs_hold`, as a device node's between SYNCs)."""
-    return not participant.output_names() or getattr(participant, "outputs_hold", False)
+        self._observe()
 
 
 def _getter(keys: Sequence[Any]) -> Callable[[Any], tuple[Any, ...]]:
