@@ -80,6 +80,9 @@ class ReplayResult:
     frames_compared: int
     divergences: list[Divergence] = field(default_factory=list)
     by_signal: dict[str, int] = field(default_factory=dict)
+    # per cycle, the frames the controller sent in answer to its SYNC, in the order sent: what
+    # was compared, for a check of the bytes (bits no signal covers) and of the order
+    sent: list[list[can.Message]] = field(default_factory=list, repr=False)
 
     @property
     def ok(self) -> bool:
@@ -317,7 +320,9 @@ def compare(
 ) -> ReplayResult:
     """Signal-by-signal comparison of what the controller sent with what was recorded."""
     tolerances = tolerances or {}
-    result = ReplayResult(cycles=len(cycles), frames_compared=0)
+    result = ReplayResult(
+        cycles=len(cycles), frames_compared=0, sent=[list(frames) for frames in sent]
+    )
 
     def note(d: Divergence) -> None:
         result.divergences.append(d)

@@ -10,7 +10,9 @@ byte for byte.
 Beside it, `PLANT_GOLDENS` hold the same kind of log for robots with other FMUs (the soft fish;
 the planar arm with gripper, table and objects in the Environment FMU), cut short: replayed the
 same way, they pin the plant's models to the bit, so that a change meant to keep the results
-(an FMU made faster) is checked to keep them.
+(an FMU made faster) is checked to keep them. Their controller side is replayed as the default
+log's is (hil.replay, tests/test_golden_log.py): the fish's and the gripper arm's own
+controllers, fed the plant's frames, must send the controller's frames of the log.
 
 The golden files change only on purpose, never in a test run:
 
