@@ -333,6 +333,48 @@ def test_every_reader_after_a_period_in_c_sees_the_python_masters_values(
     assert len({str(inputs) for inputs in python[0]}) > 12  # the values moved
 
 
+@pytest.mark.parametrize("decimation", [1, 3, 7])
+def test_observers_inside_a_period_on_the_worker_see_the_sampled_ticks(
+    drive_cylinder_fmu: BuiltFmu, fea_segment_fmu: BuiltFmu, decimation: int
+) -> None:
+    """An observer of every `decimation`-th tick while the FMUs step whole periods on the
+    kernel's worker thread: it sees, at exactly its ticks, the values the Python path shows at
+    those ticks (the worker samples them), and the periods still start on the thread."""
+
+    class Recorder:
+        def __init__(self) -> None:
+            self.decimation = decimation
+            self.calls: list[tuple[int, dict[str, float]]] = []
+
+        def observe(self, tick: int, values: Mapping[str, float]) -> None:
+            self.calls.append((tick, dict(values)))
+
+    recorders = {False: Recorder(), True: Recorder()}
+    started: list[bool] = []
+
+    def ahead(master: Algorithm, target: int) -> None:
+        if not master.observers:
+            master.add_observer(recorders[master.uses_kernel])
+        if master.uses_kernel:
+            started.append(master.start_advance(target, 0.0))
+        master.advance_to(target)
+
+    python, _, _ = run_syncs(
+        drive_cylinder_fmu, fea_segment_fmu, False, 12, ahead, firmware_decimation=SYNC_TICKS
+    )
+    kernel, _, _ = run_syncs(
+        drive_cylinder_fmu, fea_segment_fmu, True, 12, ahead, firmware_decimation=SYNC_TICKS
+    )
+    assert started == [True] * 12
+    assert kernel == python
+    got, want = recorders[True].calls, recorders[False].calls
+    # at the tick it was added (0), then every decimation-th tick up to the last SYNC's 120
+    assert [t for t, _ in want] == [0, *range(decimation, 121, decimation)]
+    assert [t for t, _ in got] == [t for t, _ in want]
+    assert got == want
+    assert len({row["segment1.kappa"] for _, row in want}) > 5  # the values moved
+
+
 def test_kernel_and_python_master_are_bit_identical_at_every_tick(
     drive_cylinder_fmu: BuiltFmu, fea_segment_fmu: BuiltFmu
 ) -> None:
@@ -350,7 +392,7 @@ def test_kernel_and_python_master_are_bit_identical_at_every_tick(
     assert kernel == python
 
 
-def test_switching_to_python_for_an_observer_and_back_keeps_identity(
+def test_observers_keep_the_kernel_and_see_what_the_python_path_shows(
     drive_cylinder_fmu: BuiltFmu, fea_segment_fmu: BuiltFmu
 ) -> None:
     class Recorder:
@@ -361,10 +403,9 @@ def test_switching_to_python_for_an_observer_and_back_keeps_identity(
             self.calls.append((tick, dict(values)))
 
     def observed(master: Algorithm, target: int) -> None:
-        # the periods ending at SYNC 2 and 33 run with an observer (every tick in Python), the
-        # others in C. The firmware's setpoint is 0.025 in both Python periods and 0.03 in the C
-        # period just before the second, so the kernel must hand back what it last sent, or the
-        # Python path would skip setting 0.025 again and the cylinder would keep 0.03.
+        # the periods ending at SYNC 2 and 33 run with an observer of every tick: the kernel
+        # stops at each tick for it (it is not switched off), and the observer sees at every
+        # tick what the Python path shows it.
         recorder = recorders[master.uses_kernel]
         if target in (20, 330):
             master.add_observer(recorder)
@@ -372,9 +413,18 @@ def test_switching_to_python_for_an_observer_and_back_keeps_identity(
         master.observers.clear()
 
     recorders = {False: Recorder(), True: Recorder()}
+    seconds: list[float] = []
+
+    def timed(master: Algorithm, target: int) -> None:
+        before = master.kernel_seconds
+        observed(master, target)
+        if master.uses_kernel and target in (20, 330):
+            seconds.append(master.kernel_seconds - before)
+
     python, _, _ = run_syncs(drive_cylinder_fmu, fea_segment_fmu, False, 40, observed)
-    kernel, _, used = run_syncs(drive_cylinder_fmu, fea_segment_fmu, True, 40, observed)
+    kernel, _, used = run_syncs(drive_cylinder_fmu, fea_segment_fmu, True, 40, timed)
     assert used
+    assert len(seconds) == 2 and all(s > 0.0 for s in seconds)  # observed periods stepped in C
     assert recorders[True].calls == recorders[False].calls
     expected = [*range(10, 21), *range(320, 331)]
     assert [tick for tick, _ in recorders[True].calls] == expected
