@@ -3,7 +3,7 @@
 Every figure is a ratio against a baseline measured in the same process and run: the pure-C loop
 (bench/pure_loop.c: the same FMU instances stepped with their coupling in one C call, no Python at
 all: the physical limit). For 1, 2, 4 and 6 planar-arm segments (DriveCylinder + FeaSegment each,
-coupled as in hil.robots.planar_arm: cylinder.x -> segment.x_piston, segment.p_a/p_b ->
+coupled as in robots.planar_arm.plant.rig: cylinder.x -> segment.x_piston, segment.p_a/p_b ->
 cylinder.p_a/p_b, a constant x_ref input), the same simulated time is stepped by
   pure C        one call of the C loop over every tick
   kernel        hil.cosim.Algorithm with the C kernel, advanced SYNC by SYNC (10 macro steps)

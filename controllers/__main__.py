@@ -17,12 +17,12 @@ from typing import Any
 import can
 
 from controllers import cukf
+from controllers.config import read_config
 from controllers.node import (
     ControllerError,
     ControllerNode,
     LockstepClock,
     RealtimeClock,
-    read_config,
     write_report,
 )
 from rigbus import ccodec

@@ -15,11 +15,9 @@ error naming the frame, `hold` keeps the last value and counts the miss.
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import math
 import time
-import typing
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -28,17 +26,12 @@ from typing import Any
 import can
 import numpy as np
 
-from controllers.curvature import PiGains
+from controllers.config import POLICIES
 from controllers.estimation import (
-    BendModel,
-    CameraNoise,
     Controller,
     Estimator,
     MarkerFrame,
 )
-from controllers.gripper import GripperGeometry
-from controllers.tasks import TaskPlan
-from controllers.trajectories import CurvatureProfile, Sine
 from rigbus.canbus import connection_closed, failure_text, send_all
 from rigbus.protocol import (
     COUNTER_MODULO,
@@ -55,8 +48,8 @@ from rigbus.protocol import (
     TaskState,
     frame_key,
 )
+from rigbus.robots import controller_side
 
-POLICIES = ("strict", "hold")
 OWN_FRAMES = (
     Sync,
     DriveCommand,
@@ -64,277 +57,10 @@ OWN_FRAMES = (
     TaskState,
 )  # the frames only the controller sends
 OWN_KINDS = ("ValveCommand", "FishState")  # and those of kinds with no registered type
-ESTIMATORS = ("raw", "kf", "ukf")
 
 
 class ControllerError(RuntimeError):
     """The controller cannot go on; the message names the frame, cycle or peer."""
-
-
-@dataclass(frozen=True)
-class CameraTiming:
-    """When camera frames become available, in macro-step ticks: frame j is exposed at tick
-    j * period_ticks, up to delay_ticks later (exposure jitter), and available latency_ticks
-    after its exposure; SYNC c is at tick c * control_ticks. A frame is due at the first SYNC by
-    which it is available however late its exposure: waiting for it earlier would wait on a
-    frame the camera has not taken yet (the count, not the order of arrival, decides)."""
-
-    period_ticks: int
-    latency_ticks: int
-    control_ticks: int
-    markers: int
-    delay_ticks: int = 0  # the latest an exposure falls after its nominal tick (jitter)
-
-    def __post_init__(self) -> None:
-        """ValueError naming the key for timing no camera has (every robot's config)."""
-        if min(self.period_ticks, self.control_ticks) < 1 or self.latency_ticks < 0:
-            raise ValueError("camera_timing: period_ticks and control_ticks must be at least 1")
-        if not 0 <= self.delay_ticks < self.period_ticks:
-            raise ValueError(
-                f"camera_timing.delay_ticks: {self.delay_ticks} is outside 0..period_ticks - 1"
-            )
-
-    def frames_due(self, cycle: int) -> int:
-        """How many frames (0, 1, ... j) are available by SYNC `cycle`, however late their
-        exposure."""
-        tick = cycle * self.control_ticks - self.latency_ticks - self.delay_ticks
-        return 0 if tick < 0 else tick // self.period_ticks + 1
-
-
-@dataclass(frozen=True)
-class GripperConfig:
-    """The gripper's drive (node) and the piston positions [m] that start, open and close it."""
-
-    node: int
-    x_start: float
-    x_open: float
-    x_closed: float
-    geometry: GripperGeometry = GripperGeometry()
-
-
-@dataclass(frozen=True)
-class ControllerConfig:
-    """Everything the planar arm's controller knows about the rig and its task (written by
-    `hil run` as controller.json); per-segment values are tuples, segment 1 first."""
-
-    robot: str
-    lengths: tuple[float, ...]
-    base: tuple[float, float, float]
-    control_period: float
-    cycles: int
-    x_mid: tuple[float, ...]
-    x_min: tuple[float, ...]
-    x_max: tuple[float, ...]
-    gains: tuple[PiGains, ...]
-    profile: CurvatureProfile
-    bends: tuple[BendModel, ...]
-    camera: CameraNoise
-    camera_timing: CameraTiming
-    feedforward: tuple[float, ...] = ()  # piston offset per unit curvature reference [m per 1/m]
-    policy: str = "strict"
-    timeout: float = 10.0  # wall-clock wait for a cycle's frames [s]
-    estimator: str = "raw"
-    latency_compensation: bool = True
-    torque_std: float | None = None  # the estimator's unmodelled torque std [N m]; None: derived
-    plan: TaskPlan | None = None  # task-space task (point-to-point, path); None: the profile
-    objects: int = 0  # object markers the camera reports after the arm's (ids segments + 1 ...)
-    gripper: GripperConfig | None = None  # the finger pair at the tip and its drive
-
-    @property
-    def segments(self) -> int:
-        return len(self.lengths)
-
-    def to_json(self) -> str:
-        return json.dumps(asdict(self), indent=2, sort_keys=True)
-
-    @classmethod
-    def from_json(cls, text: str) -> ControllerConfig:
-        """Read a config; wrong or missing keys raise ValueError naming the key."""
-        config: ControllerConfig = config_from_json(cls, text)
-        if config.estimator not in ESTIMATORS:
-            raise ValueError(
-                f"estimator: {config.estimator!r} is not one of {', '.join(ESTIMATORS)}"
-            )
-        n = config.segments
-        for name in ("x_mid", "x_min", "x_max", "gains", "bends", "feedforward"):
-            if len(getattr(config, name)) != n:
-                raise ValueError(f"{name}: {len(getattr(config, name))} values for {n} segments")
-        if config.control_period <= 0 or config.cycles < 0 or config.timeout <= 0:
-            raise ValueError("control_period and timeout must be positive, cycles not negative")
-        _check_ranges(config)
-        if config.plan is not None:
-            _check_plan(config.plan, n)
-        return config
-
-
-# The robot kinds' controller sides: each module provides its config class (`config_class`,
-# with `from_json` and `to_json`), `make_estimator(config)`, `make_controller(config, protocol)`,
-# `expected(config)` (the (DBC kind, index) of the status frames every cycle must bring) and
-# `readings(status)` (what the estimator and controller see of those frames).
-ROBOT_MODULES = {"planar_arm": "controllers.planar_arm", "fish": "controllers.fish"}
-
-
-def robot_module(robot: str) -> Any:
-    """The controller-side module of robot kind `robot`; ValueError naming the known kinds."""
-    import importlib
-
-    if robot not in ROBOT_MODULES:
-        raise ValueError(f"robot: {robot!r} is not one of {', '.join(ROBOT_MODULES)}")
-    return importlib.import_module(ROBOT_MODULES[robot])
-
-
-def read_config(text: str) -> Any:
-    """A controller configuration of any robot kind, by its `robot` key (default planar_arm);
-    ValueError naming the key otherwise."""
-    data = json.loads(text)
-    if not isinstance(data, dict):
-        raise ValueError("must be a JSON object")
-    robot = data.get("robot", "planar_arm")
-    if not isinstance(robot, str):
-        raise ValueError(f"robot: must be a string, got {robot!r}")
-    return robot_module(robot).config_class.from_json(text)
-
-
-# The ranges `hil run` validates a scenario against (hil/scenario.py), for a config written by
-# hand: control period 1 us .. 1 s, at most 10 million cycles, a wait of at most an hour, and
-# gains within the DBC's piston range (0.1 m) per 0.01 1/m of curvature error.
-CONTROL_PERIOD_RANGE = (1e-6, 1.0)
-MAX_CYCLES = 10_000_000
-MAX_TIMEOUT = 3_600.0
-KP_MAX = 0.1 / 0.01
-
-
-def _check_ranges(config: ControllerConfig) -> None:
-    lo, hi = CONTROL_PERIOD_RANGE
-    if not lo <= config.control_period <= hi:
-        raise ValueError(f"control_period: {config.control_period:g} s is outside {lo:g}..{hi:g}")
-    if config.cycles > MAX_CYCLES:
-        raise ValueError(f"cycles: {config.cycles} is beyond {MAX_CYCLES}")
-    if config.timeout > MAX_TIMEOUT:
-        raise ValueError(f"timeout: {config.timeout:g} s is beyond {MAX_TIMEOUT:g} s")
-    if any(length <= 0 for length in config.lengths):
-        raise ValueError("lengths: must be positive")
-    for i, gains in enumerate(config.gains):
-        if not 0 <= gains.Kp <= KP_MAX:
-            raise ValueError(f"gains[{i}].Kp: {gains.Kp:g} is outside 0..{KP_MAX:g}")
-        if not 0 <= gains.Ki <= KP_MAX / config.control_period:
-            raise ValueError(
-                f"gains[{i}].Ki: {gains.Ki:g} is outside 0..{KP_MAX / config.control_period:g}"
-            )
-    timing = config.camera_timing  # its own ranges: CameraTiming.__post_init__
-    if config.torque_std is not None and not config.torque_std > 0:
-        raise ValueError(f"torque_std: must be positive, got {config.torque_std}")
-    if config.objects < 0:
-        raise ValueError("objects: must not be negative")
-    if timing.markers != config.segments + 1 + config.objects:
-        raise ValueError(
-            f"camera_timing.markers: must be {config.segments + 1 + config.objects} "
-            "(segments + 1 + objects)"
-        )
-    if config.gripper is not None and config.gripper.node <= config.segments:
-        raise ValueError("gripper.node: must follow the segments' drives")
-
-
-def _check_plan(plan: TaskPlan, segments: int) -> None:
-    from controllers.tasks import TASK_KINDS
-
-    if plan.kind not in TASK_KINDS:
-        raise ValueError(f"plan.kind: {plan.kind!r} is not one of {', '.join(TASK_KINDS)}")
-    if not plan.targets:
-        raise ValueError("plan.targets: no target")
-    if plan.kind == "path" and len(plan.ends) != len(plan.targets):
-        raise ValueError(f"plan.ends: {len(plan.ends)} ends for {len(plan.targets)} paths")
-    for name in ("kappa_min", "kappa_max", "kappa_rate"):
-        if len(getattr(plan, name)) != segments:
-            raise ValueError(
-                f"plan.{name}: {len(getattr(plan, name))} values for {segments} segments"
-            )
-    if any(lo >= hi for lo, hi in zip(plan.kappa_min, plan.kappa_max, strict=True)):
-        raise ValueError("plan.kappa_min: must be below plan.kappa_max")
-    for name in ("kappa_rate",):
-        if any(v <= 0 for v in getattr(plan, name)):
-            raise ValueError(f"plan.{name}: must be positive")
-    for name in ("tolerance", "settle_time", "max_time", "speed", "acceleration", "accel_time"):
-        if getattr(plan, name) <= 0:
-            raise ValueError(f"plan.{name}: must be positive")
-
-
-def config_from_json(cls: Any, text: str) -> Any:
-    """A robot's controller configuration (a dataclass with a `policy`) from its JSON text:
-    every key and type checked, ValueError naming the key; the robot checks the rest."""
-    data = json.loads(text)
-    if not isinstance(data, dict):
-        raise ValueError("must be a JSON object")
-    config = _from_data(cls, data, "")
-    if config.policy not in POLICIES:
-        raise ValueError(f"policy: {config.policy!r} is not one of {', '.join(POLICIES)}")
-    return config
-
-
-def _from_data(cls: Any, data: Any, key: str) -> Any:
-    """A dataclass from JSON data, checking every key and type (ValueError naming the key)."""
-    hints = typing.get_type_hints(cls)
-    if not isinstance(data, dict):
-        raise ValueError(f"{key or 'config'}: must be an object")
-    known = {f.name: f for f in dataclasses.fields(cls)}
-    unknown = set(data) - set(known)
-    if unknown:
-        raise ValueError(f"{key + '.' if key else ''}{sorted(unknown)[0]}: unknown key")
-    values = {}
-    for name, f in known.items():
-        sub = f"{key}.{name}" if key else name
-        if name not in data:
-            if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
-                raise ValueError(f"{sub}: missing key")
-            continue
-        values[name] = _value(hints[name], data[name], sub)
-    return cls(**values)
-
-
-def _value(hint: Any, raw: Any, key: str) -> Any:
-    origin, args = typing.get_origin(hint), typing.get_args(hint)
-    if origin in (typing.Union, __import__("types").UnionType):
-        if raw is None and type(None) in args:
-            return None
-        return _value(next(a for a in args if a is not type(None)), raw, key)
-    if hint is bool:
-        if not isinstance(raw, bool):
-            raise ValueError(f"{key}: must be true or false, got {raw!r}")
-        return raw
-    if hint is int:
-        if isinstance(raw, bool) or not isinstance(raw, int):
-            raise ValueError(f"{key}: must be an integer, got {raw!r}")
-        return raw
-    if hint is float:
-        if isinstance(raw, bool) or not isinstance(raw, int | float):
-            raise ValueError(f"{key}: must be a number, got {raw!r}")
-        try:
-            value = float(raw)
-        except OverflowError:
-            raise ValueError(f"{key}: must be finite, got {raw!r}") from None
-        if not math.isfinite(value):
-            raise ValueError(f"{key}: must be finite, got {raw!r}")
-        return value
-    if hint is str:
-        if not isinstance(raw, str):
-            raise ValueError(f"{key}: must be a string, got {raw!r}")
-        return raw
-    if origin is tuple:
-        if not isinstance(raw, list):
-            raise ValueError(f"{key}: must be a list, got {raw!r}")
-        if len(args) == 2 and args[1] is Ellipsis:
-            return tuple(_value(args[0], v, f"{key}[{i}]") for i, v in enumerate(raw))
-        if len(raw) != len(args):
-            raise ValueError(f"{key}: must have {len(args)} elements")
-        return tuple(
-            _value(a, v, f"{key}[{i}]") for i, (a, v) in enumerate(zip(args, raw, strict=True))
-        )
-    if dataclasses.is_dataclass(hint):
-        return _from_data(hint, raw, key)
-    raise ValueError(f"{key}: unsupported type {hint}")  # pragma: no cover - schema bug
-
-
-_ = Sine  # the profile's sine is read through _from_data
 
 
 @dataclass
@@ -455,7 +181,7 @@ class ControllerNode:
 
     def __init__(
         self,
-        config: ControllerConfig,
+        config: Any,
         bus: can.BusABC,
         clock: LockstepClock | RealtimeClock | None = None,
         protocol: Protocol | None = None,
@@ -464,7 +190,7 @@ class ControllerNode:
     ) -> None:
         if config.policy not in POLICIES:
             raise ControllerError(f"policy {config.policy!r}: must be one of {POLICIES}")
-        module = robot_module(config.robot)
+        module = controller_side(config.robot)
 
         self.config = config
         self.module = module

@@ -51,8 +51,8 @@ def two_cores() -> bool:
 
 def check() -> None:
     """HilError naming the first softhil variable whose value is not one softhil reads."""
-    from controllers import cukf
     from hil import cformat, cvision
+    from hil.seam import cukf
     from rigbus import ccodec
 
     kernel_enabled()

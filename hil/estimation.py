@@ -21,13 +21,18 @@ from typing import Any
 
 import numpy as np
 
-from controllers import kinematics
-from controllers.estimation import DriveReading, MarkerFrame
-from controllers.estimators import make_estimator
-from controllers.node import ESTIMATORS, CameraAssembler, ControllerConfig
 from hil.bustools.logs import has_direction
 from hil.errors import HilError
 from hil.replay import CSV_HAS_NO_DIRECTION, config_beside, read_cycles, read_log
+from hil.seam import (
+    ESTIMATORS,
+    ArmConfig,
+    CameraAssembler,
+    DriveReading,
+    MarkerFrame,
+    estimators,
+    kinematics,
+)
 from hil.summary import read_signals
 from rigbus.protocol import CameraFrame, CameraMarker, DriveStatus, Protocol
 
@@ -44,7 +49,7 @@ class EstimatorScore:
     update_time: float  # mean wall time of one update [s]
 
 
-def measured_cycles(log: Path, config: ControllerConfig) -> list[Cycle]:
+def measured_cycles(log: Path, config: ArmConfig) -> list[Cycle]:
     """What the controller's estimator was given at every SYNC of a recorded run."""
     protocol = Protocol()
     cycles = read_cycles(read_log(log), protocol, str(log))
@@ -77,8 +82,8 @@ def measured_cycles(log: Path, config: ControllerConfig) -> list[Cycle]:
     return result
 
 
-def score(name: str, config: ControllerConfig, cycles: list[Cycle]) -> EstimatorScore:
-    estimator = make_estimator(
+def score(name: str, config: ArmConfig, cycles: list[Cycle]) -> EstimatorScore:
+    estimator = estimators().make_estimator(
         name,
         config.bends,
         config.base,
@@ -110,7 +115,7 @@ class RecordedRun:
     """What the estimation report reads from a run's folder, every part of it checked."""
 
     log: Path
-    config: ControllerConfig
+    config: ArmConfig
     signals: dict[str, np.ndarray]
     truth: np.ndarray  # (cycles, segments) true curvature [1/m]
     cycles: list[Cycle]
@@ -127,7 +132,7 @@ def read_run(run: Path, log: Path | None = None) -> RecordedRun:
         "hil estimate needs the run's controller configuration (estimator, camera, arm) to "
         "rebuild what its estimator was given",
     )
-    if not isinstance(config, ControllerConfig):
+    if not isinstance(config, ArmConfig):
         raise HilError(
             f"{log.parent / 'controller.json'}: the estimation report applies to planar-arm "
             f"runs, not robot kind {getattr(config, 'robot', '?')!r}"
@@ -181,7 +186,7 @@ def check_estimable(run: Path, log: Path | None = None) -> None:
     curvature estimators), as its scenario.toml says, or without one its controller.json (a
     folder with neither is taken for an arm); or if its CAN log (`log`, by default the one found
     there) is a CSV, which cannot tell the plant's frames from the controller's. Reads only."""
-    from hil.robots import robot_kind
+    from hil.rig import robot_kind
 
     kind, source = _robot_kind_of(run)
     if kind is not None and not getattr(robot_kind(kind), "estimation_report", True):
@@ -234,7 +239,7 @@ def _log_of(run: Path) -> Path:
 
 
 def marker_residuals(
-    cycles: list[Cycle], kappa: np.ndarray, config: ControllerConfig
+    cycles: list[Cycle], kappa: np.ndarray, config: ArmConfig
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """What estimation.png marks: per cycle and segment whether a marker at either end of the
     segment was missing from a picture, shape (cycles, N); and for every marker seen, the time of
@@ -257,7 +262,7 @@ def marker_residuals(
 
 def _plot(
     run: Path,
-    config: ControllerConfig,
+    config: ArmConfig,
     signals: dict[str, np.ndarray],
     cycles: list[Cycle],
     scores: dict[str, EstimatorScore],

@@ -25,7 +25,7 @@ from hil.cosim.execution import OVERLAP_MIN_COST
 from hil.devices import DeviceNode, SyncContext
 from hil.errors import BusError, FmuError, HilError, ProtocolError
 from hil.recording import CanLogger, SignalRecorder
-from hil.robots import Rig
+from hil.rig import Rig
 from hil.scenario import Scenario
 from rigbus.canbus import connection_closed, failure_text, send_all
 from rigbus.protocol import (

@@ -13,7 +13,7 @@ import matplotlib.pyplot as plt  # noqa: E402 - after choosing the headless back
 import numpy as np  # noqa: E402
 
 from hil.results import write_file  # noqa: E402
-from hil.robots import PlotSpec  # noqa: E402
+from hil.rig import PlotSpec  # noqa: E402
 
 # Fixed margins of a stacked-panel figure [in]: room for two-line y labels, the shared x axis's
 # ticks and label. `tight_layout` measured every text to find them: 0.2-0.5 s per figure, half of

@@ -31,7 +31,7 @@ import can
 from hil import cformat
 from hil.errors import HilError
 from hil.results import RecordFile, WriteError, write_file
-from hil.robots import SignalSpec
+from hil.rig import SignalSpec
 from rigbus.protocol import frame_bits
 
 UNITS_SUFFIX = ".units.csv"

@@ -30,12 +30,13 @@ from typing import Any
 
 import can
 
-from controllers.node import ControllerConfig, ControllerNode, read_config
 from hil.bustools.logs import DIRECTED, NO_DIRECTION, has_direction
 from hil.errors import HilError
 from hil.program import SOFTHIL, USER_LINGER, check_controller, last_words, start, stop
+from hil.seam import ControllerNode, read_config
 from rigbus.canbus import BusSpec, open_bus
 from rigbus.protocol import COUNTER_MODULO, SYNC_ID, FrameError, Protocol, Sync
+from rigbus.robots import RobotConfig
 
 WAIT = 60.0  # s for the controller's SYNC(0), as `hil run --wait`: a program may load slowly
 MAX_WAIT = 86400.0
@@ -158,10 +159,11 @@ def check_served(cycles: Sequence[Cycle], config: Any, protocol: Protocol, sourc
     robot than the controller's configuration)."""
     if getattr(config, "policy", "strict") != "strict":
         return  # `hold` goes on past a missing frame, as it did in the run
-    from controllers.node import CameraAssembler, robot_module
+    from hil.seam import CameraAssembler
     from rigbus.protocol import CameraFrame, CameraMarker, GenericFrame, frame_key
+    from rigbus.robots import controller_side
 
-    expected = robot_module(config.robot).expected(config)
+    expected = controller_side(config.robot).expected(config)
     kinds = {kind for kind, _ in expected}
     timing = config.camera_timing
     camera = CameraAssembler(timing.markers)
@@ -419,7 +421,7 @@ def _by_name(
 
 def replay(
     log: Path,
-    config: ControllerConfig | None = None,
+    config: RobotConfig | None = None,
     *,
     process: bool = False,
     tolerance: float = 0.0,
@@ -477,7 +479,7 @@ def _stopped_early(log: Path) -> str | None:
 
 
 def _replay_thread(
-    cycles: Sequence[Cycle], config: ControllerConfig, timeout: float, wait: float = WAIT
+    cycles: Sequence[Cycle], config: RobotConfig, timeout: float, wait: float = WAIT
 ) -> list[list[can.Message]]:
     channel = f"softhil-replay-{uuid.uuid4().hex[:8]}"
     plant_bus = open_bus(BusSpec("virtual", channel))
@@ -512,7 +514,7 @@ def _replay_thread(
 
 def _replay_process(
     cycles: Sequence[Cycle],
-    config: ControllerConfig,
+    config: RobotConfig,
     timeout: float,
     controller: str = SOFTHIL,
     wait: float = WAIT,
@@ -574,7 +576,7 @@ def _replay_process(
 
 def assert_replays(
     log: str | os.PathLike[str],
-    config: ControllerConfig | None = None,
+    config: RobotConfig | None = None,
     *,
     tolerance: float = 0.0,
     tolerances: Mapping[str, float] | None = None,

@@ -32,13 +32,6 @@ from typing import Any
 
 from threadpoolctl import threadpool_limits
 
-from controllers.node import (
-    ControllerConfig,
-    ControllerError,
-    ControllerNode,
-    LockstepClock,
-    RealtimeClock,
-)
 from hil.animation import check_format
 from hil.bus.direct import direct_pair
 from hil.bus.hosted import HostedBus
@@ -61,12 +54,14 @@ from hil.program import (
 from hil.program import stop as stop_program
 from hil.recording import CanLogger, SignalRecorder, require_asammdf
 from hil.results import RESULT_FILES, ResultsFolder, note, write_file
-from hil.robots import robot_kind
+from hil.rig import robot_kind
 from hil.scenario import Scenario, can_log_problem, log_start
+from hil.seam import ControllerError, ControllerNode, LockstepClock, RealtimeClock
 from hil.summary import read_signals, realtime_failure, summarise
 from rigbus.binary import busy_poll_seconds
 from rigbus.canbus import HUB_KINDS, BusOpenError, BusSpec, open_bus
 from rigbus.protocol import SYNC_ID, Protocol
+from rigbus.robots import RobotConfig
 
 
 @dataclass(frozen=True)
@@ -99,7 +94,7 @@ class RunResult:
     summary: dict[str, Any]
 
 
-def controller_config(scenario: Scenario) -> ControllerConfig:
+def controller_config(scenario: Scenario) -> RobotConfig:
     """What the controller is told, as the scenario's robot kind says."""
     return robot_kind(scenario.robot.kind).controller_config(scenario)  # type: ignore[no-any-return]
 
@@ -685,12 +680,12 @@ FINISH_TIMEOUT = 30.0  # [s] softhil's controller has after the final SYNC to ex
 CLOSED_GRACE = 1.0
 
 
-def _clock(config: ControllerConfig, options: RunOptions) -> LockstepClock | RealtimeClock:
+def _clock(config: RobotConfig, options: RunOptions) -> LockstepClock | RealtimeClock:
     return RealtimeClock(config.control_period) if options.realtime else LockstepClock()
 
 
 def _start_controller(
-    config: ControllerConfig,
+    config: RobotConfig,
     spec: BusSpec,
     options: RunOptions,
     folder: ResultsFolder,

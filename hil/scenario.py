@@ -20,10 +20,9 @@ from importlib.resources import files
 from pathlib import Path
 from typing import Any
 
-from controllers.node import ESTIMATORS, POLICIES
-from controllers.trajectories import CurvatureProfile, Sine
 from hil.errors import HilError, ScenarioError
 from hil.results import is_result_file
+from hil.seam import ESTIMATORS, POLICIES, CurvatureProfile, Sine
 from hil.vision import CameraEffects, check_effects
 from rigbus.canbus import KINDS as BUS_KINDS
 from rigbus.protocol import Protocol
@@ -296,7 +295,7 @@ def resolve_scenario(name_or_path: str | Path) -> Path:
 
 
 def _robot_section(raw: Any, file: str, key: str) -> Any:
-    from hil.robots import robot_kind
+    from hil.rig import robot_kind
 
     if not isinstance(raw, dict):
         raise _fail(file, key, f"must be a table, got {shown(raw)}")
@@ -430,7 +429,7 @@ def _convert(hint: Any, raw: Any, file: str, key: str) -> Any:
 
 def _check(s: Scenario) -> None:
     """Semantic checks: rates, ranges, the robot (its own checks), connections, recording."""
-    from hil.robots import robot_kind
+    from hil.rig import robot_kind
 
     file = s.source
     t = s.timing

@@ -21,7 +21,7 @@ import numpy as np
 from hil.errors import HilError
 from hil.plant import PlantStats
 from hil.recording import CanLogger
-from hil.robots import robot_kind
+from hil.rig import robot_kind
 from hil.scenario import Scenario
 from rigbus.protocol import Protocol, bus_load
 

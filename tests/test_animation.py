@@ -18,18 +18,18 @@ import pytest
 from PIL import Image
 
 from controllers import kinematics
-from controllers.gripper import GripperGeometry, finger_points
 from hil import results
 from hil.animation import MAX_FPS, MAX_FRAMES, frame_rows, playback_fps
 from hil.cli import main as hil_main
 from hil.errors import HilError
 from hil.results import WriteError
-from hil.robots.fish_animation import animate_fish
-from hil.robots.planar_animation import animate_arm, arm_frame, arm_scene
-from hil.robots.planar_arm import ROBOT
 from hil.run import RunOptions, run_scenario
 from hil.scenario import load_scenario
 from hil.summary import read_signals
+from robots.fish.plant.animation import animate_fish
+from robots.planar_arm.controller.gripper import GripperGeometry, finger_points
+from robots.planar_arm.plant.animation import animate_arm, arm_frame, arm_scene
+from robots.planar_arm.plant.rig import ROBOT
 
 SCENARIOS = Path(__file__).parents[1] / "hil" / "scenarios"
 TINY = """

@@ -26,7 +26,7 @@ from controllers.node import ControllerError, ControllerNode
 from hil.errors import BusError
 from hil.plant import Plant
 from hil.recording import CanLogger, SignalRecorder
-from hil.robots import build_rig, robot_kind
+from hil.rig import build_rig, robot_kind
 from hil.run import RunOptions, controller_config, run_scenario
 from hil.scenario import DEFAULT_SCENARIO, Scenario, load_scenario
 from hil.summary import read_signals

@@ -1,4 +1,5 @@
-"""Whole-arm planning in confined spaces (controllers/confined.py): the channel's signed clearance
+"""Whole-arm planning in confined spaces (robots/planar_arm/controller/confined.py): the channel's
+signed clearance
 against closed forms, the sampled backbone against the kinematics, the four pipe sections planned
 to their goals without penetration (at the waypoints and along the curvature moves between them),
 monotonic advance, trust region, determinism, and the failures that must be reports, not
@@ -12,7 +13,7 @@ import numpy as np
 import pytest
 
 from controllers import kinematics
-from controllers.confined import (
+from robots.planar_arm.controller.confined import (
     KAPPA_LIMIT,
     MAX_VERTICES,
     MAX_WALLS,
@@ -25,7 +26,7 @@ from controllers.confined import (
     plan_whole_arm,
     sample_backbone,
 )
-from controllers.tasks import CurvatureMove
+from robots.planar_arm.controller.tasks import CurvatureMove
 
 MARGIN = 2e-3  # [m] the planner's default margin beyond width / 2
 STEP = 2.0  # [1/m] the planner's default trust region

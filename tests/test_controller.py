@@ -14,19 +14,14 @@ import numpy as np
 import pytest
 
 from controllers import kinematics
+from controllers.config import CameraTiming
 from controllers.curvature import CurvaturePI, PiGains
 from controllers.estimation import BendModel, Estimate, MarkerFrame
 from controllers.estimators import RawEstimator
-from controllers.node import (
-    CameraAssembler,
-    CameraTiming,
-    ControllerConfig,
-    ControllerError,
-    ControllerNode,
-    RealtimeClock,
-)
+from controllers.node import CameraAssembler, ControllerError, ControllerNode, RealtimeClock
 from rigbus.canbus import DEFAULT_CHANNEL, DEFAULT_LOOPBACK_PORT, BusSpec
 from rigbus.protocol import CameraFrame, CameraMarker, DriveStatus, Frame, Protocol, Sync
+from robots.planar_arm.controller.config import ControllerConfig
 
 # ---------------------------------------------------------------------------- CameraTiming
 

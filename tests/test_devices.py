@@ -15,7 +15,7 @@ import math
 import numpy as np
 import pytest
 
-from controllers.node import CameraTiming
+from controllers.config import CameraTiming
 from hil.devices import (
     EMERGENCY,
     FAULT_COMMAND_TIMEOUT,

@@ -9,7 +9,7 @@ import pytest
 
 from controllers import kinematics
 from hil.errors import ScenarioError
-from hil.robots import build_rig
+from hil.rig import build_rig
 from hil.run import RunOptions, run_scenario
 from hil.scenario import load_scenario
 from hil.summary import read_signals
@@ -117,7 +117,7 @@ def test_environment_keys_are_checked(tmp_path: Path, old: str, new: str, messag
 
 
 def test_cylindrical_set_applies_under_the_scenario_values(tmp_path: Path) -> None:
-    from hil.robots.planar_arm import ROBOT
+    from robots.planar_arm.plant.rig import ROBOT
 
     text = SCENARIO.replace(
         "[robot.environment]", "[robot.segment]\nk_bend = 0.05\n[robot.environment]"
@@ -169,7 +169,7 @@ def test_a_pipe_plan_that_relaxes_its_clearance_says_so_in_the_summary(tmp_path:
 def test_a_segment_that_starts_bent_starts_at_rest(tmp_path: Path) -> None:
     """theta_start puts the piston where that bend is the static equilibrium: with the drive
     holding it there, the bend stays (it would spring back towards straight from mid-stroke)."""
-    from hil.robots.planar_arm import ROBOT
+    from robots.planar_arm.plant.rig import ROBOT
 
     text = (
         SCENARIO.split("[robot.environment]")[0]
@@ -206,7 +206,7 @@ def test_pipe_metrics_from_the_recorded_truth() -> None:
     penetration of any segment at any time."""
     from types import SimpleNamespace
 
-    from hil.robots.planar_tasks import _pipe
+    from robots.planar_arm.plant.tasks import _pipe
 
     t = np.arange(0.0, 3.0, 0.01)
     goal = (0.3, 0.0)

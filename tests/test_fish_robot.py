@@ -15,14 +15,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from controllers.fish import CALIBRATION, FishConfig, open_time_for
-from controllers.node import read_config
+from controllers.config import read_config
 from hil.cli import main
 from hil.devices import SyncContext
-from hil.robots.fish_devices import CLOSED, OPEN, OPENING, VENTING, ValveNode
 from hil.run import RunOptions, controller_config, run_scenario
 from hil.scenario import ScenarioError, load_scenario, resolve_scenario
 from rigbus.protocol import GenericFrame
+from robots.fish.controller import CALIBRATION, FishConfig, open_time_for
+from robots.fish.plant.devices import CLOSED, OPEN, OPENING, VENTING, ValveNode
 
 OPEN_TIMES = (0.02, 0.04, 0.06, 0.08, 0.10, 0.12)
 
@@ -341,8 +341,8 @@ def test_the_highest_beat_frequency_loads_and_errors_list_tasks_by_name(tmp_path
 def test_heading_hold_lengthens_the_strokes_that_turn_towards_the_reference() -> None:
     """In the hold, a heading below the reference (error > 0, turn left) lengthens valve 1's
     strokes (channel a turns the head left) and shortens valve 2's, and the reverse."""
-    from controllers.fish import FishControl, FishEstimate
     from rigbus.protocol import Protocol
+    from robots.fish.controller import FishControl, FishEstimate
 
     config = controller_config(load_scenario(resolve_scenario("fish-heading")))
     vented = {
@@ -373,8 +373,8 @@ def test_a_corrective_stroke_turns_towards_the_reference_by_the_calibration(
     """Beyond the deadband, the next stroke on the side that turns towards the reference is
     lengthened to the calibration's open time for the error; a stroke on the other side is not,
     and a correction waits a beat before the next."""
-    from controllers.fish import FishControl
     from rigbus.protocol import Protocol
+    from robots.fish.controller import FishControl
 
     config = controller_config(load_scenario(resolve_scenario("fish-heading")))
     error = math.radians(error_deg)
@@ -397,7 +397,7 @@ def test_a_corrective_stroke_turns_towards_the_reference_by_the_calibration(
 
 def test_only_the_heading_task_plots_a_heading_reference(tmp_path: Path) -> None:
     """The escape and the swim have no reference: a dashed line at 0 deg said they had."""
-    from hil.robots import robot_kind
+    from hil.rig import robot_kind
 
     fish = robot_kind("fish")
     for name, drawn in (("fish-escape", False), ("fish-swim", False), ("fish-heading", True)):

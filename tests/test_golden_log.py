@@ -20,8 +20,8 @@ from typing import Any
 
 import can
 import pytest
-
 from controllers.protocol import Protocol
+
 from hil.scenario import Scenario, load_scenario
 from tests.golden import (
     DEFAULT_LOG,
@@ -95,7 +95,7 @@ def test_the_shipped_controller_replays_the_golden_logs(tmp_path: Path, suffix: 
     frames. A change of the controller (gains, estimator, PI law) fails here, naming the first
     diverging cycle: regenerate the goldens on purpose if the change is intended."""
     from hil.replay import replay as replay_controller
-    from hil.robots import robot_kind
+    from hil.rig import robot_kind
 
     scenario = load_scenario(write_scenario(tmp_path))
     config = robot_kind(scenario.robot.kind).controller_config(scenario)
@@ -125,7 +125,7 @@ def logged_controller_side(log: Path) -> list[list[tuple[int, bytes]]]:
 def robot_controller(name: str, folder: Path) -> tuple[Scenario, Any]:
     """The scenario of golden `name` and its robot's controller configuration, built exactly as
     `hil run` builds it (and as the controller program reads it back from controller.json)."""
-    from controllers.node import read_config
+    from controllers.config import read_config
     from hil.run import controller_config
 
     scenario = load_scenario(write_plant_scenario(name, folder))

@@ -1,4 +1,5 @@
-"""Grasp-and-place planning (controllers/grasp.py): the approach waypoints on shrinking circles
+"""Grasp-and-place planning (robots/planar_arm/controller/grasp.py): the approach waypoints on
+shrinking circles
 facing the object, the grasp point on the object's centre, the object's clearance at every
 waypoint and along every curvature interpolation (checked densely with kinematics.backbone and
 gripper.finger_points, independently of the planner's vectorised bound), the carry along a
@@ -12,7 +13,7 @@ import numpy as np
 import pytest
 
 from controllers import kinematics
-from controllers.grasp import (
+from robots.planar_arm.controller.grasp import (
     CARRY_STEP,
     DRAW_SHARE,
     HEADING_STEP,
@@ -32,8 +33,13 @@ from controllers.grasp import (
     sweep_clearance,
     sweep_speed,
 )
-from controllers.gripper import GripperGeometry, finger_points, grasp_point, tip_for_grasp
-from controllers.ik import solve_ik
+from robots.planar_arm.controller.gripper import (
+    GripperGeometry,
+    finger_points,
+    grasp_point,
+    tip_for_grasp,
+)
+from robots.planar_arm.controller.ik import solve_ik
 
 # the planar arm of planar-point-to-point.toml: six 0.06 m segments, base pointing up
 LENGTHS = np.full(6, 0.06)
@@ -469,7 +475,7 @@ def test_drawn_objects_keep_the_start_margin_from_the_arm(seed: int) -> None:
 def test_a_drawn_task_leaves_the_controller_room_to_plan(monkeypatch: pytest.MonkeyPatch) -> None:
     """The controller plans again from estimates: a kept draw's plans keep DRAW_SLACK beyond
     the margin, and its approach is plannable from the start shaken by START_SHAKE both ways."""
-    import controllers.grasp as grasp
+    import robots.planar_arm.controller.grasp as grasp
 
     calls: list[tuple[float, np.ndarray]] = []
     original = grasp.plan_approach

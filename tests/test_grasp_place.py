@@ -11,13 +11,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from controllers import grasp_control, kinematics
+from controllers import kinematics
 from controllers.estimation import DriveReading, Estimate
-from controllers.grasp_control import GraspControl
-from controllers.tasks import PHASE
 from hil.run import controller_config
 from hil.scenario import load_scenario, resolve_scenario
 from rigbus.protocol import Protocol
+from robots.planar_arm.controller import grasp_control
+from robots.planar_arm.controller.grasp_control import GraspControl
+from robots.planar_arm.controller.tasks import PHASE
 
 PERIOD = 0.01
 
@@ -120,7 +121,7 @@ def test_the_loop_keeps_correcting_while_waiting_for_rest(config) -> None:
 def settled_on_the_grasp_pose(config) -> tuple[GraspControl, np.ndarray]:
     """A controller whose approach (planned for the scenario's object) has reached its grasp
     pose; the arm's estimated curvatures are exactly that pose's."""
-    from hil.robots.planar_arm import ROBOT
+    from robots.planar_arm.plant.rig import ROBOT
 
     pick, _ = ROBOT.grasp_layout(load_scenario(resolve_scenario("planar-grasp")))
     control = GraspControl(config, Protocol())
@@ -178,7 +179,7 @@ def test_an_object_knocked_away_is_approached_again_where_it_is_now(config) -> N
     assert control.phase == PHASE["moving"] and control.leg == 0
     assert control.found == pytest.approx(knocked)
     final_pose = control.waypoints[-1][1]
-    from controllers.gripper import grasp_point
+    from robots.planar_arm.controller.gripper import grasp_point
 
     assert grasp_point(control.gripper.geometry, final_pose) == pytest.approx(knocked, abs=1e-6)
 
@@ -285,7 +286,7 @@ def test_an_object_out_of_reach_ends_the_task_where_the_arm_is(config) -> None:
 def test_the_fingers_take_hold_of_an_object_only_between_them(
     config, ahead: float, side: float, captured: bool, heading: float
 ) -> None:
-    from controllers.gripper import grasp_point
+    from robots.planar_arm.controller.gripper import grasp_point
 
     control = GraspControl(config, Protocol())
     pose = (0.05, 0.3, heading)

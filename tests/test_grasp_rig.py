@@ -38,8 +38,8 @@ def approach_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict, dict, 
 
 def test_the_fingers_open_and_the_approach_does_not_touch_the_object(approach_run) -> None:
     summary, signals, _ = approach_run
-    from hil.robots.planar_arm import ROBOT
     from hil.scenario import load_scenario as load
+    from robots.planar_arm.plant.rig import ROBOT
 
     pick, _ = ROBOT.grasp_layout(load(write_tmp(GRASP)))
     assert summary["pick"] == pytest.approx(list(pick))
@@ -155,7 +155,7 @@ def test_a_gripper_needs_the_environment(tmp_path: Path) -> None:
 
 
 def test_the_object_comes_from_the_seed(tmp_path: Path) -> None:
-    from hil.robots.planar_arm import ROBOT
+    from robots.planar_arm.plant.rig import ROBOT
 
     one = ROBOT.grasp_layout(load_scenario(write(tmp_path, GRASP)))
     again = ROBOT.grasp_layout(load_scenario(write(tmp_path, GRASP)))
@@ -215,8 +215,8 @@ def test_the_kf_reacquires_a_segment_its_model_has_lost() -> None:
 def test_grasp_success_is_place_upright_released(end, upright, finger, success) -> None:
     from types import SimpleNamespace
 
-    from controllers.tasks import PHASE
-    from hil.robots.planar_tasks import _grasp
+    from robots.planar_arm.controller.tasks import PHASE
+    from robots.planar_arm.plant.tasks import _grasp
 
     pick, place = (0.2, 0.1), (0.1, 0.2)
     t = np.arange(0.0, 3.0, 0.01)

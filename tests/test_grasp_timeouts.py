@@ -10,10 +10,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from controllers.tasks import PHASE
-from hil.robots.planar_tasks import settle_timeouts
 from hil.run import RunOptions, run_scenario
 from hil.scenario import load_scenario, resolve_scenario
+from robots.planar_arm.controller.tasks import PHASE
+from robots.planar_arm.plant.tasks import settle_timeouts
 
 PERIOD = 0.01
 

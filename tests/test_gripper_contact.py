@@ -1,4 +1,5 @@
-"""The gripper in the Environment FMU (issue 12): its fingers are where controllers/gripper.py puts
+"""The gripper in the Environment FMU (issue 12): its fingers are where
+robots/planar_arm/controller/gripper.py puts
 them, their torques are the virtual work of their contact (on the fingers' bend angle and on every
 segment of the arm that carries them), closed fingers hold an object through contact alone while
 the arm swings it back and forth (open fingers leave it behind), and the tipping monitor flags a
@@ -13,9 +14,9 @@ import numpy as np
 import pytest
 
 from controllers import kinematics
-from controllers.gripper import GripperGeometry, finger_points, grasp_point
 from hil.fmu.build import BuiltFmu, build_fmu
 from hil.fmu.slave import FmuSlave
+from robots.planar_arm.controller.gripper import GripperGeometry, finger_points, grasp_point
 
 LENGTH = 0.06
 H = 1e-3

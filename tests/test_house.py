@@ -15,7 +15,7 @@ import pytest
 
 from hil.cli import main
 from hil.errors import HilError, ScenarioError
-from hil.robots import build_rig, known_kinds, robot_kind
+from hil.rig import build_rig, known_kinds, robot_kind
 from hil.run import RunOptions, run_scenario
 from hil.scenario import DEFAULT_SCENARIO, load_scenario
 from rigbus.canbus import BusOpenError, BusSpec, open_bus
@@ -451,7 +451,8 @@ def test_direct_in_process_bus_equals_the_virtual_bus_with_a_thread(
 
 
 def test_camera_pictures_complete_by_their_header_whatever_the_order() -> None:
-    from controllers.node import CameraAssembler, CameraTiming
+    from controllers.config import CameraTiming
+    from controllers.node import CameraAssembler
     from rigbus.protocol import CameraFrame, CameraMarker
 
     assembler = CameraAssembler(3)

@@ -1,4 +1,5 @@
-"""Tests for controllers.ik (task-space IK on curvatures) and the curvature bounds it is given,
+"""Tests for robots.planar_arm.controller.ik (task-space IK on curvatures) and the curvature bounds
+it is given,
 SegmentModel.reachable_curvature, checked against the FeaSegment FMU's steady state.
 
 Oracles: forward kinematics (a solution is a tip on the target), the first-order optimality of
@@ -14,8 +15,8 @@ import numpy as np
 import pytest
 
 from controllers.curvature import SegmentModel
-from controllers.ik import ik_step, reachable, sample_workspace, solve_ik
 from controllers.kinematics import forward, tip_jacobian
+from robots.planar_arm.controller.ik import ik_step, reachable, sample_workspace, solve_ik
 from tests.helpers import simulate
 
 N = 6

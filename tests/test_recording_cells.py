@@ -16,7 +16,7 @@ import pytest
 from hil import cformat
 from hil.errors import HilError
 from hil.recording import SignalRecorder
-from hil.robots import SignalSpec
+from hil.rig import SignalSpec
 
 
 def test_cells_and_frame_columns(tmp_path: Path) -> None:

@@ -71,7 +71,7 @@ def test_a_changed_gain_fails_and_names_the_first_cycle(
 
 
 def load_scenario_config(path: Path):  # noqa: ANN201
-    from hil.robots import robot_kind
+    from hil.rig import robot_kind
 
     scenario = load_scenario(path)
     return robot_kind(scenario.robot.kind).controller_config(scenario)

@@ -15,11 +15,11 @@ import numpy as np
 import pytest
 
 from controllers import kinematics
-from controllers.tasks import PHASE
 from hil.errors import ScenarioError
 from hil.run import RunOptions, run_scenario
 from hil.scenario import load_scenario
 from hil.summary import read_signals
+from robots.planar_arm.controller.tasks import PHASE
 
 SCENARIOS = Path(__file__).parents[1] / "hil" / "scenarios"
 TIP_ERROR_MEAN = 2e-3  # [m] README: 4 sigma of the camera's 0.5 mm marker noise
@@ -129,7 +129,7 @@ def test_task_runs_are_identical_across_process_modes(tmp_path: Path) -> None:
 
 
 def test_targets_depend_on_the_seed_only(tmp_path: Path) -> None:
-    from hil.robots.planar_arm import ROBOT
+    from robots.planar_arm.plant.rig import ROBOT
 
     path = variant(tmp_path, "planar-point-to-point", {})
     plans = [ROBOT.task_plan(load_scenario(path, seed=seed)) for seed in (1, 1, 2)]

@@ -11,7 +11,9 @@ import pytest
 
 from controllers import kinematics
 from controllers.estimation import Estimate
-from controllers.tasks import (
+from hil.scenario import DEFAULT_SCENARIO, load_scenario
+from rigbus.protocol import ControllerState, DriveCommand, Protocol, TaskState
+from robots.planar_arm.controller.tasks import (
     PHASE,
     CurvatureMove,
     TaskPlan,
@@ -21,8 +23,6 @@ from controllers.tasks import (
     point_to_segment,
     trapezoid_fraction,
 )
-from hil.scenario import DEFAULT_SCENARIO, load_scenario
-from rigbus.protocol import ControllerState, DriveCommand, Protocol, TaskState
 
 LENGTHS = [0.06] * 6
 BASE = (0.0, 0.0, math.pi / 2)
@@ -87,7 +87,7 @@ def test_drawn_targets_are_reachable_spread_and_seeded() -> None:
     # farthest-point thinning: no two targets within 6 cm (uniform curvature draws put some
     # within 1 cm of each other for most seeds; thinning gives 8-11 cm on seeds 0-4)
     assert min(gaps) > 0.06
-    from controllers.ik import solve_ik
+    from robots.planar_arm.controller.ik import solve_ik
 
     for target in targets:
         result = solve_ik(target, np.zeros(6), LENGTHS, BASE, LOWER, UPPER)
@@ -95,7 +95,7 @@ def test_drawn_targets_are_reachable_spread_and_seeded() -> None:
 
 
 def test_drawn_paths_are_reachable_along_their_length() -> None:
-    from controllers.ik import solve_ik
+    from robots.planar_arm.controller.ik import solve_ik
 
     paths = draw_paths(np.random.default_rng(5), LENGTHS, BASE, LOWER, UPPER, 3, 0.08)
     assert len(paths) == 3
@@ -127,8 +127,8 @@ class IdealArm:
 
 
 def _config(plan: TaskPlan, segments: int = 6):  # type: ignore[no-untyped-def]
-    from controllers.node import ControllerConfig
-    from hil.robots.planar_arm import ROBOT
+    from robots.planar_arm.controller.config import ControllerConfig
+    from robots.planar_arm.plant.rig import ROBOT
 
     scenario = load_scenario(DEFAULT_SCENARIO)
     scenario = replace(scenario, robot=replace(scenario.robot, segments=segments))
@@ -137,7 +137,7 @@ def _config(plan: TaskPlan, segments: int = 6):  # type: ignore[no-untyped-def]
 
 
 def _run_ideal(plan: TaskPlan, cycles: int) -> tuple[list[TaskState], IdealArm, list]:
-    from controllers.task_space import TaskSpaceControl
+    from robots.planar_arm.controller.task_space import TaskSpaceControl
 
     config, _ = _config(plan)
     control = TaskSpaceControl(config, Protocol())
@@ -225,7 +225,7 @@ def test_path_tracking_follows_the_line_after_reaching_its_start() -> None:
 def test_correction_integrates_only_near_the_target() -> None:
     """Far from the target (the arm still on its way) the tip error must not wind the task-space
     correction up: unwinding it would cost seconds of settling."""
-    from controllers.task_space import TaskSpaceControl
+    from robots.planar_arm.controller.task_space import TaskSpaceControl
 
     config, _ = _config(_plan())
     control = TaskSpaceControl(config, Protocol())
@@ -241,7 +241,7 @@ def test_correction_integrates_only_near_the_target() -> None:
 def test_closing_the_loop_never_steps_a_reference_beyond_its_rate() -> None:
     """However far the IK solution of a corrected goal lies, one cycle moves each curvature
     reference by at most its rate limit times the control period."""
-    from controllers.task_space import TaskSpaceControl
+    from robots.planar_arm.controller.task_space import TaskSpaceControl
 
     config, _ = _config(_plan(kappa_rate=(1.0, 2.0, 3.0, 4.0, 5.0, 6.0)))
     control = TaskSpaceControl(config, Protocol())
@@ -254,7 +254,7 @@ def test_closing_the_loop_never_steps_a_reference_beyond_its_rate() -> None:
 
 def test_the_pistons_are_held_while_the_estimator_acquires_the_arm() -> None:
     from controllers.estimation import DriveReading
-    from controllers.task_space import TaskSpaceControl
+    from robots.planar_arm.controller.task_space import TaskSpaceControl
 
     config, _ = _config(_plan())
     control = TaskSpaceControl(config, Protocol())

@@ -88,7 +88,7 @@
  * theta_n + theta_dot_n t for them. Neglected: object-object contact; the arm's reaction to
  * the objects uses their poses at the step's end (an O(h) mismatch of action and reaction).
  *
- * Gripper (gripper = 1): a finger pair at the tip (controllers/gripper.py, see fingers()) adds one
+ * Gripper (gripper = 1): a finger pair at the tip (robots/planar_arm/controller/gripper.py, see fingers()) adds one
  * degree of freedom after the segments, the fingers' common bend angle: gripper_theta in,
  * gripper_tau_ext out, solved in the same implicit coupling. An object is held only by the
  * contact forces of both fingers enclosing it (finger_force_left/right), never attached.
@@ -192,7 +192,7 @@ static void chord_factor(double u, double *g, double *dg) {
 
 /* The two fingers at the tip pose (b, phi) of the arm, appended to bb: each an arc of length L_f
  * from a root offset +-r0 across the axis, the left finger curving right (towards the axis) by
- * the bend angle theta_g and the right one mirrored, exactly as controllers/gripper.py. A point
+ * the bend angle theta_g and the right one mirrored, exactly as robots/planar_arm/controller/gripper.py. A point
  * l from the tip moves with segment i < ns by d(tip)/dtheta_i + z x l, and with theta_g by its
  * own arc's derivative. */
 static void fingers(const Instance *inst, double theta_g, const double b[2], double phi,

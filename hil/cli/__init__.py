@@ -22,6 +22,7 @@ from hil.cli import fmu as fmu_command
 from hil.cli import replay as replay_command
 from hil.cli import run as run_command
 from hil.cli import scenarios as scenarios_command
+from hil.cli.parsers import HelpFormatter
 from hil.environment import check as check_environment
 from hil.errors import HilError, Terminated
 from rigbus.protocol import FrameError
@@ -51,23 +52,6 @@ EXAMPLES = """examples:
 
 exit codes: 0 success, 1 error, 2 wrong usage, 130 interrupted, 143 terminated
 """
-
-
-class HelpFormatter(argparse.RawDescriptionHelpFormatter):
-    """Keeps the examples' layout and shows every option's default (where it has one), once."""
-
-    def _get_help_string(self, action: argparse.Action) -> str:
-        text = action.help or ""
-        default = action.default
-        if (
-            "%(default)" not in text
-            and "(default" not in text  # the text states it already
-            and all(default is not no for no in (None, False, argparse.SUPPRESS))  # 0 is shown
-            and default != []  # a repeatable option given no times
-            and action.option_strings
-        ):
-            text += " (default: %(default)s)"
-        return text
 
 
 def _version() -> str:
@@ -137,18 +121,3 @@ def _terminate(signum: int, frame: object) -> None:
     the cleanup is ignored (KILL still ends the process)."""
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     raise Terminated
-
-
-def example_parser(
-    commands: argparse._SubParsersAction, name: str, help_text: str, examples: str
-) -> argparse.ArgumentParser:
-    """A subcommand parser whose help ends with examples."""
-    parser = commands.add_parser(
-        name,
-        help=help_text,
-        description=help_text,
-        epilog="examples:\n" + examples,
-        formatter_class=HelpFormatter,
-    )
-    parser.set_defaults(command_parser=parser)  # the deepest command's, for its usage errors
-    return parser

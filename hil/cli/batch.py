@@ -37,7 +37,7 @@ COMMON = (
 
 
 def add_parser(commands: argparse._SubParsersAction) -> None:
-    from hil.cli import example_parser
+    from hil.cli.parsers import example_parser
 
     batch = example_parser(
         commands, "batch", "run a scenario with N seeds in parallel and aggregate", BATCH_EXAMPLES

@@ -17,7 +17,7 @@ BUS_HELP = "bus spec: loopback[:HOST:PORT] (the hub of `hil bus serve`), socketc
 
 
 def add_parser(commands: argparse._SubParsersAction) -> None:
-    from hil.cli import example_parser
+    from hil.cli.parsers import example_parser
 
     parser = example_parser(
         commands,

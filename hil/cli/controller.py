@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import argparse
 
-from controllers.__main__ import add_arguments, run
+from hil.seam import controller_program
 
 
 def add_parser(commands: argparse._SubParsersAction) -> None:
-    from hil.cli import example_parser
+    from hil.cli.parsers import example_parser
 
     parser = example_parser(
         commands,
@@ -21,5 +21,6 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
         "   hil bus replay runs/default-1/can.log --direction T --lockstep --timeout 10\n"
         "   --bus loopback:127.0.0.1:29536, then this)\n",
     )
-    add_arguments(parser)
-    parser.set_defaults(handler=run)
+    program = controller_program()
+    program.add_arguments(parser)
+    parser.set_defaults(handler=program.run)

@@ -10,7 +10,7 @@ from hil.errors import HilError
 
 
 def add_parser(commands: argparse._SubParsersAction) -> None:
-    from hil.cli import example_parser
+    from hil.cli.parsers import example_parser
 
     estimate = example_parser(
         commands,
@@ -77,15 +77,11 @@ def _estimate(args: argparse.Namespace) -> int:
 
 
 def _tune(args: argparse.Namespace) -> int:
-    from controllers.loop_design import (
-        design_outer_loop,
-        effective_delay,
-        estimator_delay,
-        write_bode_png,
-    )
-    from hil.robots import robot_kind
+    from hil.rig import robot_kind
     from hil.scenario import load_scenario, resolve_scenario
+    from hil.seam import loop_design
 
+    loops = loop_design()
     scenario = load_scenario(None if args.scenario is None else resolve_scenario(args.scenario))
     robot = robot_kind(scenario.robot.kind)
     if not hasattr(robot, "segment_models"):  # the outer curvature loop is the planar arm's
@@ -94,7 +90,7 @@ def _tune(args: argparse.Namespace) -> int:
             f"{scenario.robot.kind!r}"
         )
     c, T = scenario.controller, scenario.timing.control_period
-    delay = effective_delay(estimator_delay(c.estimator, T, c.latency_compensation), T)
+    delay = loops.effective_delay(loops.estimator_delay(c.estimator, T, c.latency_compensation), T)
     out = _png_path(args.out) if args.out is not None else Path(f"tune-{scenario.name}.png")
     print(
         f"{scenario.name}: estimator {c.estimator} (latency compensation "
@@ -102,7 +98,7 @@ def _tune(args: argparse.Namespace) -> int:
         f"crossover cap {c.crossover:g} Hz"
     )
     for n, model in enumerate(robot.segment_models(scenario), start=1):  # type: ignore[attr-defined]
-        design = design_outer_loop(model, delay, max_crossover_hz=c.crossover)
+        design = loops.design_outer_loop(model, delay, max_crossover_hz=c.crossover)
         print(
             f"  segment {n}: Kp {design.gains.Kp:.5g} m/(1/m), Ki {design.gains.Ki:.5g} "
             f"m/(1/m s), crossover {design.crossover_hz:.2f} Hz, phase margin "
@@ -110,7 +106,7 @@ def _tune(args: argparse.Namespace) -> int:
         )
         if n == 1:
             try:
-                write_bode_png(model, design, out)
+                loops.write_bode_png(model, design, out)
             except OSError as exc:
                 raise HilError(f"--out {out}: cannot write: {exc.strerror or exc}") from None
     print(f"  Bode plot of segment 1: {out}")

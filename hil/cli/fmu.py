@@ -14,7 +14,7 @@ from hil.fmu.build import build_fmu
 
 
 def add_parser(commands: argparse._SubParsersAction) -> None:
-    from hil.cli import example_parser
+    from hil.cli.parsers import example_parser
 
     parser = example_parser(
         commands,

@@ -11,7 +11,7 @@ from hil.errors import HilError
 
 
 def add_parser(commands: argparse._SubParsersAction) -> None:
-    from hil.cli import example_parser
+    from hil.cli.parsers import example_parser
 
     parser = example_parser(
         commands,
@@ -74,7 +74,7 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
 def _replay(args: argparse.Namespace) -> int:
     from hil.replay import replay
     from hil.results import write_file
-    from hil.robots import robot_kind
+    from hil.rig import robot_kind
     from hil.scenario import load_scenario, resolve_scenario
 
     tolerances: dict[str, float] = {}

@@ -15,7 +15,7 @@ from hil.scenario import load_scenario, resolve_scenario
 
 
 def add_parser(commands: argparse._SubParsersAction) -> None:
-    from hil.cli import example_parser
+    from hil.cli.parsers import example_parser
 
     parser = example_parser(
         commands,

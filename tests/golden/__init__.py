@@ -30,7 +30,7 @@ import can
 from hil.devices import HEARTBEAT_PERIOD
 from hil.plant import Plant
 from hil.recording import CanLogger, SignalRecorder
-from hil.robots import build_rig
+from hil.rig import build_rig
 from hil.run import RunOptions, run_scenario
 from hil.scenario import DEFAULT_SCENARIO, Scenario, load_scenario, log_start
 from rigbus.canbus import BusSpec, open_bus

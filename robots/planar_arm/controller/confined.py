@@ -12,7 +12,8 @@ constraints cannot be met, or can be met only by not advancing (a pipe narrower 
 plus its margins), the step is solved again with a penalised slack on the clearance (the
 collision is tolerated and reported in `Plan.slack_steps`) instead of failing or stalling.
 The waypoints are then tracked by the curvature controllers as synchronised curvature moves
-(controllers.tasks.CurvatureMove), which interpolate the curvatures linearly; so each step is
+(robots.planar_arm.controller.tasks.CurvatureMove), which interpolate the curvatures linearly; so
+each step is
 also checked along that interpolation and its trust region halved until the body stays clear
 of the walls between waypoints too.
 

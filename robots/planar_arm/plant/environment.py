@@ -19,7 +19,7 @@ import math
 from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
-from hil.robots import SignalSpec
+from hil.rig import SignalSpec
 
 if TYPE_CHECKING:
     from hil.scenario import Scenario

@@ -6,7 +6,8 @@ camera marker (controllers.estimators.ObjectTracker). Stages, each reported in T
 0 approach, 1 carry, 2 retreat; phase as named):
   1. idle: the pistons held while the estimators acquire the arm and the object;
   2. moving (approach): the fingers open and the arm follows the approach plan
-     (controllers.grasp.plan_approach: concentric circles around the estimated object that
+     (robots.planar_arm.controller.grasp.plan_approach: concentric circles around the estimated
+     object that
      shrink onto it without touching it), waypoint after waypoint by realisable curvature moves;
   3. settling: the curvature loops settle on the grasp configuration (the estimated tip within
      `tolerance` of the plan's tip for `settle_time`, or `max_time` at most); if the camera
@@ -35,16 +36,17 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from controllers import grasp, kinematics
+from controllers import kinematics
 from controllers.estimation import DriveReading, Estimate
-from controllers.gripper import grasp_point
-from controllers.ik import solve_ik
-from controllers.planar_arm import CurvatureControl
-from controllers.tasks import PHASE, CurvatureMove
 from rigbus.protocol import ControllerState, DriveCommand, Protocol, TaskState
+from robots.planar_arm.controller import grasp
+from robots.planar_arm.controller.curvature_control import CurvatureControl
+from robots.planar_arm.controller.gripper import grasp_point
+from robots.planar_arm.controller.ik import solve_ik
+from robots.planar_arm.controller.tasks import PHASE, CurvatureMove
 
 if TYPE_CHECKING:
-    from controllers.node import ControllerConfig
+    from robots.planar_arm.controller.config import ControllerConfig
 
 LEGS = ("approach", "carry", "retreat")
 CORRECTION_LIMIT = 0.04  # [m] bound of the integrated task-space correction while settling (a held
@@ -52,7 +54,7 @@ CORRECTION_LIMIT = 0.04  # [m] bound of the integrated task-space correction whi
 # of a centimetre or two under its load)
 # [m] the correction integrates only while the estimated tip is this close to the goal: further
 # off, the arm is still on its way and integrating would wind the correction up (as
-# controllers.task_space does)
+# robots.planar_arm.controller.task_space does)
 WINDUP_LIMIT = 0.005
 ARRIVAL_TIME = 1.0  # [s] settling this long, the arm has arrived however biased its estimate
 # [m/rad] the settling IK weighs the gripper's heading lightly: the object is a disk, a few
@@ -166,7 +168,7 @@ class GraspControl:
         """The gripper's piston setpoint now: its strokes are ramps over STROKE_SHARE of
         grasp_time (trapezoidal), so closing fingers centre an object they reach off-centre
         instead of knocking it away."""
-        from controllers.tasks import trapezoid_fraction
+        from robots.planar_arm.controller.tasks import trapezoid_fraction
 
         duration = STROKE_SHARE * self.plan.grasp_time
         share = trapezoid_fraction(t - self.stroke_start, duration, 0.25 * duration)

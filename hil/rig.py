@@ -8,16 +8,15 @@ bus (for the bus load) and its task metrics; and it names its controller side
 (`controller_config`).
 The plant loop, the master, the bus and the recorders know no robot.
 
-Kinds are found in `KINDS` (built in) and in the `softhil.robots` entry-point group, so another
-package can add one without editing softhil.
+Kinds are found through `rigbus.robots`, where one entry registers both sides of a robot
+(softhil's own in `robots/<kind>/`, another package's through the `softhil.robots` entry-point
+group), so another package can add one without editing softhil.
 """
 
 from __future__ import annotations
 
-import importlib
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from importlib.metadata import entry_points
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
@@ -26,13 +25,12 @@ import numpy as np
 from hil.cosim import Connection, FmuParticipant, Participant
 from hil.devices import DeviceNode
 from hil.errors import HilError
+from rigbus.robots import known, plant_side
 
 if TYPE_CHECKING:
     from hil.scenario import Scenario
     from hil.vision import Camera
     from rigbus.protocol import Protocol as CanProtocol
-
-KINDS = {"planar_arm": "hil.robots.planar_arm:ROBOT", "fish": "hil.robots.fish:ROBOT"}
 
 
 @dataclass(frozen=True)
@@ -101,19 +99,16 @@ class RobotKind(Protocol):
 
 
 def robot_kind(name: str) -> RobotKind:
-    """The robot kind registered under `name`; HilError naming the known kinds otherwise."""
-    target = KINDS.get(name)
-    if target is None:
-        for ep in entry_points(group="softhil.robots"):
-            if ep.name == name:
-                return ep.load()  # type: ignore[no-any-return]
-        raise HilError(f"unknown robot kind {name!r} (known: {', '.join(known_kinds())})")
-    module, _, attribute = target.partition(":")
-    return getattr(importlib.import_module(module), attribute)  # type: ignore[no-any-return]
+    """The plant side of the robot kind registered under `name`; HilError naming the known kinds
+    otherwise."""
+    try:
+        return plant_side(name)  # type: ignore[no-any-return]
+    except ValueError as exc:
+        raise HilError(str(exc)) from None
 
 
 def known_kinds() -> list[str]:
-    return sorted({*KINDS, *(ep.name for ep in entry_points(group="softhil.robots"))})
+    return known()
 
 
 def fmu_ref(source: str, fmu: str) -> str:

@@ -3,7 +3,8 @@ pair), its own DriveCylinder FMU and drive node (the seventh DOF), wired into th
 FMU's contact.
 
     [robot.gripper]
-    finger_length = 0.04          # geometry (controllers.gripper.GripperGeometry), [m] and [rad]
+    finger_length = 0.04          # geometry
+    (robots.planar_arm.controller.gripper.GripperGeometry), [m] and [rad]
     theta_closed = 1.2
     [robot.gripper.segment]       # the finger pair's FeaSegment parameters over GRIPPER_SEGMENT
     k_bend = 0.01
@@ -24,7 +25,7 @@ import math
 from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any
 
-from controllers.gripper import GripperGeometry
+from robots.planar_arm.controller.gripper import GripperGeometry
 
 if TYPE_CHECKING:
     from hil.scenario import Scenario

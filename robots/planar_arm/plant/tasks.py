@@ -24,13 +24,13 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from controllers import kinematics
-from controllers.grasp_control import LEGS
-from controllers.tasks import PHASE, point_to_segment
+from robots.planar_arm.controller.grasp_control import LEGS
+from robots.planar_arm.controller.tasks import PHASE, point_to_segment
 
 if TYPE_CHECKING:
-    from controllers.tasks import TaskPlan
-    from hil.robots.planar_arm import PlanarArm
     from hil.scenario import Scenario
+    from robots.planar_arm.controller.tasks import TaskPlan
+    from robots.planar_arm.plant.rig import PlanarArm
 
 ON_TARGET_PHASES = (PHASE["moving"], PHASE["settling"], PHASE["settled"])
 SHAPES = 14  # arm shapes drawn over a run

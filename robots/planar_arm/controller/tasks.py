@@ -103,7 +103,7 @@ def draw_paths(
 ) -> list[tuple[tuple[float, float], tuple[float, float]]]:
     """`count` straight paths of `length` [m] whose every point the arm reaches within the
     shrunk curvature ranges (checked by IK at PATH_CHECKS points)."""
-    from controllers.ik import solve_ik
+    from robots.planar_arm.controller.ik import solve_ik
 
     lo, hi = _shrunk(lower, upper, margin)
     paths = []

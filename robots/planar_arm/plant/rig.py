@@ -18,16 +18,18 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from controllers import kinematics
+from controllers.config import CameraTiming
 from controllers.curvature import PiGains, SegmentModel
 from controllers.estimation import BendModel, CameraNoise
 from controllers.loop_design import effective_delay, estimator_delay, outer_loop_gains
-from controllers.node import CameraTiming, ControllerConfig, GripperConfig
-from controllers.tasks import TASK_KINDS, TaskPlan, draw_paths, draw_targets
 from hil.cosim import Connection, FmuParticipant, Participant
 from hil.devices import HEARTBEAT_PERIOD, CameraNode, DriveNode
-from hil.robots import PlotSpec, Rig, SignalSpec, environment, fmu_ref, gripper, scenario_camera
+from hil.rig import PlotSpec, Rig, SignalSpec, fmu_ref, scenario_camera
 from hil.vision import exposure_delay_bound
 from rigbus.protocol import Protocol
+from robots.planar_arm.controller.config import ControllerConfig, GripperConfig
+from robots.planar_arm.controller.tasks import TASK_KINDS, TaskPlan, draw_paths, draw_targets
+from robots.planar_arm.plant import environment, gripper
 
 if TYPE_CHECKING:
     from hil.scenario import Scenario
@@ -311,7 +313,8 @@ class PlanarArm:
         and of the other objects; a grasp task's place clear of the base and of the other
         objects. An object started inside the arm holds the penalty energy of that overlap and
         is pushed out by it, where none was meant: ScenarioError naming the key, as a drawn
-        layout is kept clear by construction (controllers.grasp.draw_grasp_task)."""
+        layout is kept clear by construction
+        (robots.planar_arm.controller.grasp.draw_grasp_task)."""
         from hil.scenario import fail
 
         file, task = s.source, s.task
@@ -344,7 +347,7 @@ class PlanarArm:
             ("the arm's start pose", poses[:, :2], np.repeat(np.array(widths) / 2, samples) + sag)
         ]
         if gripper.present(s):
-            from controllers.gripper import finger_points
+            from robots.planar_arm.controller.gripper import finger_points
 
             geometry = gripper.geometry(s)
             start = gripper.segment_values(s).get("theta_start", 0.0)
@@ -532,8 +535,8 @@ class PlanarArm:
     def grasp_layout(self, scenario: Scenario) -> tuple[tuple[float, float], tuple[float, float]]:
         """Where a grasp task's object starts and where it is to be placed [m]: the task's
         `pick` and `place`, else drawn from the seed within the reachable workspace."""
-        from controllers.grasp import draw_grasp_task
         from hil.scenario import fail
+        from robots.planar_arm.controller.grasp import draw_grasp_task
 
         task = scenario.task
         if task.pick is not None and task.place is not None:
@@ -744,12 +747,12 @@ class PlanarArm:
         participants: list[Participant] = [*fmus, *drives, camera]
         figures = []
         if scenario.task.kind in TASK_KINDS:
-            from hil.robots.planar_tasks import draw_arm
+            from robots.planar_arm.plant.tasks import draw_arm
 
             figures.append(("arm", lambda signals, path: draw_arm(self, scenario, signals, path)))
 
         def animate(signals: Mapping[str, Any], path: Path, fmt: str) -> None:
-            from hil.robots.planar_animation import animate_arm
+            from robots.planar_arm.plant.animation import animate_arm
 
             animate_arm(self, scenario, signals, path, fmt)
 
@@ -1070,7 +1073,7 @@ class PlanarArm:
                 raise fail(file, "robot.environment.walls", "a pipe task needs the channel's walls")
             if task.clearance < 0:
                 raise fail(file, "task.clearance", "must not be negative")
-            from controllers.confined import Channel
+            from robots.planar_arm.controller.confined import Channel
 
             try:
                 Channel(
@@ -1089,7 +1092,7 @@ class PlanarArm:
                 raise fail(file, "task.grasp_time", "must be positive")
         if task.kind == "path" and task.path_length <= 0:
             raise fail(file, "task.path_length", f"must be positive, got {task.path_length:g} m")
-        from controllers.ik import solve_ik
+        from robots.planar_arm.controller.ik import solve_ik
 
         lower, upper, _ = self.curvature_limits(s)
         mid, half = 0.5 * (lower + upper), 0.5 * (upper - lower) * IK_RANGE_SHARE
@@ -1131,7 +1134,7 @@ class PlanarArm:
         from hil.summary import curvature_metrics
 
         if scenario.task.kind in TASK_KINDS:
-            from hil.robots.planar_tasks import task_space_metrics
+            from robots.planar_arm.plant.tasks import task_space_metrics
 
             return task_space_metrics(self, scenario, signals)
         return curvature_metrics(scenario, signals)

@@ -30,8 +30,8 @@ from typing import Any
 import numpy as np
 from filterpy.kalman import KalmanFilter
 
+from controllers.config import CameraTiming, config_from_json
 from controllers.estimation import MarkerFrame
-from controllers.node import CameraTiming
 from rigbus.protocol import GenericFrame, Protocol
 
 TASKS = ("escape", "swim", "heading")
@@ -105,8 +105,6 @@ class FishConfig:
     @classmethod
     def from_json(cls, text: str) -> FishConfig:
         """Read a config; wrong or missing keys raise ValueError naming the key."""
-        from controllers.node import config_from_json
-
         config: FishConfig = config_from_json(cls, text)
         if config.task not in TASKS:
             raise ValueError(f"task: {config.task!r} is not one of {', '.join(TASKS)}")

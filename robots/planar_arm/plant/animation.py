@@ -2,7 +2,8 @@
 
 Each frame draws what `arm_frame` returns for one recorded row: the true backbone (forward
 kinematics of the recorded true curvatures `kappa_n`), the gripper's fingers where the run
-recorded their bend angle (`gripper_theta`; controllers.gripper.finger_points at the true tip
+recorded their bend angle (`gripper_theta`; robots.planar_arm.controller.gripper.finger_points at
+the true tip
 pose), and the disk objects where the Environment FMU put them (`object{o}_x`, `object{o}_y`).
 Around them stays what does not move: the channel walls (`[robot.environment] walls`), the
 task's targets, lines or goal (as `planar_tasks.draw_arm` draws them), the base; and the tip's
@@ -23,7 +24,6 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from controllers import kinematics
-from controllers.gripper import GripperGeometry, finger_points
 from hil.animation import (
     DPI,
     figure_size,
@@ -32,12 +32,13 @@ from hil.animation import (
     top_view,
     write_animation,
 )
-from hil.robots import environment, gripper
+from robots.planar_arm.controller.gripper import GripperGeometry, finger_points
+from robots.planar_arm.plant import environment, gripper
 
 if TYPE_CHECKING:
-    from controllers.tasks import TaskPlan
-    from hil.robots.planar_arm import PlanarArm
     from hil.scenario import Scenario
+    from robots.planar_arm.controller.tasks import TaskPlan
+    from robots.planar_arm.plant.rig import PlanarArm
 
 BACKBONE_POINTS = 8  # per segment: smooth enough at this size
 MARGIN = 0.02  # [m] around everything drawn
@@ -209,7 +210,7 @@ def _figure(
 
 def _draw_plan(ax: Any, scene: ArmScene) -> None:
     """The task's targets, lines, goal or pick and place, as planar_tasks.draw_arm draws them."""
-    from hil.robots.planar_tasks import draw_plan
+    from robots.planar_arm.plant.tasks import draw_plan
 
     if scene.plan is not None:
         draw_plan(ax, scene.plan, scene.grasp)

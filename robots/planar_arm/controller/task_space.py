@@ -4,9 +4,11 @@ per-segment curvature controllers.
 Each cycle it reads the estimated curvatures, computes the estimated tip position by the forward
 kinematics, and hands every segment a curvature reference:
 
-- point-to-point: for each target, the IK solution (damped least squares, controllers.ik) is
+- point-to-point: for each target, the IK solution (damped least squares,
+robots.planar_arm.controller.ik) is
   reached by a realisable curvature move (a synchronised trapezoid within each segment's rate
-  limit, controllers.tasks.CurvatureMove); then the loop closes on the estimated tip: the
+  limit, robots.planar_arm.controller.tasks.CurvatureMove); then the loop closes on the estimated
+  tip: the
   task-space error is integrated (gain `task_gain`, bounded by `correction_limit`) into a
   correction of the IK goal, so that model error between curvature and tip does not stay as a
   tip offset. A target is settled when the estimated tip has stayed within `tolerance` for
@@ -32,13 +34,13 @@ import numpy as np
 
 from controllers import kinematics
 from controllers.estimation import DriveReading, Estimate
-from controllers.ik import solve_ik
-from controllers.planar_arm import CurvatureControl
-from controllers.tasks import PHASE, CurvatureMove, path_timing, trapezoid_fraction
 from rigbus.protocol import ControllerState, DriveCommand, Protocol, TaskState
+from robots.planar_arm.controller.curvature_control import CurvatureControl
+from robots.planar_arm.controller.ik import solve_ik
+from robots.planar_arm.controller.tasks import PHASE, CurvatureMove, path_timing, trapezoid_fraction
 
 if TYPE_CHECKING:
-    from controllers.node import ControllerConfig
+    from robots.planar_arm.controller.config import ControllerConfig
 
 TRACK_IK_ITERATIONS = 5  # warm-started DLS iterations per cycle while the goal moves
 
@@ -70,7 +72,7 @@ class TaskSpaceControl:
         self.tracking = False  # path task: on the line (else approaching its start)
         self.path_timing = (0.0, 0.0)  # (duration, ramp) [s] of the current path's traverse
         self.waypoints: list[np.ndarray] = []  # pipe: the whole-arm plan's configurations
-        self.planned: Any = None  # pipe: the plan (controllers.confined.Plan)
+        self.planned: Any = None  # pipe: the plan (robots.planar_arm.controller.confined.Plan)
         self.notes: list[str] = []  # for the run's summary (ControllerReport.notes)
 
     # ------------------------------------------------------------------ the cycle
@@ -192,9 +194,10 @@ class TaskSpaceControl:
 
     def _plan_pipe(self, t: float, estimated: np.ndarray) -> None:
         """Confined space: plan the whole arm's way through the channel from the estimated
-        configuration (controllers.confined), then track its waypoints by curvature moves and
+        configuration (robots.planar_arm.controller.confined), then track its waypoints by
+        curvature moves and
         settle on the goal."""
-        from controllers.confined import Channel, plan_whole_arm
+        from robots.planar_arm.controller.confined import Channel, plan_whole_arm
 
         start = np.clip(estimated, self.lower, self.upper)
         channel = Channel(self.plan.walls, self.plan.centreline)

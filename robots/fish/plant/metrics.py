@@ -21,8 +21,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 if TYPE_CHECKING:
-    from hil.robots.fish import Fish
     from hil.scenario import Scenario
+    from robots.fish.plant.rig import Fish
 
 HOLD_MODE = 4  # FishState.mode "hold"
 NO_GAS_MODE = 6
@@ -194,7 +194,7 @@ def fish_metrics(robot: Fish, scenario: Scenario, signals: Mapping[str, Any]) ->
 
 
 def scenario_tolerance() -> float:
-    """The heading task's tolerance [rad]: the controller's (controllers.fish.FishConfig)."""
-    from controllers.fish import FishConfig
+    """The heading task's tolerance [rad]: the controller's (robots.fish.controller.FishConfig)."""
+    from robots.fish.controller import FishConfig
 
     return float(FishConfig.__dataclass_fields__["tolerance"].default)

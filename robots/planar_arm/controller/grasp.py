@@ -23,7 +23,8 @@ the controller's side of that: pure planning on the arm's curvatures, no plant s
 - `plan_retreat`: after release, the open gripper backed off along its axis to the outer radius.
 
 "Without touching": every waypoint and every point of the straight curvature interpolation
-between consecutive waypoints (what `controllers.tasks.CurvatureMove` tracks) keeps the open
+between consecutive waypoints (what `robots.planar_arm.controller.tasks.CurvatureMove` tracks)
+keeps the open
 fingers' capsules (radius finger_width / 2) and the arm's backbone capsules (radius width / 2)
 at least `margin` from the object's disk. The check is a guaranteed bound, not a sampled hope:
 arcs are sampled as polylines less their sagitta, and along an interpolation the samples are
@@ -48,8 +49,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from controllers import kinematics
-from controllers.gripper import GripperGeometry, finger_points, grasp_point, tip_for_grasp
-from controllers.ik import solve_ik
+from robots.planar_arm.controller.gripper import (
+    GripperGeometry,
+    finger_points,
+    grasp_point,
+    tip_for_grasp,
+)
+from robots.planar_arm.controller.ik import solve_ik
 
 Floats = Sequence[float] | np.ndarray
 Pose = tuple[float, float, float]

@@ -28,14 +28,14 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from controllers.fish import CALIBRATION, TASKS, FishConfig
-from controllers.node import CameraTiming
+from controllers.config import CameraTiming
 from hil.cosim import Connection, FmuParticipant, Participant
 from hil.devices import HEARTBEAT_PERIOD, CameraNode
-from hil.robots import PlotSpec, Rig, SignalSpec, fmu_ref, scenario_camera
-from hil.robots.fish_devices import CanisterNode, ValveNode
+from hil.rig import PlotSpec, Rig, SignalSpec, fmu_ref, scenario_camera
 from hil.vision import exposure_delay_bound
 from rigbus.protocol import Protocol
+from robots.fish.controller import CALIBRATION, TASKS, FishConfig
+from robots.fish.plant.devices import CanisterNode, ValveNode
 
 if TYPE_CHECKING:
     from hil.scenario import Scenario
@@ -121,8 +121,8 @@ class Fish:
         return {k: v for k, (v, _) in self._given(scenario, table, index).items()}
 
     def _given(self, scenario: Scenario, table: str, index: int) -> dict[str, tuple[float, str]]:
-        from hil.robots.planar_arm import _number
         from hil.scenario import fail
+        from robots.planar_arm.plant.rig import _number
 
         raw: dict[str, Any] = getattr(scenario.robot, table)
         out: dict[str, tuple[float, str]] = {}
@@ -179,8 +179,8 @@ class Fish:
     # ------------------------------------------------------------------ checks
 
     def check(self, scenario: Scenario) -> None:
-        from hil.robots.planar_arm import _number
         from hil.scenario import check_parameter, fail, fmu_interface
+        from robots.planar_arm.plant.rig import _number
 
         s, file, r = scenario, scenario.source, scenario.robot
         if s.task.kind not in TASKS:
@@ -489,13 +489,13 @@ class Fish:
     # ------------------------------------------------------------------ scoring
 
     def task_metrics(self, scenario: Scenario, signals: Mapping[str, Any]) -> dict[str, Any]:
-        from hil.robots.fish_metrics import fish_metrics
+        from robots.fish.plant.metrics import fish_metrics
 
         return fish_metrics(self, scenario, signals)
 
 
 def _animate(scenario: Scenario, signals: Mapping[str, Any], path: Path, fmt: str) -> None:
-    from hil.robots.fish_animation import animate_fish
+    from robots.fish.plant.animation import animate_fish
 
     animate_fish(scenario.name, signals, path, fmt)
 
