@@ -4,8 +4,8 @@ A scenario names the robot (its FMUs and parameters), extra connections, rates, 
 safety limits, controller and task, seed and duration. `load_scenario` returns a frozen
 `Scenario` or raises `ScenarioError` with one line naming the file, the key and the reason
 (unknown key, wrong type, missing FMU, impossible rate, value out of range). The built-in
-scenarios ship inside the package: every `hil/scenarios/*.toml`, named by its file stem
-(`builtin_scenarios`, `resolve_scenario`); `default` is the one `hil run` runs.
+scenarios ship with the robot kinds: every `robots/<kind>/scenarios/*.toml`, named by its file
+stem (`builtin_scenarios`, `resolve_scenario`); `default` is the one `hil run` runs.
 """
 
 from __future__ import annotations
@@ -27,8 +27,9 @@ from hil.vision import CameraEffects, check_effects
 from rigbus.canbus import KINDS as BUS_KINDS
 from rigbus.protocol import Protocol
 
-SCENARIO_FOLDER = Path(str(files("hil") / "scenarios"))  # the built-in scenarios
-DEFAULT_SCENARIO = SCENARIO_FOLDER / "default.toml"
+# the built-in scenarios: each robot kind's folder of them
+SCENARIO_FOLDERS = tuple(sorted(Path(str(files("robots"))).glob("*/scenarios")))
+DEFAULT_SCENARIO = Path(str(files("robots"))) / "planar_arm" / "scenarios" / "default.toml"
 # [bit/s] classical CAN (ISO 11898-1) runs at most 1 Mbit/s; softhil's frames are classical, so
 # the bus load and frame times are computed at one bitrate
 MAX_BITRATE = 1_000_000
@@ -252,7 +253,7 @@ def load_scenario(path: Path | None = None, *, seed: int | None = None) -> Scena
 
 @dataclass(frozen=True)
 class BuiltinScenario:
-    """A scenario shipped in `hil/scenarios/`: `hil run NAME` runs it."""
+    """A scenario shipped in `robots/<kind>/scenarios/`: `hil run NAME` runs it."""
 
     name: str  # the file stem
     path: Path
@@ -260,12 +261,13 @@ class BuiltinScenario:
 
 
 def builtin_scenarios() -> dict[str, BuiltinScenario]:
-    """Every `*.toml` in the package's scenario folder, by name (the file stem), sorted.
+    """Every `*.toml` in the robot kinds' scenario folders, by name (the file stem), sorted.
 
     Only the `description` is read here; a broken file is still listed (with no description)
     so that `hil run NAME` reports its problem with the file, key and reason."""
     found: dict[str, BuiltinScenario] = {}
-    for path in sorted(SCENARIO_FOLDER.glob("*.toml")):
+    paths = [path for folder in SCENARIO_FOLDERS for path in folder.glob("*.toml")]
+    for path in sorted(paths, key=lambda p: p.name):
         try:
             description = tomllib.loads(path.read_text(encoding="utf-8")).get("description", "")
         except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):

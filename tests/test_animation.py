@@ -31,7 +31,7 @@ from robots.planar_arm.controller.gripper import GripperGeometry, finger_points
 from robots.planar_arm.plant.animation import animate_arm, arm_frame, arm_scene
 from robots.planar_arm.plant.rig import ROBOT
 
-SCENARIOS = Path(__file__).parents[1] / "hil" / "scenarios"
+SCENARIOS = Path(__file__).parents[1] / "robots" / "planar_arm" / "scenarios"
 TINY = """
 name = "tiny"
 seed = 1

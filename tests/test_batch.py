@@ -27,7 +27,12 @@ import pytest
 from hil import batch
 from hil.cli import main
 from hil.errors import HilError, ScenarioError
-from hil.scenario import DEFAULT_SCENARIO, builtin_scenarios, resolve_scenario
+from hil.scenario import (
+    DEFAULT_SCENARIO,
+    SCENARIO_FOLDERS,
+    builtin_scenarios,
+    resolve_scenario,
+)
 
 SHORT = re.sub(
     r"(?m)^sine = .*\n",
@@ -48,7 +53,7 @@ def builtins(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
     (folder / "short.toml").write_text(SHORT)
     (folder / "broken.toml").write_text(BROKEN)
     with pytest.MonkeyPatch.context() as patch:
-        patch.setattr("hil.scenario.SCENARIO_FOLDER", folder)
+        patch.setattr("hil.scenario.SCENARIO_FOLDERS", (folder,))
         yield folder
 
 
@@ -447,7 +452,7 @@ def test_every_example_command_plans(
     monkeypatch.setattr(hil.cli.batch, "_print", lambda *a: None)
     # the package's built-ins, even after a test of this module put `builtins` in their place
     # (a module fixture: in file order, as `pytest -n0` runs, it is still in place here)
-    monkeypatch.setattr("hil.scenario.SCENARIO_FOLDER", DEFAULT_SCENARIO.parent)
+    monkeypatch.setattr("hil.scenario.SCENARIO_FOLDERS", SCENARIO_FOLDERS)
     monkeypatch.chdir(tmp_path)
     (tmp_path / "my.toml").write_text(DEFAULT_SCENARIO.read_text())
     argv = shlex.split(command.replace("HOST", "127.0.0.1"))[1:]
@@ -696,7 +701,7 @@ def test_success_rate_counts_failed_trials_as_unsuccessful(builtins: Path, tmp_p
 
 
 def test_hil_scenarios_lists_default(capsys: pytest.CaptureFixture[str], monkeypatch) -> None:
-    monkeypatch.setattr("hil.scenario.SCENARIO_FOLDER", DEFAULT_SCENARIO.parent)  # the package's
+    monkeypatch.setattr("hil.scenario.SCENARIO_FOLDERS", SCENARIO_FOLDERS)  # the package's
     code, stdout, _ = hil(capsys, "scenarios")
     description = tomllib.loads(DEFAULT_SCENARIO.read_text())["description"]
     assert code == 0 and re.search(rf"(?m)^default +{re.escape(description)}$", stdout)

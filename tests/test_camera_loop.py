@@ -455,9 +455,9 @@ def test_hil_estimate_of_a_fish_run_is_one_line(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], said_by: str
 ) -> None:
     # without its scenario.toml, the run's controller.json says it is a fish
-    from hil.scenario import SCENARIO_FOLDER
+    from hil.scenario import resolve_scenario
 
-    text = (SCENARIO_FOLDER / "fish-escape.toml").read_text()
+    text = resolve_scenario("fish-escape").read_text()
     path = tmp_path / "fish.toml"
     path.write_text(text.replace("duration = 0.4", "duration = 0.1"))
     assert "duration = 0.1" in path.read_text()

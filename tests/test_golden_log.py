@@ -1,4 +1,5 @@
-"""The golden CAN log (tests/golden/default.log): the plant, fed only the frames it received in
+"""The golden CAN log (robots/planar_arm/golden/default.log): the plant, fed only the frames it
+received in
 that run, must write the same log byte for byte: every frame it sent, their order (send phases,
 rig order), their bytes, the direction flags and the timestamps (start instant + simulation time).
 

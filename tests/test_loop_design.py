@@ -76,9 +76,9 @@ def _tune(capsys: pytest.CaptureFixture[str], *argv: str) -> tuple[int, str, lis
 
 
 def test_hil_tune_of_a_fish_scenario_is_one_line(capsys: pytest.CaptureFixture[str]) -> None:
-    from hil.scenario import SCENARIO_FOLDER
+    from hil.scenario import resolve_scenario
 
-    code, _, lines = _tune(capsys, str(SCENARIO_FOLDER / "fish-escape.toml"))
+    code, _, lines = _tune(capsys, str(resolve_scenario("fish-escape")))
     assert code == 1 and len(lines) == 1
     assert "hil tune applies to planar-arm scenarios" in lines[0] and "'fish'" in lines[0]
 

@@ -21,7 +21,7 @@ from hil.scenario import load_scenario
 from hil.summary import read_signals
 from robots.planar_arm.controller.tasks import PHASE
 
-SCENARIOS = Path(__file__).parents[1] / "hil" / "scenarios"
+SCENARIOS = Path(__file__).parents[1] / "robots" / "planar_arm" / "scenarios"
 TIP_ERROR_MEAN = 2e-3  # [m] README: 4 sigma of the camera's 0.5 mm marker noise
 TIP_ERROR_MAX = 5e-3
 PATH_RMS = 3e-3

@@ -25,7 +25,7 @@ import pytest
 
 from hil.cli import main as hil_main
 from hil.run import RunOptions, run_scenario
-from hil.scenario import SCENARIO_FOLDER, load_scenario
+from hil.scenario import load_scenario, resolve_scenario
 from rigbus.protocol import DBC_PATH
 from tests.test_closed_loop import shortened
 
@@ -294,7 +294,7 @@ def test_your_own_python_can_controller_drives_the_six_drives_and_replays(
     and each piston follows it. Its recorded run replays against it with no divergence, and a
     changed amplitude diverges at the first command. It runs as a copy outside the checkout,
     as a user's would: the DBC comes from the run (SOFTHIL_DBC)."""
-    text = (SCENARIO_FOLDER / "planar-point-to-point.toml").read_text()
+    text = resolve_scenario("planar-point-to-point").read_text()
     path = tmp_path / "p.toml"
     path.write_text(text.replace("duration = 40.0", "duration = 0.6"))
     out = tmp_path / "run"

@@ -36,29 +36,29 @@ from hil.scenario import DEFAULT_SCENARIO, Scenario, load_scenario, log_start
 from rigbus.canbus import BusSpec, open_bus
 from rigbus.protocol import Protocol
 
-GOLDEN_DIR = Path(__file__).resolve().parent
-DEFAULT_LOG = GOLDEN_DIR / "default.log"
+ROBOTS = Path(__file__).resolve().parents[2] / "robots"
+DEFAULT_LOG = ROBOTS / "planar_arm" / "golden" / "default.log"
 # the same run in the other formats CAN tools exchange, for the controller replay tests
 FORMATS = (".log", ".asc", ".blf")
 DURATION = 2.0  # [s] of the default scenario: the first step and most of its hold
-SCENARIOS = DEFAULT_SCENARIO.parent
-# name: (shipped scenario, seconds kept); their logs are tests/golden/<name>.log
+# name: (robot kind, seconds kept); the scenarios are robots/<kind>/scenarios/<name>.toml, their
+# logs robots/<kind>/golden/<name>.log
 PLANT_GOLDENS = {
-    "fish-escape": ("fish-escape.toml", 0.4),
-    "planar-grasp": ("planar-grasp.toml", 1.5),
+    "fish-escape": ("fish", 0.4),
+    "planar-grasp": ("planar_arm", 1.5),
 }
 
 
 def plant_golden(name: str) -> Path:
-    return GOLDEN_DIR / f"{name}.log"
+    return ROBOTS / PLANT_GOLDENS[name][0] / "golden" / f"{name}.log"
 
 
 def write_plant_scenario(name: str, folder: Path) -> Path:
     """Scenario `name` of PLANT_GOLDENS cut to its seconds, written to folder/<name>.toml."""
-    source, seconds = PLANT_GOLDENS[name]
-    lines = (SCENARIOS / source).read_text().splitlines()
+    kind, seconds = PLANT_GOLDENS[name]
+    lines = (ROBOTS / kind / "scenarios" / f"{name}.toml").read_text().splitlines()
     if not any(line.startswith("duration = ") for line in lines):
-        raise RuntimeError(f"{source} no longer has a duration line: update tests/golden")
+        raise RuntimeError(f"{name}.toml no longer has a duration line: update tests/golden")
     lines = [f"duration = {seconds}" if line.startswith("duration = ") else line for line in lines]
     path = folder / f"{name}.toml"
     path.write_text("\n".join(lines) + "\n")
