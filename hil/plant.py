@@ -222,6 +222,7 @@ class Plant:
             try:
                 execution.settle()  # no FMU steps on after the run, nor into a forked child
             finally:
+                self.stats.periods_on_thread = execution.periods_on_thread
                 self._count()
                 self.stats.wall_time = time.perf_counter() - started
                 self.signals.end_row()
@@ -375,7 +376,6 @@ class Plant:
     def _count(self) -> None:
         """The device nodes' counts into the stats: when the run ends, however it ends."""
         stats = self.stats
-        stats.periods_on_thread = self.execution.periods_on_thread
         stats.commands_missed = sum(getattr(n, "missed", 0) for n in self.nodes)
         stats.commands_stale = sum(getattr(n, "stale", 0) for n in self.nodes)
         stats.emcy_sent = sum(getattr(n, "emcy_sent", 0) for n in self.nodes)

@@ -21,9 +21,9 @@ from typing import Any
 
 import can
 import pytest
-from controllers.protocol import Protocol
 
 from hil.scenario import Scenario, load_scenario
+from rigbus.protocol import Protocol
 from tests.golden import (
     DEFAULT_LOG,
     DURATION,
