@@ -655,7 +655,7 @@ def _plan(
 
 
 def plan_retreat(
-    place: tuple[float, float],
+    place: Floats,
     object_radius: float,
     current_kappas: Floats,
     heading: float,
@@ -710,7 +710,7 @@ def plan_retreat(
 
 
 def plan_carry(
-    place: tuple[float, float],
+    place: Floats,
     current_kappas: Floats,
     heading: float,
     lengths: Floats,

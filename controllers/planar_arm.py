@@ -7,7 +7,7 @@ ControllerState frame per segment (the reference it tracks and the estimate it u
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any
 
 from controllers.curvature import CurvaturePI
@@ -15,6 +15,7 @@ from controllers.estimation import DriveReading, Estimate
 from rigbus.protocol import ControllerState, DriveCommand, Protocol
 
 if TYPE_CHECKING:
+    from controllers.kinematics import Floats
     from controllers.node import ControllerConfig
 
 
@@ -29,7 +30,9 @@ def __getattr__(name: str) -> Any:
 
 def expected(config: ControllerConfig) -> set[tuple[str, int | None]]:
     """The status frames every cycle must bring: each drive's (the gripper's too)."""
-    drives = {("DriveStatus", n) for n in range(1, config.segments + 1)}
+    drives: set[tuple[str, int | None]] = {
+        ("DriveStatus", n) for n in range(1, config.segments + 1)
+    }
     if config.gripper is not None:
         drives.add(("DriveStatus", config.gripper.node))
     return drives
@@ -91,7 +94,7 @@ class CurvatureControl:
     def command(
         self,
         cycle: int,
-        references: Sequence[float],
+        references: Floats,
         estimate: Estimate,
         drives: Mapping[int, DriveReading],
     ) -> list[Any]:

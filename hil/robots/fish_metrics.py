@@ -197,4 +197,4 @@ def scenario_tolerance() -> float:
     """The heading task's tolerance [rad]: the controller's (controllers.fish.FishConfig)."""
     from controllers.fish import FishConfig
 
-    return float(FishConfig.__dataclass_fields__["tolerance"].default)
+    return FishConfig.tolerance  # the field's default
