@@ -61,6 +61,28 @@ def test_each_tool_is_pinned_and_installed_at_its_pin(tool: str) -> None:
     require_pinned(tool)
 
 
+def test_a_tool_at_another_version_or_missing_fails_by_name(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    pinned = pinned_versions()["mypy"]
+    module = sys.modules[__name__]
+    monkeypatch.setattr(module, "version", lambda name: "0.0.1")
+    with pytest.raises(AssertionError, match=rf"^mypy 0\.0\.1 is installed, .* mypy=={pinned}:"):
+        require_pinned("mypy")
+
+    def missing(name: str) -> str:
+        raise PackageNotFoundError(name)
+
+    monkeypatch.setattr(module, "version", missing)
+    with pytest.raises(
+        pytest.fail.Exception,
+        match=rf"^radon is not installed: .*radon=={pinned_versions()['radon']}\)$",
+    ):
+        require_pinned("radon")
+    with pytest.raises(AssertionError, match="pins no exact version of pytest"):
+        require_pinned("pytest")  # pytest>=8: not pinned
+
+
 @pytest.mark.parametrize("check", CHECKS)
 def test_the_checkout_is_clean(check: str) -> None:
     command = CHECKS[check]
