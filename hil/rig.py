@@ -38,13 +38,14 @@ class SignalSpec:
     """One recorded column: where its value comes from at each SYNC, its unit, what it is.
 
     `source` is a master value ("segment1.kappa"); `frame` instead names a signal of a frame the
-    controller sends, (DBC kind, index, signal), recorded as the controller reported it."""
+    controller sends, (DBC kind, index, signal), recorded as the controller reported it (index
+    None for a kind without one, as TaskState: `rigbus.protocol.frame_key`)."""
 
     column: str
     unit: str
     description: str
     source: str | None = None
-    frame: tuple[str, int, str] | None = None
+    frame: tuple[str, int | None, str] | None = None
 
 
 @dataclass(frozen=True)

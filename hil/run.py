@@ -30,6 +30,7 @@ from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
+import can
 from threadpoolctl import threadpool_limits
 
 from hil.animation import check_format
@@ -213,9 +214,10 @@ def _run(
         direct = options.inprocess and not options.bus
         hub: str | None = None  # where hil run's own hub runs, if it serves one
         if direct:  # plant and controller in this thread, frames handed over synchronously
-            plant_bus, controller_bus = direct_pair(f"softhil-{scenario.name}")
+            plant_end, controller_bus = direct_pair(f"softhil-{scenario.name}")
             stack.callback(controller_bus.shutdown)
             plant_spec = controller_spec = BusSpec("direct", "in-process")
+            plant_bus: can.BusABC = plant_end
         else:
             plant_spec, controller_spec, hosted, hub = _bus_specs(scenario, options, stack)
             plant_bus = hosted if hosted is not None else _open(plant_spec)
@@ -231,7 +233,7 @@ def _run(
         peer = _Peer()
         try:
             if direct:
-                plant_bus.handler = plant.handle
+                plant_end.handler = plant.handle
                 clock = (
                     RealtimeClock(config.control_period) if options.realtime else LockstepClock()
                 )
@@ -385,7 +387,7 @@ def _finite(value: Any) -> Any:
     return value
 
 
-def _open(spec: BusSpec):  # noqa: ANN202 - can.BusABC
+def _open(spec: BusSpec) -> can.BusABC:
     try:
         return open_bus(spec)
     except BusOpenError as exc:
@@ -452,6 +454,7 @@ def _bus_specs(
         # protocol stays open on the same port for tools); the hub runs where SOFTHIL_HUB says
         mode = os.environ.get("SOFTHIL_HUB", "plant")
         busy_poll = _busy_poll(mode, options)
+        assert spec.channel is not None  # the scenario's bus.channel (checked, never empty)
         port, hosted = _serve_hub(spec.host, spec.channel, mode, busy_poll, stack)
         extra = (("busy_poll", f"{busy_poll:g}"),) if busy_poll else ()
         spec = replace(spec, kind="softhil", port=port, options=extra)

@@ -11,6 +11,7 @@ the draws of the others.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -168,7 +169,7 @@ class Camera:
         self._next_frame = 0
         # the draws in C (`hil.cvision`): the same functions on the same streams
         c = cvision.load()
-        self._c_picture = None if c is None else c.picture
+        self._c_picture: Callable[..., int] | None = None if c is None else c.picture
         self._bitgens = tuple(
             g.bit_generator.capsule for g in (self._rng_noise, self._rng_dropout, self._rng_outlier)
         )
@@ -233,13 +234,15 @@ class Camera:
         """Take frame `frame_index`, nominally exposed at `nominal_time` [s], of the true marker
         positions `true_points`, shape (M, 2) or (M, 3) [m], sampled at `exposure_tick`."""
         true_points = np.asarray(true_points, dtype=float)
+        markers: int
+        dims: int
         markers, dims = true_points.shape
         nominal_tick = round(nominal_time / self.macro_step)
         tick = self.exposure_tick(frame_index, nominal_tick)
         self._jitter_ticks.pop(frame_index)
         time = tick * self.macro_step
         if self._c_picture is not None and markers > 0 and dims > 0:
-            return self._picture_c(frame_index, tick, time, true_points)
+            return self._picture_c(self._c_picture, frame_index, tick, time, true_points)
         e = self.effects
         # fixed draw counts per picture: M x dims normals, M uniforms, M uniforms + M x dims normals
         noise = self._rng_noise.normal(0.0, 1.0, (markers, dims)) * e.noise
@@ -262,11 +265,16 @@ class Camera:
         return Picture(frame_index, tick, time, points, dropped, occluded, outlier & ~missing)
 
     def _picture_c(
-        self, frame_index: int, tick: int, time: float, true_points: np.ndarray
+        self,
+        c_picture: Callable[..., int],
+        frame_index: int,
+        tick: int,
+        time: float,
+        true_points: np.ndarray,
     ) -> Picture:
-        """`picture`'s draws and points in C (`hil.cvision`), the same bit for bit: the same
-        draws from the same streams in the same order; the rare outlier is moved along its
-        direction, and occlusions applied, here, as `picture` does."""
+        """`picture`'s draws and points in C (`c_picture`, `hil.cvision`'s), the same bit for
+        bit: the same draws from the same streams in the same order; the rare outlier is moved
+        along its direction, and occlusions applied, here, as `picture` does."""
         e = self.effects
         shape = true_points.shape
         markers = shape[0]
@@ -276,7 +284,7 @@ class Camera:
         direction = self._directions.get(shape)
         if direction is None:
             direction = self._directions[shape] = np.empty(shape)
-        flags = self._c_picture(
+        flags = c_picture(
             *self._bitgens,
             np.ascontiguousarray(true_points),
             points,

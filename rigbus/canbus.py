@@ -108,7 +108,7 @@ def _options(text: str, pairs: Sequence[str]) -> tuple[tuple[str, str], ...]:
     return tuple(options)
 
 
-def _option(value: str) -> object:
+def _option(value: str) -> int | float | bool | str:
     """A spec option as python-can expects it: int, float, bool or text."""
     for convert in (int, float):
         try:
@@ -147,7 +147,8 @@ def open_bus(spec: BusSpec, timeout: float = 2.0) -> can.BusABC:
                 port=spec.port,
                 tcp_tune=True,
             )
-        kwargs = {k: _option(v) for k, v in spec.options}
+        # an interface's own keyword arguments, which python-can takes as Any
+        kwargs: dict[str, Any] = {k: _option(v) for k, v in spec.options}
         if spec.kind == "config":
             return can.Bus(**kwargs)  # interface and channel from can.conf / CAN_INTERFACE
         if spec.channel is None:
@@ -224,9 +225,11 @@ def connection_closed(bus: can.BusABC) -> bool:
     at once, forever); callers ask this when a receive came back empty, to stop instead of
     spinning. It reads only public state: the hub's address from `channel_info` ("socketcand
     on CHANNEL@HOST:PORT"), probed by a new connection that a live hub greets or refuses."""
+    from rigbus.binary import SofthilBus
+
+    if isinstance(bus, SofthilBus):
+        return bus.closed  # it knows: a closed connection is a receive of zero bytes
     info = getattr(bus, "channel_info", "")
-    if isinstance(info, str) and info.startswith("softhil binary on "):
-        return bool(bus.closed)  # it knows: a closed connection is a receive of zero bytes
     if not isinstance(info, str) or not info.startswith("socketcand on "):
         return False
     host, _, port = info.rpartition("@")[2].rpartition(":")

@@ -46,12 +46,12 @@ def replace_init(cls: type) -> bool:
     space: dict[str, Any] = dict(defaults)
     exec(source, space)  # noqa: S102 - built from the dataclass's field names
     init = space["__init__"]
-    old = cls.__init__  # type: ignore[misc]
+    old = cls.__init__
     init.__annotations__ = dict(getattr(old, "__annotations__", {}))
     if inspect.signature(init) != inspect.signature(old):  # an InitVar, or anything else
         return False
     init.__qualname__ = f"{cls.__qualname__}.__init__"
     init.__module__ = cls.__module__
     init.__doc__ = old.__doc__
-    cls.__init__ = init  # type: ignore[misc]
+    cls.__init__ = init  # type: ignore[method-assign]  # replacing the method is the point
     return True

@@ -19,14 +19,8 @@ import pytest
 pytest_plugins = ["pytester"]
 
 ROOT = Path(__file__).resolve().parents[1]
-PROJECT = (
-    "pyproject.toml",
-    "README.md",
-    "fmus",
-    "hil",
-    "controllers",
-    "rigbus",
-)  # what a build reads
+# what a build reads
+PROJECT = ("pyproject.toml", "README.md", "fmus", "hil", "controllers", "rigbus", "robots")
 
 
 def copy_project(target: Path) -> Path:

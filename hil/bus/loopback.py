@@ -1328,7 +1328,7 @@ def serve(
         def watch_parent() -> None:
             # blocks in read() without the GIL; EOF: the parent closed the pipe or died
             with contextlib.suppress(OSError, ValueError):
-                while sys.stdin.buffer.read1(4096):
+                while sys.stdin.buffer.read(4096):
                     pass
             hub.stop()
 

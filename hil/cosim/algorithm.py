@@ -233,7 +233,8 @@ class Algorithm:
             for p in fast
         ]
         kernel = kernel_module.Kernel(plan, links, len(self._slots), self.step)
-        self._array = np.frombuffer(kernel.values, dtype=np.float64)
+        # numpy's stubs take no ctypes array, although one exports the buffer protocol
+        self._array = np.frombuffer(kernel.values, dtype=np.float64)  # type: ignore[call-overload]
         self._fast = fast
         self._slow = [p for p in self.participants.values() if p not in fast]
         self._fast_keys = [f"{p.name}.{n}" for p in fast for n in p.output_names()]

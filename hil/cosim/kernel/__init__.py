@@ -385,7 +385,8 @@ class Kernel:
         self._job = None  # only now: an interrupt before this leaves the job to `stop`
         width = len(self.values)
         # as floats in one conversion (numpy's view of the buffer), not a ctypes slice a row
-        view = np.frombuffer(self._samples, dtype=np.float64, count=samples * width)
+        # (numpy's stubs take no ctypes array, although one exports the buffer protocol)
+        view = np.frombuffer(self._samples, dtype=np.float64, count=samples * width)  # type: ignore[call-overload]
         rows: list[list[float]] = view.reshape(samples, width).tolist()
         if failed:
             return rows, self._error(before)

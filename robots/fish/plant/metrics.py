@@ -197,4 +197,4 @@ def scenario_tolerance() -> float:
     """The heading task's tolerance [rad]: the controller's (robots.fish.controller.FishConfig)."""
     from robots.fish.controller import FishConfig
 
-    return float(FishConfig.__dataclass_fields__["tolerance"].default)
+    return FishConfig.tolerance  # the field's default

@@ -21,7 +21,7 @@ controller estimated.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -308,7 +308,7 @@ class Fish:
         )
         seen = self.camera_view(scenario, protocol)
 
-        def markers(values: list[float]) -> np.ndarray:
+        def markers(values: Sequence[float]) -> np.ndarray:
             # a marker beyond the camera's field of view is not seen
             points = np.array(values, dtype=float).reshape(len(CAMERA_MARKERS), 2)
             points[np.abs(points).max(axis=1) > seen] = np.nan

@@ -19,7 +19,9 @@ from robots.planar_arm.controller.task_space import TaskSpaceControl
 
 def expected(config: ControllerConfig) -> set[tuple[str, int | None]]:
     """The status frames every cycle must bring: each drive's (the gripper's too)."""
-    drives = {("DriveStatus", n) for n in range(1, config.segments + 1)}
+    drives: set[tuple[str, int | None]] = {
+        ("DriveStatus", n) for n in range(1, config.segments + 1)
+    }
     if config.gripper is not None:
         drives.add(("DriveStatus", config.gripper.node))
     return drives

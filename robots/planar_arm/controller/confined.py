@@ -346,7 +346,7 @@ class _Problem:
 
 def plan_whole_arm(
     start: Floats,
-    goal: Sequence[float],
+    goal: Floats,
     lengths: Floats,
     base: tuple[float, float, float],
     lower: Floats,

@@ -5,13 +5,16 @@ and a ControllerState frame per segment (the reference it tracks and the estimat
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
-from typing import Any
+from collections.abc import Mapping
+from typing import TYPE_CHECKING, Any
 
 from controllers.curvature import CurvaturePI
 from controllers.estimation import DriveReading, Estimate
 from rigbus.protocol import ControllerState, DriveCommand, Protocol
 from robots.planar_arm.controller.config import ControllerConfig
+
+if TYPE_CHECKING:
+    from controllers.kinematics import Floats
 
 
 class CurvatureControl:
@@ -42,7 +45,7 @@ class CurvatureControl:
     def command(
         self,
         cycle: int,
-        references: Sequence[float],
+        references: Floats,
         estimate: Estimate,
         drives: Mapping[int, DriveReading],
     ) -> list[Any]:

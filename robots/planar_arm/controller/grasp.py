@@ -661,7 +661,7 @@ def _plan(
 
 
 def plan_retreat(
-    place: tuple[float, float],
+    place: Floats,
     object_radius: float,
     current_kappas: Floats,
     heading: float,
@@ -716,7 +716,7 @@ def plan_retreat(
 
 
 def plan_carry(
-    place: tuple[float, float],
+    place: Floats,
     current_kappas: Floats,
     heading: float,
     lengths: Floats,

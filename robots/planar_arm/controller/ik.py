@@ -60,6 +60,7 @@ import numpy as np
 from controllers.kinematics import Floats, forward, tip_derivatives
 
 DAMPING = 0.01  # [m] largest DLS damping, reached at a singularity
+MAX_ITER = 100  # solve_ik's iterations unless told otherwise
 MAX_BEND_STEP = 0.5  # [rad] largest bend-angle change per segment in one solver iteration
 REACHED = 1e-9  # [m] ik_step tries no stall escape for a smaller (weighted) error
 STATIONARY = 1e-9  # [rad] a solver step this small (per segment) means the iterate has settled
@@ -299,7 +300,7 @@ def solve_ik(
     rest_weight: float = 1.0,
     tol: float = 1e-6,
     heading_tol: float = 1e-6,
-    max_iter: int = 100,
+    max_iter: int = MAX_ITER,
 ) -> IkResult:
     """Curvatures that put the tip on `target` (and optionally at `heading`) within bounds.
 

@@ -36,7 +36,7 @@ from controllers import kinematics
 from controllers.estimation import DriveReading, Estimate
 from rigbus.protocol import ControllerState, DriveCommand, Protocol, TaskState
 from robots.planar_arm.controller.curvature_control import CurvatureControl
-from robots.planar_arm.controller.ik import solve_ik
+from robots.planar_arm.controller.ik import MAX_ITER, solve_ik
 from robots.planar_arm.controller.tasks import PHASE, CurvatureMove, path_timing, trapezoid_fraction
 
 if TYPE_CHECKING:
@@ -286,9 +286,14 @@ class TaskSpaceControl:
 
     def _solve(self, goal: np.ndarray, iterations: int | None) -> None:
         """Move the reference towards the IK solution of `goal` within the rate limits."""
-        options = {} if iterations is None else {"max_iter": iterations}
         result = solve_ik(
-            goal, self.solution, self.lengths, self.base, self.lower, self.upper, **options
+            goal,
+            self.solution,
+            self.lengths,
+            self.base,
+            self.lower,
+            self.upper,
+            max_iter=MAX_ITER if iterations is None else iterations,
         )
         self.solution = result.kappas
         step = np.clip(result.kappas - self.reference, -self.rates * self.T, self.rates * self.T)

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from controllers import kinematics
+from controllers.kinematics import Floats
 from rigbus.protocol import TASK_PHASES
 
 PHASE = {name: code for code, name in enumerate(TASK_PHASES)}
@@ -73,8 +74,8 @@ def draw_targets(
     rng: np.random.Generator,
     lengths: Sequence[float],
     base: tuple[float, float, float],
-    lower: Sequence[float],
-    upper: Sequence[float],
+    lower: Floats,
+    upper: Floats,
     count: int,
     margin: float = 0.7,
 ) -> list[tuple[float, float]]:
@@ -95,8 +96,8 @@ def draw_paths(
     rng: np.random.Generator,
     lengths: Sequence[float],
     base: tuple[float, float, float],
-    lower: Sequence[float],
-    upper: Sequence[float],
+    lower: Floats,
+    upper: Floats,
     count: int,
     length: float,
     margin: float = 0.7,
@@ -130,9 +131,7 @@ def draw_paths(
     return paths
 
 
-def _shrunk(
-    lower: Sequence[float], upper: Sequence[float], margin: float
-) -> tuple[np.ndarray, np.ndarray]:
+def _shrunk(lower: Floats, upper: Floats, margin: float) -> tuple[np.ndarray, np.ndarray]:
     lo, hi = np.asarray(lower, float), np.asarray(upper, float)
     mid, half = 0.5 * (lo + hi), 0.5 * (hi - lo) * margin
     return mid - half, mid + half

@@ -10,7 +10,7 @@ cylinder's bore and stroke and is sealed where that piston starts.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -646,7 +646,7 @@ class PlanarArm:
         base = r.base
         n_arm = r.segments
 
-        def marker_model(values: list[float]) -> np.ndarray:
+        def marker_model(values: Sequence[float]) -> np.ndarray:
             """The arm's markers (base, every segment end), then each object's (its centre)."""
             arm = kinematics.markers(values[:n_arm], lengths, base)
             if len(values) == n_arm:
@@ -993,6 +993,7 @@ class PlanarArm:
         lengths = [p["length"] for p in self.parameters(scenario, "segment")]
         base = scenario.robot.base
         rng = np.random.default_rng([scenario.seed, TASK_STREAM])
+        targets: tuple[tuple[float, float], ...]
         ends: tuple[tuple[float, float], ...] = ()
         walls: tuple[tuple[tuple[float, float], ...], ...] = ()
         width = 0.0
