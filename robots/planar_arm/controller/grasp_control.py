@@ -359,62 +359,75 @@ class GraspControl:
         tip = kinematics.forward(kappa, self.lengths, self.base)[-1, :2]
         error = np.zeros(2)
         if pose is not None and self.leg < 2:
-            # carrying, the camera sees where the object is (it sits a few millimetres off the
-            # nominal grasp point, pressed into the palm): close the loop on it; else on the tip
-            error = self.target - self.seen if self.leg == 1 else np.array(pose[:2]) - tip
-            lag = np.array(pose[:2]) + self.correction - tip
-            # integrate once the arm has caught up; under a load the estimate may keep a bias
-            # of a centimetre or two, so after ARRIVAL_TIME in any case
-            arrived = t - self.since >= ARRIVAL_TIME
-            if float(np.linalg.norm(lag)) <= WINDUP_LIMIT or arrived:
-                self.correction += self.plan.task_gain * self.config.control_period * error
-                norm = float(np.linalg.norm(self.correction))
-                if norm > CORRECTION_LIMIT:
-                    self.correction *= CORRECTION_LIMIT / norm
-            result = solve_ik(
-                np.array(pose[:2]) + self.correction,
-                self.solution,
-                self.lengths,
-                self.base,
-                self.lower,
-                self.upper,
-                heading=pose[2],
-                heading_weight=HEADING_WEIGHT,
-                max_iter=5,
-            )
-            self.solution = result.kappas
-            step = self.rates * self.config.control_period
-            self.reference = np.clip(
-                self.reference + np.clip(self.solution - self.reference, -step, step),
-                self.lower,
-                self.upper,
-            )
+            error = self._close_loop(t, tip, pose)
         if self.leg == 1 and pose is not None:
             self._place(t, error)
             return
+        if self._settled(t, pose, error) or t - self.since >= self.plan.max_time:
+            self._on_settled(t, kappa, pose)
+
+    def _close_loop(
+        self, t: float, tip: np.ndarray, pose: tuple[float, float, float]
+    ) -> np.ndarray:
+        """One step of the settling loop towards the leg's last pose: the error closed on (the
+        carried object's, else the tip's), integrated into the goal's correction once the arm
+        has caught up, and the reference moved towards the IK solution of the corrected goal
+        within the drives' rates; returns the error."""
+        # carrying, the camera sees where the object is (it sits a few millimetres off the
+        # nominal grasp point, pressed into the palm): close the loop on it; else on the tip
+        error = self.target - self.seen if self.leg == 1 else np.array(pose[:2]) - tip
+        lag = np.array(pose[:2]) + self.correction - tip
+        # integrate once the arm has caught up; under a load the estimate may keep a bias
+        # of a centimetre or two, so after ARRIVAL_TIME in any case
+        arrived = t - self.since >= ARRIVAL_TIME
+        if float(np.linalg.norm(lag)) <= WINDUP_LIMIT or arrived:
+            self.correction += self.plan.task_gain * self.config.control_period * error
+            norm = float(np.linalg.norm(self.correction))
+            if norm > CORRECTION_LIMIT:
+                self.correction *= CORRECTION_LIMIT / norm
+        result = solve_ik(
+            np.array(pose[:2]) + self.correction,
+            self.solution,
+            self.lengths,
+            self.base,
+            self.lower,
+            self.upper,
+            heading=pose[2],
+            heading_weight=HEADING_WEIGHT,
+            max_iter=5,
+        )
+        self.solution = result.kappas
+        step = self.rates * self.config.control_period
+        self.reference = np.clip(
+            self.reference + np.clip(self.solution - self.reference, -step, step),
+            self.lower,
+            self.upper,
+        )
+        return error
+
+    def _settled(
+        self, t: float, pose: tuple[float, float, float] | None, error: np.ndarray
+    ) -> bool:
+        """Whether the tip has been within `tolerance` of the leg's last pose (if it has one)
+        for settle_time."""
         on_target = pose is None or float(np.linalg.norm(error)) <= self.plan.tolerance
         if on_target:
             if self.on_target_since is None:
                 self.on_target_since = t
         else:
             self.on_target_since = None
-        settled = (
+        return (
             self.on_target_since is not None
             and t - self.on_target_since >= self.plan.settle_time - 1e-9
         )
-        if not settled and t - self.since < self.plan.max_time:
-            return
+
+    def _on_settled(
+        self, t: float, kappa: np.ndarray, pose: tuple[float, float, float] | None
+    ) -> None:
+        """Settled (or out of time): close the fingers on the object (approach), open them
+        (carry), or finish (retreat)."""
         if self.leg == 0 and not self._captured(pose):
-            # the approach knocked the object (the arm lags its plan): go round again to where
-            # the camera sees it now rather than close the fingers on nothing; if the arm is too
-            # close to it to plan from here, back off first (and plan from there)
-            if self.reapproaches >= MAX_REAPPROACHES:
-                self.note = self.note or "the object is not between the fingers"
-                self._enter(t, PHASE["done"])  # nothing to close on: stay, open
-                return
-            self.reapproaches += 1
-            if not self._approach(t, kappa, self.seen) and not self._back_off(t):
-                self.reapproaches = MAX_REAPPROACHES
+            self._reapproach(t, kappa)
         elif self.leg == 0:
             self._stroke(t, self.gripper.x_closed)
             self._enter(t, PHASE["grasping"])
@@ -423,6 +436,19 @@ class GraspControl:
             self._enter(t, PHASE["releasing"])
         else:
             self._enter(t, PHASE["done"])
+
+    def _reapproach(self, t: float, kappa: np.ndarray) -> None:
+        """The approach knocked the object (the arm lags its plan): go round again to where the
+        camera sees it now rather than close the fingers on nothing; if the arm is too close to
+        it to plan from here, back off first (and plan from there). After MAX_REAPPROACHES the
+        task ends where the arm is, the fingers open."""
+        if self.reapproaches >= MAX_REAPPROACHES:
+            self.note = self.note or "the object is not between the fingers"
+            self._enter(t, PHASE["done"])  # nothing to close on: stay, open
+            return
+        self.reapproaches += 1
+        if not self._approach(t, kappa, self.seen) and not self._back_off(t):
+            self.reapproaches = MAX_REAPPROACHES
 
     def _captured(self, pose: tuple[float, float, float] | None) -> bool:
         """Whether fingers closing at the grasp pose `pose` take hold of the object where the
