@@ -2,8 +2,8 @@
 above the per-segment curvature controllers and the gripper's drive.
 
 The controller is told where to place the object, never where it is: it finds the object by its
-camera marker (controllers.estimators.ObjectTracker). Stages, each reported in TaskState (index:
-0 approach, 1 carry, 2 retreat; phase as named):
+camera marker (controllers.object_tracking.ObjectTracker). Stages, each reported in TaskState
+(index: 0 approach, 1 carry, 2 retreat; phase as named):
   1. idle: the pistons held while the estimators acquire the arm and the object;
   2. moving (approach): the fingers open and the arm follows the approach plan
      (robots.planar_arm.controller.grasp.plan_approach: concentric circles around the estimated
