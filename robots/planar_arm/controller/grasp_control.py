@@ -6,9 +6,9 @@ camera marker (controllers.object_tracking.ObjectTracker). Stages, each reported
 (index: 0 approach, 1 carry, 2 retreat; phase as named):
   1. idle: the pistons held while the estimators acquire the arm and the object;
   2. moving (approach): the fingers open and the arm follows the approach plan
-     (robots.planar_arm.controller.grasp.plan_approach: concentric circles around the estimated
-     object that
-     shrink onto it without touching it), waypoint after waypoint by realisable curvature moves;
+     (robots.planar_arm.controller.grasp_planner.plan_approach: concentric circles around the
+     estimated object that shrink onto it without touching it), waypoint after waypoint by
+     realisable curvature moves;
   3. settling: the curvature loops settle on the grasp configuration (the estimated tip within
      `tolerance` of the plan's tip for `settle_time`, or `max_time` at most); if the camera
      sees the object where closing fingers would not take hold of it (CAPTURE_SLACK: the arm
@@ -39,8 +39,9 @@ import numpy as np
 from controllers import kinematics
 from controllers.estimation import DriveReading, Estimate
 from rigbus.protocol import ControllerState, DriveCommand, Protocol, TaskState
-from robots.planar_arm.controller import grasp
+from robots.planar_arm.controller import grasp_planner
 from robots.planar_arm.controller.curvature_control import CurvatureControl
+from robots.planar_arm.controller.grasp_carry import plan_carry
 from robots.planar_arm.controller.gripper import grasp_point
 from robots.planar_arm.controller.ik import solve_ik
 from robots.planar_arm.controller.tasks import PHASE, CurvatureMove
@@ -76,7 +77,7 @@ CAPTURE_SLACK = 2e-3
 CAPTURE_BACK = 1e-2
 CAPTURE_AHEAD = 1e-2
 MAX_REAPPROACHES = 3
-# [m] the approach's clearance when none keeps grasp.MARGIN from the arm's estimated start
+# [m] the approach's clearance when none keeps grasp_planner.MARGIN from the arm's estimated start
 APPROACH_MARGIN_FALLBACK = 5e-4
 STROKE_SHARE = 0.5  # of grasp_time the fingers' closing or opening stroke is spread over
 
@@ -225,7 +226,7 @@ class GraspControl:
             # circles, clear of it
             where = (float(self.seen[0]), float(self.seen[1]))
             try:
-                retreat = grasp.plan_retreat(
+                retreat = grasp_planner.plan_retreat(
                     where,
                     self.plan.object_radius,
                     self.reference,
@@ -248,7 +249,7 @@ class GraspControl:
     def _back_off(self, t: float) -> bool:
         """Back the gripper straight off along its axis to the outer approach circle, in
         warm-started steps; False if not even the first step can be solved."""
-        outer = grasp.default_radii(self.plan.object_radius, self.gripper.geometry)[0]
+        outer = grasp_planner.default_radii(self.plan.object_radius, self.gripper.geometry)[0]
         x, y, heading = kinematics.forward(self.reference, self.lengths, self.base)[-1]
         waypoints, previous = [], self.reference
         for standoff in np.arange(RETREAT_STEP, outer + 1e-9, RETREAT_STEP):
@@ -278,9 +279,9 @@ class GraspControl:
         approach = None
         # an approach from whose grasp the object can be carried to the place; with a thinner
         # margin if the arm's estimated start leaves none (the task was drawn with more)
-        for margin in (grasp.MARGIN, APPROACH_MARGIN_FALLBACK):
+        for margin in (grasp_planner.MARGIN, APPROACH_MARGIN_FALLBACK):
             try:
-                approach = grasp.plan_approach(
+                approach = grasp_planner.plan_approach(
                     (float(centre[0]), float(centre[1])),
                     self.plan.object_radius,
                     start,
@@ -305,7 +306,7 @@ class GraspControl:
         self._follow(t, approach.waypoints)
         return True
 
-    def _carriable(self, approach: grasp.GraspPlan) -> bool:
+    def _carriable(self, approach: grasp_planner.GraspPlan) -> bool:
         """Whether the object can be carried to the place from `approach`'s grasp."""
         kappas, pose = approach.waypoints[-1]
         try:
@@ -314,8 +315,8 @@ class GraspControl:
             return False
         return True
 
-    def _plan_carry(self, start: np.ndarray, heading: float) -> grasp.GraspPlan:
-        return grasp.plan_carry(
+    def _plan_carry(self, start: np.ndarray, heading: float) -> grasp_planner.GraspPlan:
+        return plan_carry(
             self.target,
             start,
             heading,
