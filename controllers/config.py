@@ -10,7 +10,9 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import types
 import typing
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -97,43 +99,79 @@ def _from_data(cls: Any, data: Any, key: str) -> Any:
 
 
 def _value(hint: Any, raw: Any, key: str) -> Any:
-    origin, args = typing.get_origin(hint), typing.get_args(hint)
-    if origin in (typing.Union, __import__("types").UnionType):
-        if raw is None and type(None) in args:
-            return None
-        return _value(next(a for a in args if a is not type(None)), raw, key)
-    if hint is bool:
-        if not isinstance(raw, bool):
-            raise ValueError(f"{key}: must be true or false, got {raw!r}")
-        return raw
-    if hint is int:
-        if isinstance(raw, bool) or not isinstance(raw, int):
-            raise ValueError(f"{key}: must be an integer, got {raw!r}")
-        return raw
-    if hint is float:
-        if isinstance(raw, bool) or not isinstance(raw, int | float):
-            raise ValueError(f"{key}: must be a number, got {raw!r}")
-        try:
-            value = float(raw)
-        except OverflowError:
-            raise ValueError(f"{key}: must be finite, got {raw!r}") from None
-        if not math.isfinite(value):
-            raise ValueError(f"{key}: must be finite, got {raw!r}")
-        return value
-    if hint is str:
-        if not isinstance(raw, str):
-            raise ValueError(f"{key}: must be a string, got {raw!r}")
-        return raw
+    """The JSON value `raw` as the type `hint` asks for: an optional, a scalar, a tuple or a
+    nested dataclass (ValueError naming `key` otherwise)."""
+    origin = typing.get_origin(hint)
+    if origin in (typing.Union, types.UnionType):
+        return _optional(hint, raw, key)
+    scalar = _SCALARS.get(hint)
+    if scalar is not None:
+        return scalar(raw, key)
     if origin is tuple:
-        if not isinstance(raw, list):
-            raise ValueError(f"{key}: must be a list, got {raw!r}")
-        if len(args) == 2 and args[1] is Ellipsis:
-            return tuple(_value(args[0], v, f"{key}[{i}]") for i, v in enumerate(raw))
-        if len(raw) != len(args):
-            raise ValueError(f"{key}: must have {len(args)} elements")
-        return tuple(
-            _value(a, v, f"{key}[{i}]") for i, (a, v) in enumerate(zip(args, raw, strict=True))
-        )
+        return _tuple(hint, raw, key)
     if dataclasses.is_dataclass(hint):
         return _from_data(hint, raw, key)
     raise ValueError(f"{key}: unsupported type {hint}")  # pragma: no cover - schema bug
+
+
+def _optional(hint: Any, raw: Any, key: str) -> Any:
+    """`X | None`: null, or a value of X."""
+    args = typing.get_args(hint)
+    if raw is None and type(None) in args:
+        return None
+    return _value(next(a for a in args if a is not type(None)), raw, key)
+
+
+def _boolean(raw: Any, key: str) -> bool:
+    if not isinstance(raw, bool):
+        raise ValueError(f"{key}: must be true or false, got {raw!r}")
+    return raw
+
+
+def _integer(raw: Any, key: str) -> int:
+    # JSON true and false are not integers, although Python's bool is one
+    if isinstance(raw, bool) or not isinstance(raw, int):
+        raise ValueError(f"{key}: must be an integer, got {raw!r}")
+    return raw
+
+
+def _number(raw: Any, key: str) -> float:
+    """A finite float from a JSON number (an integer too: 1 is 1.0)."""
+    if isinstance(raw, bool) or not isinstance(raw, int | float):
+        raise ValueError(f"{key}: must be a number, got {raw!r}")
+    try:
+        value = float(raw)
+    except OverflowError:
+        raise ValueError(f"{key}: must be finite, got {raw!r}") from None
+    if not math.isfinite(value):
+        raise ValueError(f"{key}: must be finite, got {raw!r}")
+    return value
+
+
+def _string(raw: Any, key: str) -> str:
+    if not isinstance(raw, str):
+        raise ValueError(f"{key}: must be a string, got {raw!r}")
+    return raw
+
+
+# the scalar types a configuration holds, by type hint: each checks and converts a JSON value
+_SCALARS: dict[Any, Callable[[Any, str], Any]] = {
+    bool: _boolean,
+    int: _integer,
+    float: _number,
+    str: _string,
+}
+
+
+def _tuple(hint: Any, raw: Any, key: str) -> tuple[Any, ...]:
+    """A JSON list as `tuple[X, ...]` (any length) or `tuple[X, Y, ...]` (that many)."""
+    args = typing.get_args(hint)
+    if not isinstance(raw, list):
+        raise ValueError(f"{key}: must be a list, got {raw!r}")
+    if len(args) == 2 and args[1] is Ellipsis:
+        return tuple(_value(args[0], v, f"{key}[{i}]") for i, v in enumerate(raw))
+    if len(raw) != len(args):
+        raise ValueError(f"{key}: must have {len(args)} elements")
+    return tuple(
+        _value(a, v, f"{key}[{i}]") for i, (a, v) in enumerate(zip(args, raw, strict=True))
+    )

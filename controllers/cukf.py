@@ -1,7 +1,7 @@
 """The arm UKF's prediction and correction in C (`_cukf.c`), built on first use with the FMU
 toolchain and called through ctypes.
 
-`controllers.estimators.ArmUnscentedEstimator` predicts and corrects through it when it is
+`controllers.arm_ukf.ArmUnscentedEstimator` predicts and corrects through it when it is
 available: one C call each (about 3 us for the correction on six segments, against about 120 us
 for the same maths in numpy, which is the reference and the fallback). The results agree with
 numpy's to rounding (tests/test_cukf.py), not bit for bit: numpy's BLAS picks its own order of

@@ -58,6 +58,13 @@ OWN_FRAMES = (
 )  # the frames only the controller sends
 OWN_KINDS = ("ValveCommand", "FishState")  # and those of kinds with no registered type
 
+# a frame's kind and index: ("DriveStatus", 3), ("CanisterStatus", None)
+_Key = tuple[str, int | None]
+# what `ControllerNode._collect` does with a frame of one route (`ControllerNode._on_status` ...):
+# called with the frame, its kind and index, its message, the cycle, the status frames the cycle
+# still needs
+_Handler = Callable[[Any, _Key, can.Message, int, set[_Key]], None]
+
 
 class ControllerError(RuntimeError):
     """The controller cannot go on; the message names the frame, cycle or peer."""
@@ -207,7 +214,16 @@ class ControllerNode:
         self._frames_taken = 0  # camera frames 0 .. _frames_taken - 1 are done with
         self._outbox: list[can.Message] = []  # encoded, not yet sent (`_flush`)
         self._outbox_time = 0.0
-        self._routes: dict[int, tuple[str, tuple[str, int | None]]] = {}  # by CAN id (`_route`)
+        # what `_collect` does with a frame, by its route (`_route`), and by CAN id
+        self._handlers: dict[str, _Handler] = {
+            _STATUS: self._on_status,
+            _CAMERA: self._on_camera,
+            _EMCY: self._on_emcy,
+            _HEARTBEAT: self._on_heartbeat,
+            _OWN: self._on_own,
+            _OTHER: self._on_other,
+        }
+        self._routes: dict[int, tuple[_Handler, _Key]] = {}
 
     def _send(self, frame: Any, sim_time: float) -> None:
         """Queue one frame; `_flush` sends the queue in order."""
@@ -289,97 +305,137 @@ class ControllerNode:
     def _collect(self, cycle: int, t: float) -> list[MarkerFrame]:
         """Receive until the cycle holds every status frame echoing it and every camera frame
         due by this SYNC; returns the camera frames completed, oldest first."""
-        config = self.config
         needed = set(self.expected)
-        due = config.camera_timing.frames_due(cycle)
-        deadline = time.monotonic() + config.timeout
-        counter = cycle % COUNTER_MODULO
-
-        def camera_complete() -> bool:
-            return all(self.camera.complete(j) for j in range(self._frames_taken, due))
-
-        while needed or not camera_complete():
+        due = self.config.camera_timing.frames_due(cycle)
+        deadline = time.monotonic() + self.config.timeout
+        while needed or not self._camera_complete(due):
             remaining = deadline - time.monotonic()
             if remaining <= 0.0:
-                missing = [_name(key) for key in sorted(needed, key=_name)]
-                missing += [
-                    f"camera frame {j}"
-                    for j in range(self._frames_taken, due)
-                    if not self.camera.complete(j)
-                ]
-                if config.policy == "strict":
-                    raise ControllerError(
-                        f"no {', '.join(missing)} for SYNC {cycle} (t = {t:.3f} s) within "
-                        f"{config.timeout:g} s: is the plant running?"
-                    )
-                self.report.status_missed += len(needed)
+                self._missed(cycle, t, needed, due)
                 break
-            try:
-                message = self.bus.recv(timeout=min(remaining, 0.5))
-            except (can.CanError, OSError) as exc:
-                raise ControllerError(
-                    f"the bus failed while waiting for SYNC {cycle}'s status "
-                    f"({failure_text(exc)}): the plant and its hub are gone?"
-                ) from None
-            if message is None:
-                if connection_closed(self.bus):
-                    raise ControllerError(
-                        f"the bus closed while waiting for SYNC {cycle}'s status: the plant "
-                        "and its loopback hub are gone"
-                    )
+            received = self._receive(cycle, remaining)
+            if received is None:
                 continue
-            self.report.frames_received += 1
-            try:
-                frame = self.protocol.decode(message)
-            except FrameError as exc:
-                if config.policy == "strict":
-                    raise ControllerError(f"at SYNC {cycle}: {exc}") from exc
-                self.report.unknown_frames += 1
-                continue
+            message, frame = received
             route = self._routes.get(message.arbitration_id)
             if route is None:
-                route = self._routes[message.arbitration_id] = self._route(frame)
-            what, key = route
-            if what is _STATUS:
-                # the echoed counter, without building every signal's value (frame_signals)
-                echo = int(
-                    frame.signals["counter"] if isinstance(frame, GenericFrame) else frame.counter
-                )
-                if echo == counter and key not in needed:
-                    self._intrusion(
-                        f"a second {_name(key)} for SYNC {cycle}: another node "
-                        f"sends in the {_SENDER.get(key[0], 'device')}'s name"
-                    )
-                    continue
-                if echo != counter or key not in needed:
-                    if config.policy == "strict":
-                        raise ControllerError(
-                            f"stale {_name(key)} (counter {echo}) while "
-                            f"waiting for SYNC {cycle} (counter {counter})"
-                        )
-                    self.report.stale_frames += 1
-                    continue
-                self.status[key] = frame
-                needed.discard(key)
-            elif what is _CAMERA:
-                self.camera.add(frame)
-            elif what is _EMCY:
-                self.report.emcy.append({"cycle": cycle, **asdict(frame)})
-            elif what is _HEARTBEAT:
-                continue
-            elif what is _OWN:
-                # no bus echoes a sender's own frames: these come from another node
-                self._intrusion(
-                    f"{type(frame).__name__} 0x{message.arbitration_id:03X} at SYNC {cycle} from "
-                    "another node: only this controller sends it"
-                )
-            elif config.policy == "strict":
+                what, key = self._route(frame)
+                route = self._routes[message.arbitration_id] = (self._handlers[what], key)
+            handle, key = route
+            handle(frame, key, message, cycle, needed)
+        return self._take_camera_frames(due, t)
+
+    def _camera_complete(self, due: int) -> bool:
+        """Whether every camera frame not yet taken, up to `due`, is complete."""
+        return all(self.camera.complete(j) for j in range(self._frames_taken, due))
+
+    def _missed(self, cycle: int, t: float, needed: set[_Key], due: int) -> None:
+        """The cycle's wait ran out with frames `needed` and camera frames still missing: strict
+        stops naming them, hold counts the status frames missed."""
+        config = self.config
+        missing = [_name(key) for key in sorted(needed, key=_name)]
+        missing += [
+            f"camera frame {j}"
+            for j in range(self._frames_taken, due)
+            if not self.camera.complete(j)
+        ]
+        if config.policy == "strict":
+            raise ControllerError(
+                f"no {', '.join(missing)} for SYNC {cycle} (t = {t:.3f} s) within "
+                f"{config.timeout:g} s: is the plant running?"
+            )
+        self.report.status_missed += len(needed)
+
+    def _receive(self, cycle: int, remaining: float) -> tuple[can.Message, Any] | None:
+        """The next frame from the bus and its message, waiting at most `remaining` seconds
+        (and half a second at a time); None if none came or (hold) it did not decode."""
+        try:
+            message = self.bus.recv(timeout=min(remaining, 0.5))
+        except (can.CanError, OSError) as exc:
+            raise ControllerError(
+                f"the bus failed while waiting for SYNC {cycle}'s status "
+                f"({failure_text(exc)}): the plant and its hub are gone?"
+            ) from None
+        if message is None:
+            if connection_closed(self.bus):
                 raise ControllerError(
-                    f"unexpected {type(frame).__name__} at SYNC {cycle}: is another controller "
-                    "on the bus?"
+                    f"the bus closed while waiting for SYNC {cycle}'s status: the plant "
+                    "and its loopback hub are gone"
                 )
-            else:
-                self.report.unknown_frames += 1
+            return None
+        self.report.frames_received += 1
+        try:
+            return message, self.protocol.decode(message)
+        except FrameError as exc:
+            if self.config.policy == "strict":
+                raise ControllerError(f"at SYNC {cycle}: {exc}") from exc
+            self.report.unknown_frames += 1
+            return None
+
+    # what `_collect` does with each route's frames (`_route`, `_handlers`)
+
+    def _on_status(
+        self, frame: Any, key: _Key, message: can.Message, cycle: int, needed: set[_Key]
+    ) -> None:
+        """A status frame: the cycle's if it echoes it and is still needed; a second one is an
+        intrusion, an old one stale."""
+        counter = cycle % COUNTER_MODULO
+        # the echoed counter, without building every signal's value (frame_signals)
+        echo = int(frame.signals["counter"] if isinstance(frame, GenericFrame) else frame.counter)
+        if echo == counter and key not in needed:
+            self._intrusion(
+                f"a second {_name(key)} for SYNC {cycle}: another node "
+                f"sends in the {_SENDER.get(key[0], 'device')}'s name"
+            )
+            return
+        if echo != counter or key not in needed:
+            if self.config.policy == "strict":
+                raise ControllerError(
+                    f"stale {_name(key)} (counter {echo}) while "
+                    f"waiting for SYNC {cycle} (counter {counter})"
+                )
+            self.report.stale_frames += 1
+            return
+        self.status[key] = frame
+        needed.discard(key)
+
+    def _on_camera(
+        self, frame: Any, key: _Key, message: can.Message, cycle: int, needed: set[_Key]
+    ) -> None:
+        self.camera.add(frame)
+
+    def _on_emcy(
+        self, frame: Any, key: _Key, message: can.Message, cycle: int, needed: set[_Key]
+    ) -> None:
+        self.report.emcy.append({"cycle": cycle, **asdict(frame)})
+
+    def _on_heartbeat(
+        self, frame: Any, key: _Key, message: can.Message, cycle: int, needed: set[_Key]
+    ) -> None:
+        """Heartbeats are not watched here: a silent drive shows as its missing status."""
+
+    def _on_own(
+        self, frame: Any, key: _Key, message: can.Message, cycle: int, needed: set[_Key]
+    ) -> None:
+        # no bus echoes a sender's own frames: these come from another node
+        self._intrusion(
+            f"{type(frame).__name__} 0x{message.arbitration_id:03X} at SYNC {cycle} from "
+            "another node: only this controller sends it"
+        )
+
+    def _on_other(
+        self, frame: Any, key: _Key, message: can.Message, cycle: int, needed: set[_Key]
+    ) -> None:
+        if self.config.policy == "strict":
+            raise ControllerError(
+                f"unexpected {type(frame).__name__} at SYNC {cycle}: is another controller "
+                "on the bus?"
+            )
+        self.report.unknown_frames += 1
+
+    def _take_camera_frames(self, due: int, t: float) -> list[MarkerFrame]:
+        """The camera frames due by this SYNC that are complete, oldest first; the incomplete
+        ones are dropped and counted."""
         frames = []
         for j in range(self._frames_taken, due):
             if self.camera.complete(j):
@@ -403,7 +459,7 @@ _STATUS, _CAMERA, _EMCY, _HEARTBEAT, _OWN, _OTHER = (
 _SENDER = {"DriveStatus": "drive", "ValveStatus": "valve", "CanisterStatus": "canister"}
 
 
-def _name(key: tuple[str, int | None]) -> str:
+def _name(key: _Key) -> str:
     """The DBC message name of (kind, index): DriveStatus3, CanisterStatus."""
     return f"{key[0]}{'' if key[1] is None else key[1]}"
 

@@ -1,5 +1,5 @@
-"""Whole-arm planning in confined spaces (robots/planar_arm/controller/confined.py): the channel's
-signed clearance
+"""Whole-arm planning in confined spaces (robots/planar_arm/controller/confined.py: the channel
+and the pipe sections; confined_planner.py: the planner): the channel's signed clearance
 against closed forms, the sampled backbone against the kinematics, the four pipe sections planned
 to their goals without penetration (at the waypoints and along the curvature moves between them),
 monotonic advance, trust region, determinism, and the failures that must be reports, not
@@ -20,6 +20,8 @@ from robots.planar_arm.controller.confined import (
     PIPES,
     WIDTH,
     Channel,
+)
+from robots.planar_arm.controller.confined_planner import (
     Plan,
     _target,
     plan_penetration,

@@ -16,7 +16,7 @@ import pytest
 from synthetic_arm import BASE, SEGMENT, camera_noise
 
 from controllers import cukf
-from controllers.estimators import ArmUnscentedEstimator
+from controllers.arm_ukf import ArmUnscentedEstimator
 from hil.vision import CameraEffects
 
 needs_c = pytest.mark.skipif(cukf.load() is None, reason=f"no C UKF here: {cukf.failure()}")

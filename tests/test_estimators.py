@@ -1,5 +1,5 @@
-"""Tests for controllers.estimators on a synthetic arm (tests/synthetic_arm.py: the bend ODE
-integrated exactly, the camera of hil.vision, no FMUs).
+"""Tests for the curvature estimators (controllers.estimators: raw, kf, ukf) on a synthetic arm
+(tests/synthetic_arm.py: the bend ODE integrated exactly, the camera of hil.vision, no FMUs).
 
 Laws checked: the filters track a step and sines and beat the geometric inversion by at least 2x
 in RMS at 0.5 mm marker noise; they coast through dropouts and occlusions with an honest standard
@@ -17,16 +17,10 @@ import pytest
 from scipy.stats import chi2
 from synthetic_arm import BASE, SEGMENT, Run, T, camera_noise, simulate
 
+from controllers.bend_filter import _pressure_inputs, unmodelled_torque_std
 from controllers.estimation import DriveReading, MarkerFrame
-from controllers.estimators import (
-    OfflineEstimates,
-    _inverse,
-    _pressure_inputs,
-    _robust_sqrt,
-    make_estimator,
-    run_offline,
-    unmodelled_torque_std,
-)
+from controllers.estimators import OfflineEstimates, make_estimator, run_offline
+from controllers.fast_linalg import inverse, robust_sqrt
 from controllers.kinematics import markers
 from hil.vision import CameraEffects
 
@@ -292,13 +286,13 @@ def test_inverse_and_square_root_are_numpys_bit_for_bit() -> None:
         for _ in range(20):
             A = rng.normal(size=(n, n)) * 10.0 ** rng.uniform(-6, 2)
             S = A @ A.T + 1e-9 * np.eye(n)
-            assert np.array_equal(_inverse(S), np.linalg.inv(S))
-            assert np.array_equal(_inverse(A), np.linalg.inv(A))
-            assert np.array_equal(_robust_sqrt(S), np.linalg.cholesky(S).T)
+            assert np.array_equal(inverse(S), np.linalg.inv(S))
+            assert np.array_equal(inverse(A), np.linalg.inv(A))
+            assert np.array_equal(robust_sqrt(S), np.linalg.cholesky(S).T)
     with pytest.raises(np.linalg.LinAlgError):
-        _inverse(np.ones((3, 3)))
+        inverse(np.ones((3, 3)))
     P = np.diag([1.0, 4.0, -1e-12])  # indefinite by rounding: the positive part's square root
-    U = _robust_sqrt(P)
+    U = robust_sqrt(P)
     assert np.allclose(U.T @ U, np.diag([1.0, 4.0, 0.0]))
     assert np.isfinite(U).all()
 

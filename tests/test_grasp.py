@@ -1,5 +1,5 @@
-"""Grasp-and-place planning (robots/planar_arm/controller/grasp.py): the approach waypoints on
-shrinking circles
+"""Grasp-and-place planning (robots/planar_arm/controller/grasp_planner.py, grasp_carry.py,
+grasp_clearance.py) and the task draw (grasp.py): the approach waypoints on shrinking circles
 facing the object, the grasp point on the object's centre, the object's clearance at every
 waypoint and along every curvature interpolation (checked densely with kinematics.backbone and
 gripper.finger_points, independently of the planner's vectorised bound), the carry along a
@@ -13,25 +13,24 @@ import numpy as np
 import pytest
 
 from controllers import kinematics
-from robots.planar_arm.controller.grasp import (
-    CARRY_STEP,
-    DRAW_SHARE,
-    HEADING_STEP,
-    MARGIN,
-    START_MARGIN,
+from robots.planar_arm.controller.grasp import DRAW_SHARE, START_MARGIN, draw_grasp_task
+from robots.planar_arm.controller.grasp_carry import CARRY_STEP, plan_carry
+from robots.planar_arm.controller.grasp_clearance import (
     SWEEP_TOLERANCE,
-    GraspPlan,
-    _Arm,
     _clearances,
-    _ring,
     clearance,
-    default_radii,
-    draw_grasp_task,
-    plan_approach,
-    plan_carry,
-    plan_retreat,
     sweep_clearance,
     sweep_speed,
+)
+from robots.planar_arm.controller.grasp_planner import (
+    HEADING_STEP,
+    MARGIN,
+    Arm,
+    GraspPlan,
+    default_radii,
+    headings_around,
+    plan_approach,
+    plan_retreat,
 )
 from robots.planar_arm.controller.gripper import (
     GripperGeometry,
@@ -209,11 +208,11 @@ def test_sweep_speed_bounds_every_point_and_is_near_tight_for_one_bend() -> None
 
 
 def test_ring_continues_round_the_circle_both_ways() -> None:
-    arm = _Arm.of(LENGTHS, BASE, LOWER, UPPER, GEOMETRY, WIDTH)
+    arm = Arm.of(LENGTHS, BASE, LOWER, UPPER, GEOMETRY, WIDTH)
     centre, standoff = (0.12, 0.2), 0.04
     seed = arm.seed(centre, standoff, START)
     assert seed is not None
-    ring = list(_ring(arm, centre, standoff, float(tip(seed)[2]), seed))
+    ring = list(headings_around(arm, centre, standoff, float(tip(seed)[2]), seed))
     steps = [j for j, _, _ in ring]
     assert min(steps) <= -2 and max(steps) >= 2 and len(set(steps)) == len(steps)
     for j, heading, kappas in ring:

@@ -18,6 +18,7 @@ from hil.scenario import load_scenario, resolve_scenario
 from rigbus.protocol import Protocol
 from robots.planar_arm.controller import grasp_control
 from robots.planar_arm.controller.grasp_control import GraspControl
+from robots.planar_arm.controller.grasp_planner import default_radii
 from robots.planar_arm.controller.tasks import PHASE
 
 PERIOD = 0.01
@@ -199,7 +200,7 @@ def test_an_object_knocked_against_a_finger_is_backed_off_from_first(config) -> 
             break
     assert control.reapproaches == 1 and control.phase == PHASE["moving"]
     tip = kinematics.forward(kappa, control.lengths, control.base)[-1]
-    outer = grasp_control.grasp.default_radii(config.plan.object_radius, config.gripper.geometry)
+    outer = default_radii(config.plan.object_radius, config.gripper.geometry)
     last = np.array(control.waypoints[-1][1])
     assert last[:2] == pytest.approx(tip[:2] - outer[0] * axis, abs=1e-9)
     assert last[2] == pytest.approx(tip[2])

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from controllers.estimation import CameraNoise
-from controllers.estimators import ObjectTracker
+from controllers.object_tracking import ObjectTracker
 from hil.errors import ScenarioError
 from hil.run import RunOptions, run_scenario
 from hil.scenario import load_scenario, resolve_scenario
@@ -186,8 +186,9 @@ def test_the_object_tracker_averages_noise_and_gates_outliers() -> None:
 
 def test_the_kf_reacquires_a_segment_its_model_has_lost() -> None:
     from controllers import kinematics
+    from controllers.bend_filter import REACQUIRE
     from controllers.estimation import BendModel, MarkerFrame
-    from controllers.estimators import REACQUIRE, SegmentKalmanEstimator
+    from controllers.segment_kf import SegmentKalmanEstimator
 
     bend = BendModel(length=0.06, inertia=5.4e-6, k_bend=0.025, d_bend=6e-3, G_a=7.7e-7)
     estimator = SegmentKalmanEstimator([bend], (0.0, 0.0, 0.0), CameraNoise(noise=5e-4), 0.01)

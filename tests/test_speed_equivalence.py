@@ -16,7 +16,7 @@ import pytest
 from filterpy.kalman import UnscentedKalmanFilter
 from synthetic_arm import BASE, SEGMENT, camera_noise
 
-from controllers.estimators import ArmUnscentedEstimator
+from controllers.arm_ukf import ArmUnscentedEstimator
 from hil.vision import CameraEffects
 from tests.helpers import simulate
 

@@ -357,6 +357,9 @@ class FishControl:
     def _heading(
         self, at: float, busy: bool, estimate: FishEstimate, readings: Mapping[Any, Any]
     ) -> None:
+        """The heading task: an escape turn towards the commanded heading, then swimming
+        strokes whose asymmetry holds it (another turn if the heading drifts beyond
+        `retune_share` tolerances)."""
         c = self.config
         if not estimate.valid or at < c.start:
             if self.turned and not busy:
@@ -365,48 +368,67 @@ class FishControl:
         half = 0.5 / c.frequency
         # the yaw averaged over about one beat: the strokes rock the head about its mean
         alpha = min(1.0, c.control_period / (2.0 * half))
-        self.mean_yaw = (
+        mean_yaw = (
             estimate.yaw
             if self.mean_yaw is None
             else self.mean_yaw + alpha * (estimate.yaw - self.mean_yaw)
         )
+        self.mean_yaw = mean_yaw
         if busy and self.mode == TURN:
             return
         error = wrap(c.heading - estimate.yaw)
         if self.mode == TURN or self.mode == VENTING:
-            # after a turn: vent and let the head come to rest before swimming on; at rest for
-            # `settle_time`, not for one cycle: the yaw rate also passes through zero at the
-            # turn's overshoot, tens of degrees beyond where the head comes to rest
-            # (or at the latest `settle_max` after the pulse: the head's yaw mode rings on,
-            # and the estimated yaw rate is noisy)
-            self.mode = VENTING
-            late = at - max(self.pulse_end) >= c.settle_max
-            if not self._vented(readings) or abs(estimate.yaw_rate) > c.rest_rate:
-                self.rest_since = None
-                if not late:
-                    return
-            if self.rest_since is None:
-                self.rest_since = at
-            if at - self.rest_since < c.settle_time and not late:
+            if not self._come_to_rest(at, estimate, readings):
                 return
-            self.mean_yaw = estimate.yaw
-            # the strokes go on alternating from the turn: the first is on the other side
-            self.stroke_side = 1 - self.stroke_side
-            self.next_stroke = at
-            self.corrected_at = at
-            self.mode = HOLD
+            mean_yaw = self.mean_yaw = estimate.yaw  # the average starts again at rest
         if not self.turned or (
-            abs(wrap(c.heading - self.mean_yaw)) > c.retune_share * c.tolerance
-            and self.mode != HOLD
+            abs(wrap(c.heading - mean_yaw)) > c.retune_share * c.tolerance and self.mode != HOLD
         ):
-            if self._vented(readings):
-                side = 0 if error > 0.0 else 1
-                self._pulse(side, open_time_for(c.calibration, error), at, readings)
-                self.stroke_side = side
-                self.turned = True
-                self.mode = TURN
+            self._turn(at, error, readings)
             return
-        error = wrap(c.heading - self.mean_yaw)
+        self._hold_heading(at, half, mean_yaw, readings)
+
+    def _come_to_rest(self, at: float, estimate: FishEstimate, readings: Mapping[Any, Any]) -> bool:
+        """After a turn: vent and let the head come to rest before swimming on; True once it
+        has (the strokes then go on, mode HOLD). At rest for `settle_time`, not for one cycle:
+        the yaw rate also passes through zero at the turn's overshoot, tens of degrees beyond
+        where the head comes to rest (or at the latest `settle_max` after the pulse: the head's
+        yaw mode rings on, and the estimated yaw rate is noisy)."""
+        c = self.config
+        self.mode = VENTING
+        late = at - max(self.pulse_end) >= c.settle_max
+        if not self._vented(readings) or abs(estimate.yaw_rate) > c.rest_rate:
+            self.rest_since = None
+            if not late:
+                return False
+        if self.rest_since is None:
+            self.rest_since = at
+        if at - self.rest_since < c.settle_time and not late:
+            return False
+        # the strokes go on alternating from the turn: the first is on the other side
+        self.stroke_side = 1 - self.stroke_side
+        self.next_stroke = at
+        self.corrected_at = at
+        self.mode = HOLD
+        return True
+
+    def _turn(self, at: float, error: float, readings: Mapping[Any, Any]) -> None:
+        """An escape turn by the heading `error` [rad] (valve time from the calibration), once
+        both channels are vented."""
+        if self._vented(readings):
+            side = 0 if error > 0.0 else 1
+            self._pulse(side, open_time_for(self.config.calibration, error), at, readings)
+            self.stroke_side = side
+            self.turned = True
+            self.mode = TURN
+
+    def _hold_heading(
+        self, at: float, half: float, mean_yaw: float, readings: Mapping[Any, Any]
+    ) -> None:
+        """Swim with strokes biased by the beat-averaged heading error, a corrective stroke at
+        most once a beat beyond the deadband."""
+        c = self.config
+        error = wrap(c.heading - mean_yaw)
         bias = max(-1.0, min(1.0, c.heading_gain * error))
         correction = 0.0
         if abs(error) > c.deadband and at - self.corrected_at >= 2.0 * half - 1e-9:

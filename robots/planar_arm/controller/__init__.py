@@ -37,8 +37,9 @@ def readings(status: Mapping[tuple[str, int | None], Any]) -> dict[int, DriveRea
 
 
 def make_estimator(config: ControllerConfig) -> Any:
-    """The estimator the configuration names (controllers.estimators)."""
-    from controllers import estimators
+    """The estimator the configuration names (controllers.estimators), with the objects'
+    tracker (controllers.object_tracking) when the task has objects."""
+    from controllers import estimators, object_tracking
 
     arm = estimators.make_estimator(
         config.estimator,
@@ -51,8 +52,8 @@ def make_estimator(config: ControllerConfig) -> Any:
     )
     if config.objects == 0:
         return arm
-    tracker = estimators.ObjectTracker(config.objects, config.camera)
-    return estimators.WithObjects(arm, config.segments + 1, tracker)
+    tracker = object_tracking.ObjectTracker(config.objects, config.camera)
+    return object_tracking.WithObjects(arm, config.segments + 1, tracker)
 
 
 def make_controller(config: ControllerConfig, protocol: Protocol) -> Any:

@@ -2,13 +2,13 @@
 above the per-segment curvature controllers and the gripper's drive.
 
 The controller is told where to place the object, never where it is: it finds the object by its
-camera marker (controllers.estimators.ObjectTracker). Stages, each reported in TaskState (index:
-0 approach, 1 carry, 2 retreat; phase as named):
+camera marker (controllers.object_tracking.ObjectTracker). Stages, each reported in TaskState
+(index: 0 approach, 1 carry, 2 retreat; phase as named):
   1. idle: the pistons held while the estimators acquire the arm and the object;
   2. moving (approach): the fingers open and the arm follows the approach plan
-     (robots.planar_arm.controller.grasp.plan_approach: concentric circles around the estimated
-     object that
-     shrink onto it without touching it), waypoint after waypoint by realisable curvature moves;
+     (robots.planar_arm.controller.grasp_planner.plan_approach: concentric circles around the
+     estimated object that shrink onto it without touching it), waypoint after waypoint by
+     realisable curvature moves;
   3. settling: the curvature loops settle on the grasp configuration (the estimated tip within
      `tolerance` of the plan's tip for `settle_time`, or `max_time` at most); if the camera
      sees the object where closing fingers would not take hold of it (CAPTURE_SLACK: the arm
@@ -39,8 +39,9 @@ import numpy as np
 from controllers import kinematics
 from controllers.estimation import DriveReading, Estimate
 from rigbus.protocol import ControllerState, DriveCommand, Protocol, TaskState
-from robots.planar_arm.controller import grasp
+from robots.planar_arm.controller import grasp_planner
 from robots.planar_arm.controller.curvature_control import CurvatureControl
+from robots.planar_arm.controller.grasp_carry import plan_carry
 from robots.planar_arm.controller.gripper import grasp_point
 from robots.planar_arm.controller.ik import solve_ik
 from robots.planar_arm.controller.tasks import PHASE, CurvatureMove
@@ -76,7 +77,7 @@ CAPTURE_SLACK = 2e-3
 CAPTURE_BACK = 1e-2
 CAPTURE_AHEAD = 1e-2
 MAX_REAPPROACHES = 3
-# [m] the approach's clearance when none keeps grasp.MARGIN from the arm's estimated start
+# [m] the approach's clearance when none keeps grasp_planner.MARGIN from the arm's estimated start
 APPROACH_MARGIN_FALLBACK = 5e-4
 STROKE_SHARE = 0.5  # of grasp_time the fingers' closing or opening stroke is spread over
 
@@ -225,7 +226,7 @@ class GraspControl:
             # circles, clear of it
             where = (float(self.seen[0]), float(self.seen[1]))
             try:
-                retreat = grasp.plan_retreat(
+                retreat = grasp_planner.plan_retreat(
                     where,
                     self.plan.object_radius,
                     self.reference,
@@ -248,7 +249,7 @@ class GraspControl:
     def _back_off(self, t: float) -> bool:
         """Back the gripper straight off along its axis to the outer approach circle, in
         warm-started steps; False if not even the first step can be solved."""
-        outer = grasp.default_radii(self.plan.object_radius, self.gripper.geometry)[0]
+        outer = grasp_planner.default_radii(self.plan.object_radius, self.gripper.geometry)[0]
         x, y, heading = kinematics.forward(self.reference, self.lengths, self.base)[-1]
         waypoints, previous = [], self.reference
         for standoff in np.arange(RETREAT_STEP, outer + 1e-9, RETREAT_STEP):
@@ -278,9 +279,9 @@ class GraspControl:
         approach = None
         # an approach from whose grasp the object can be carried to the place; with a thinner
         # margin if the arm's estimated start leaves none (the task was drawn with more)
-        for margin in (grasp.MARGIN, APPROACH_MARGIN_FALLBACK):
+        for margin in (grasp_planner.MARGIN, APPROACH_MARGIN_FALLBACK):
             try:
-                approach = grasp.plan_approach(
+                approach = grasp_planner.plan_approach(
                     (float(centre[0]), float(centre[1])),
                     self.plan.object_radius,
                     start,
@@ -305,7 +306,7 @@ class GraspControl:
         self._follow(t, approach.waypoints)
         return True
 
-    def _carriable(self, approach: grasp.GraspPlan) -> bool:
+    def _carriable(self, approach: grasp_planner.GraspPlan) -> bool:
         """Whether the object can be carried to the place from `approach`'s grasp."""
         kappas, pose = approach.waypoints[-1]
         try:
@@ -314,8 +315,8 @@ class GraspControl:
             return False
         return True
 
-    def _plan_carry(self, start: np.ndarray, heading: float) -> grasp.GraspPlan:
-        return grasp.plan_carry(
+    def _plan_carry(self, start: np.ndarray, heading: float) -> grasp_planner.GraspPlan:
+        return plan_carry(
             self.target,
             start,
             heading,
@@ -359,62 +360,75 @@ class GraspControl:
         tip = kinematics.forward(kappa, self.lengths, self.base)[-1, :2]
         error = np.zeros(2)
         if pose is not None and self.leg < 2:
-            # carrying, the camera sees where the object is (it sits a few millimetres off the
-            # nominal grasp point, pressed into the palm): close the loop on it; else on the tip
-            error = self.target - self.seen if self.leg == 1 else np.array(pose[:2]) - tip
-            lag = np.array(pose[:2]) + self.correction - tip
-            # integrate once the arm has caught up; under a load the estimate may keep a bias
-            # of a centimetre or two, so after ARRIVAL_TIME in any case
-            arrived = t - self.since >= ARRIVAL_TIME
-            if float(np.linalg.norm(lag)) <= WINDUP_LIMIT or arrived:
-                self.correction += self.plan.task_gain * self.config.control_period * error
-                norm = float(np.linalg.norm(self.correction))
-                if norm > CORRECTION_LIMIT:
-                    self.correction *= CORRECTION_LIMIT / norm
-            result = solve_ik(
-                np.array(pose[:2]) + self.correction,
-                self.solution,
-                self.lengths,
-                self.base,
-                self.lower,
-                self.upper,
-                heading=pose[2],
-                heading_weight=HEADING_WEIGHT,
-                max_iter=5,
-            )
-            self.solution = result.kappas
-            step = self.rates * self.config.control_period
-            self.reference = np.clip(
-                self.reference + np.clip(self.solution - self.reference, -step, step),
-                self.lower,
-                self.upper,
-            )
+            error = self._close_loop(t, tip, pose)
         if self.leg == 1 and pose is not None:
             self._place(t, error)
             return
+        if self._settled(t, pose, error) or t - self.since >= self.plan.max_time:
+            self._on_settled(t, kappa, pose)
+
+    def _close_loop(
+        self, t: float, tip: np.ndarray, pose: tuple[float, float, float]
+    ) -> np.ndarray:
+        """One step of the settling loop towards the leg's last pose: the error closed on (the
+        carried object's, else the tip's), integrated into the goal's correction once the arm
+        has caught up, and the reference moved towards the IK solution of the corrected goal
+        within the drives' rates; returns the error."""
+        # carrying, the camera sees where the object is (it sits a few millimetres off the
+        # nominal grasp point, pressed into the palm): close the loop on it; else on the tip
+        error = self.target - self.seen if self.leg == 1 else np.array(pose[:2]) - tip
+        lag = np.array(pose[:2]) + self.correction - tip
+        # integrate once the arm has caught up; under a load the estimate may keep a bias
+        # of a centimetre or two, so after ARRIVAL_TIME in any case
+        arrived = t - self.since >= ARRIVAL_TIME
+        if float(np.linalg.norm(lag)) <= WINDUP_LIMIT or arrived:
+            self.correction += self.plan.task_gain * self.config.control_period * error
+            norm = float(np.linalg.norm(self.correction))
+            if norm > CORRECTION_LIMIT:
+                self.correction *= CORRECTION_LIMIT / norm
+        result = solve_ik(
+            np.array(pose[:2]) + self.correction,
+            self.solution,
+            self.lengths,
+            self.base,
+            self.lower,
+            self.upper,
+            heading=pose[2],
+            heading_weight=HEADING_WEIGHT,
+            max_iter=5,
+        )
+        self.solution = result.kappas
+        step = self.rates * self.config.control_period
+        self.reference = np.clip(
+            self.reference + np.clip(self.solution - self.reference, -step, step),
+            self.lower,
+            self.upper,
+        )
+        return error
+
+    def _settled(
+        self, t: float, pose: tuple[float, float, float] | None, error: np.ndarray
+    ) -> bool:
+        """Whether the tip has been within `tolerance` of the leg's last pose (if it has one)
+        for settle_time."""
         on_target = pose is None or float(np.linalg.norm(error)) <= self.plan.tolerance
         if on_target:
             if self.on_target_since is None:
                 self.on_target_since = t
         else:
             self.on_target_since = None
-        settled = (
+        return (
             self.on_target_since is not None
             and t - self.on_target_since >= self.plan.settle_time - 1e-9
         )
-        if not settled and t - self.since < self.plan.max_time:
-            return
+
+    def _on_settled(
+        self, t: float, kappa: np.ndarray, pose: tuple[float, float, float] | None
+    ) -> None:
+        """Settled (or out of time): close the fingers on the object (approach), open them
+        (carry), or finish (retreat)."""
         if self.leg == 0 and not self._captured(pose):
-            # the approach knocked the object (the arm lags its plan): go round again to where
-            # the camera sees it now rather than close the fingers on nothing; if the arm is too
-            # close to it to plan from here, back off first (and plan from there)
-            if self.reapproaches >= MAX_REAPPROACHES:
-                self.note = self.note or "the object is not between the fingers"
-                self._enter(t, PHASE["done"])  # nothing to close on: stay, open
-                return
-            self.reapproaches += 1
-            if not self._approach(t, kappa, self.seen) and not self._back_off(t):
-                self.reapproaches = MAX_REAPPROACHES
+            self._reapproach(t, kappa)
         elif self.leg == 0:
             self._stroke(t, self.gripper.x_closed)
             self._enter(t, PHASE["grasping"])
@@ -423,6 +437,19 @@ class GraspControl:
             self._enter(t, PHASE["releasing"])
         else:
             self._enter(t, PHASE["done"])
+
+    def _reapproach(self, t: float, kappa: np.ndarray) -> None:
+        """The approach knocked the object (the arm lags its plan): go round again to where the
+        camera sees it now rather than close the fingers on nothing; if the arm is too close to
+        it to plan from here, back off first (and plan from there). After MAX_REAPPROACHES the
+        task ends where the arm is, the fingers open."""
+        if self.reapproaches >= MAX_REAPPROACHES:
+            self.note = self.note or "the object is not between the fingers"
+            self._enter(t, PHASE["done"])  # nothing to close on: stay, open
+            return
+        self.reapproaches += 1
+        if not self._approach(t, kappa, self.seen) and not self._back_off(t):
+            self.reapproaches = MAX_REAPPROACHES
 
     def _captured(self, pose: tuple[float, float, float] | None) -> bool:
         """Whether fingers closing at the grasp pose `pose` take hold of the object where the

@@ -72,7 +72,8 @@ class TaskSpaceControl:
         self.tracking = False  # path task: on the line (else approaching its start)
         self.path_timing = (0.0, 0.0)  # (duration, ramp) [s] of the current path's traverse
         self.waypoints: list[np.ndarray] = []  # pipe: the whole-arm plan's configurations
-        self.planned: Any = None  # pipe: the plan (robots.planar_arm.controller.confined.Plan)
+        # pipe: the plan (robots.planar_arm.controller.confined_planner.Plan)
+        self.planned: Any = None
         self.notes: list[str] = []  # for the run's summary (ControllerReport.notes)
 
     # ------------------------------------------------------------------ the cycle
@@ -194,10 +195,10 @@ class TaskSpaceControl:
 
     def _plan_pipe(self, t: float, estimated: np.ndarray) -> None:
         """Confined space: plan the whole arm's way through the channel from the estimated
-        configuration (robots.planar_arm.controller.confined), then track its waypoints by
-        curvature moves and
-        settle on the goal."""
-        from robots.planar_arm.controller.confined import Channel, plan_whole_arm
+        configuration (robots.planar_arm.controller.confined_planner), then track its waypoints by
+        curvature moves and settle on the goal."""
+        from robots.planar_arm.controller.confined import Channel
+        from robots.planar_arm.controller.confined_planner import plan_whole_arm
 
         start = np.clip(estimated, self.lower, self.upper)
         channel = Channel(self.plan.walls, self.plan.centreline)
