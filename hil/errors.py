@@ -30,6 +30,10 @@ class ProtocolError(BusError):
     """The lockstep protocol was violated: a missing, late or stale frame, or a dead peer."""
 
 
+class ReplayError(HilError):
+    """A log that cannot be replayed (no SYNC, counters out of order, ids not in the DBC)."""
+
+
 class Terminated(BaseException):
     """SIGTERM arrived (a CI runner or container stopping us): unwinds like KeyboardInterrupt,
     closing files and writing summary.json, and exits 143."""

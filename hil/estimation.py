@@ -22,8 +22,8 @@ from typing import Any
 import numpy as np
 
 from hil.bustools.logs import has_direction
+from hil.cycles import CSV_HAS_NO_DIRECTION, config_beside, read_cycles, read_log
 from hil.errors import HilError
-from hil.replay import CSV_HAS_NO_DIRECTION, config_beside, read_cycles, read_log
 from hil.seam import (
     ESTIMATORS,
     ArmConfig,

@@ -5,7 +5,8 @@ the controller sent (R), the frames the plant answered with (T: status, camera, 
 heartbeat), then the frames the controller sent in answer to cycle c (R: commands, controller
 state). `replay` plays the plant's side back to a controller node that runs unchanged (in this
 process on a virtual bus, or as the separate `python -m controllers` program over a loopback hub)
-and compares, signal by signal, what the controller sends with what was recorded.
+and compares, signal by signal, what the controller sends with what was recorded. The log is
+read as its cycles by `hil.cycles`.
 
 The controller never knows: it sees the same frames, keyed by the SYNC counter it produces, as it
 did in the run. With an unchanged controller the comparison is exact; a changed gain shows as
@@ -30,30 +31,17 @@ from typing import Any
 
 import can
 
-from hil.bustools.logs import DIRECTED, NO_DIRECTION, has_direction
-from hil.errors import HilError
+from hil.bustools.logs import has_direction
+from hil.cycles import CSV_HAS_NO_DIRECTION, Cycle, config_beside, read_cycles, read_log
+from hil.errors import HilError, ReplayError
 from hil.program import SOFTHIL, USER_LINGER, check_controller, last_words, start, stop
-from hil.seam import ControllerNode, read_config
+from hil.seam import ControllerNode
 from rigbus.canbus import BusSpec, open_bus
-from rigbus.protocol import COUNTER_MODULO, SYNC_ID, FrameError, Protocol, Sync
+from rigbus.protocol import COUNTER_MODULO, SYNC_ID, Protocol
 from rigbus.robots import RobotConfig
 
 WAIT = 60.0  # s for the controller's SYNC(0), as `hil run --wait`: a program may load slowly
 MAX_WAIT = 86400.0
-
-
-class ReplayError(HilError):
-    """A log that cannot be replayed (no SYNC, counters out of order, ids not in the DBC)."""
-
-
-@dataclass(frozen=True)
-class Cycle:
-    """One recorded cycle: the plant's answer to SYNC(c) and the controller's frames after it."""
-
-    index: int
-    time: float  # simulation time of the SYNC [s] (log timestamp less the log's first SYNC)
-    plant: tuple[can.Message, ...]
-    controller: tuple[can.Message, ...]
 
 
 @dataclass(frozen=True)
@@ -97,58 +85,6 @@ class ReplayResult:
             "first": str(self.divergences[0]) if self.divergences else None,
             "by_signal": dict(sorted(self.by_signal.items())),
         }
-
-
-# why a python-can CSV log serves neither replay nor the estimation report
-CSV_HAS_NO_DIRECTION = (
-    f"{NO_DIRECTION}, so the controller's frames cannot be told from the plant's (record with "
-    f"--can-log can{DIRECTED})"
-)
-
-
-def read_cycles(messages: Iterable[can.Message], protocol: Protocol, source: str) -> list[Cycle]:
-    """Split a plant-side log into cycles; ReplayError names the file and the problem."""
-    cycles: list[Cycle] = []
-    plant: list[can.Message] = []
-    controller: list[can.Message] = []
-    start: float | None = None
-    counter = -1
-    for number, message in enumerate(messages, start=1):
-        if message.arbitration_id == SYNC_ID and message.is_rx:
-            try:
-                frame = protocol.decode(message)
-            except FrameError as exc:
-                raise ReplayError(f"{source}: frame {number}: {exc}") from None
-            assert isinstance(frame, Sync)
-            expected = (counter + 1) % COUNTER_MODULO
-            if frame.counter != expected:
-                raise ReplayError(
-                    f"{source}: frame {number}: SYNC counter {frame.counter} where {expected} "
-                    "was due (a log of a different run, or frames missing)"
-                )
-            if counter >= 0:
-                cycles[-1] = Cycle(
-                    cycles[-1].index, cycles[-1].time, tuple(plant), tuple(controller)
-                )
-            counter += 1
-            if start is None:
-                start = message.timestamp
-            cycles.append(Cycle(counter, round(message.timestamp - start, 6), (), ()))
-            plant, controller = [], []
-            continue
-        if counter < 0:
-            continue  # before the first SYNC: not part of a cycle
-        try:
-            protocol.decode(message)
-        except FrameError as exc:
-            raise ReplayError(f"{source}: frame {number}: {exc}") from None
-        (controller if message.is_rx else plant).append(message)
-    if not cycles:
-        raise ReplayError(
-            f"{source}: no SYNC frame received by the plant (R 080): nothing to replay"
-        )
-    cycles[-1] = Cycle(cycles[-1].index, cycles[-1].time, tuple(plant), tuple(controller))
-    return cycles
 
 
 def check_served(cycles: Sequence[Cycle], config: Any, protocol: Protocol, source: str) -> None:
@@ -215,33 +151,6 @@ def _name(key: tuple[str, int | None]) -> str:
 
 def _order(key: tuple[str, int | None]) -> tuple[str, int]:
     return key[0], -1 if key[1] is None else key[1]
-
-
-def read_log(path: Path) -> list[can.Message]:
-    """The messages of a CAN log in any format python-can reads (by suffix); a malformed log is
-    one line naming the file and where."""
-    from hil.bustools.logs import LogError
-    from hil.bustools.logs import read_log as read
-
-    try:
-        return read(path)
-    except LogError as exc:
-        raise ReplayError(str(exc)) from None
-
-
-def config_beside(
-    log: Path, missing: str = "give --scenario to say which controller to replay"
-) -> Any:
-    """The controller configuration a run recorded beside its log (controller.json), of
-    whichever robot kind its `robot` key names (a fish run's is not the arm's); without one,
-    ReplayError ending in `missing` (what the caller needs it for, or how to do without)."""
-    path = log.parent / "controller.json"
-    try:
-        return read_config(path.read_text())
-    except FileNotFoundError:
-        raise ReplayError(f"{path}: no controller.json beside the log; {missing}") from None
-    except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise ReplayError(f"{path}: {exc}") from None
 
 
 class _ReplayPlant:
@@ -321,19 +230,34 @@ def compare(
     tolerances: Mapping[str, float] | None = None,
 ) -> ReplayResult:
     """Signal-by-signal comparison of what the controller sent with what was recorded."""
-    tolerances = tolerances or {}
     result = ReplayResult(
         cycles=len(cycles), frames_compared=0, sent=[list(frames) for frames in sent]
     )
-
-    def note(d: Divergence) -> None:
-        result.divergences.append(d)
-        key = f"{d.message}.{d.signal}"
-        result.by_signal[key] = result.by_signal.get(key, 0) + 1
-
+    comparison = _Comparison(protocol, tolerance, tolerances or {}, result)
     for cycle, actual in zip(cycles, sent, strict=True):
-        expected_frames, expected_count = _by_name(cycle.controller, protocol)
-        actual_frames, actual_count = _by_name(actual, protocol)
+        comparison.cycle(cycle, actual)
+    return result
+
+
+# a frame as `_by_name` gives it: its signals, the length it came with if that is not the
+# DBC's, or None where no such frame was recorded or sent
+_Frame = dict[str, float] | int | None
+
+
+@dataclass(frozen=True)
+class _Comparison:
+    """A comparison's protocol and tolerances, and the result it fills."""
+
+    protocol: Protocol
+    tolerance: float
+    tolerances: Mapping[str, float]
+    result: ReplayResult
+
+    def cycle(self, cycle: Cycle, actual: Sequence[can.Message]) -> None:
+        """Compare what the controller sent in answer to `cycle` with what was recorded, frame
+        by frame in the order of their CAN ids (then names)."""
+        expected_frames, expected_count = _by_name(cycle.controller, self.protocol)
+        actual_frames, actual_count = _by_name(actual, self.protocol)
         order = {
             name: can_id for name, (can_id, _) in (*expected_frames.items(), *actual_frames.items())
         }
@@ -341,32 +265,44 @@ def compare(
             exp = expected_frames[name][1] if name in expected_frames else None
             act = actual_frames[name][1] if name in actual_frames else None
             counts = expected_count.get(name, 0), actual_count.get(name, 0)
-            if exp is not None and act is not None and counts[0] != counts[1]:  # sent twice
-                note(Divergence(cycle.index, cycle.time, name, "(count)", *map(float, counts)))
-            if isinstance(act, int) or isinstance(exp, int):  # the wrong length for the DBC
-                length = protocol.message(order[name]).length
-                sizes = [v if isinstance(v, int) else length for v in (exp, act)]
-                note(Divergence(cycle.index, cycle.time, name, "(length)", *sizes))
-                continue
-            if exp is None or act is None:
-                note(
-                    Divergence(
-                        cycle.index,
-                        cycle.time,
-                        name,
-                        "(frame)",
-                        None if exp is None else 1.0,
-                        None if act is None else 1.0,
-                    )
-                )
-                continue
-            result.frames_compared += 1
-            for signal, e in exp.items():
-                a = act[signal]
-                limit = tolerances.get(signal, tolerances.get(f"{name}.{signal}", tolerance))
-                if not (abs(a - e) <= limit or (math.isnan(a) and math.isnan(e))):
-                    note(Divergence(cycle.index, cycle.time, name, signal, e, a))
-    return result
+            self.frame(cycle, name, order[name], exp, act, counts)
+
+    def frame(
+        self,
+        cycle: Cycle,
+        name: str,
+        can_id: int,
+        exp: _Frame,
+        act: _Frame,
+        counts: tuple[int, int],
+    ) -> None:
+        """Compare one frame of a cycle: how often it was sent, its length, whether it was
+        sent at all, then each signal within its tolerance (NaN matches NaN)."""
+
+        def note(signal: str, expected: float | None, actual: float | None) -> None:
+            divergence = Divergence(cycle.index, cycle.time, name, signal, expected, actual)
+            self.result.divergences.append(divergence)
+            key = f"{name}.{signal}"
+            self.result.by_signal[key] = self.result.by_signal.get(key, 0) + 1
+
+        if exp is not None and act is not None and counts[0] != counts[1]:  # sent twice
+            note("(count)", *map(float, counts))
+        if isinstance(act, int) or isinstance(exp, int):  # the wrong length for the DBC
+            length = self.protocol.message(can_id).length
+            sizes = [v if isinstance(v, int) else length for v in (exp, act)]
+            note("(length)", *sizes)
+            return
+        if exp is None or act is None:
+            note("(frame)", None if exp is None else 1.0, None if act is None else 1.0)
+            return
+        self.result.frames_compared += 1
+        for signal, e in exp.items():
+            a = act[signal]
+            limit = self.tolerances.get(
+                signal, self.tolerances.get(f"{name}.{signal}", self.tolerance)
+            )
+            if not (abs(a - e) <= limit or (math.isnan(a) and math.isnan(e))):
+                note(signal, e, a)
 
 
 def check_tolerances(protocol: Protocol, tolerances: Mapping[str, float]) -> None:

@@ -305,6 +305,18 @@ class ResultsFolder:
                 "earlier run wrote there"
             )
         ours = set(self._manifest())
+        self._check_replaceable(ours)
+        for name in sorted(ours):
+            self._remove_earlier(name)
+        self.written = [
+            n
+            for n in self._manifest()
+            if (self.out / n).exists() and not ((self.out / n).is_dir() and n not in self.planned)
+        ]  # a folder kept for a user's files there is no longer softhil's
+
+    def _check_replaceable(self, ours: set[str]) -> None:
+        """Refuse to overwrite a batch with a run, or a file this run writes that the earlier
+        run's manifest (`ours`) does not list."""
         if BATCH_FILE in ours and BATCH_FILE not in self.planned:
             raise HilError(
                 f"results folder {self.out} holds a batch ({BATCH_FILE} and its trials): "
@@ -317,22 +329,20 @@ class ResultsFolder:
                     f"results folder {self.out}: {name} was not written by softhil (not in "
                     f"{MANIFEST}); --overwrite replaces only softhil's own files"
                 )
-        for name in sorted(ours):
-            path = self.out / name
-            if "/" in name or name in (LOCK, MANIFEST) or self.kept(name):
-                continue
-            if path.is_file() and not path.is_symlink():
-                try:
-                    path.unlink()
-                except OSError as exc:
-                    raise HilError(f"{path}: cannot remove: {_cause(exc)}") from None
-            elif path.is_dir() and not path.is_symlink() and name not in self.planned:
-                self._remove_folder(path)  # an earlier batch's trial this one does not have
-        self.written = [
-            n
-            for n in self._manifest()
-            if (self.out / n).exists() and not ((self.out / n).is_dir() and n not in self.planned)
-        ]  # a folder kept for a user's files there is no longer softhil's
+
+    def _remove_earlier(self, name: str) -> None:
+        """Remove `name`, listed in the earlier run's manifest: a file (never a link, the lock,
+        the manifest or a kept input), or an earlier batch's trial this one does not have."""
+        path = self.out / name
+        if "/" in name or name in (LOCK, MANIFEST) or self.kept(name):
+            return
+        if path.is_file() and not path.is_symlink():
+            try:
+                path.unlink()
+            except OSError as exc:
+                raise HilError(f"{path}: cannot remove: {_cause(exc)}") from None
+        elif path.is_dir() and not path.is_symlink() and name not in self.planned:
+            self._remove_folder(path)  # an earlier batch's trial this one does not have
 
     def _remove_folder(self, path: Path) -> None:
         """Remove a results folder an earlier run made here (a batch's trial): the files its

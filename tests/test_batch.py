@@ -24,7 +24,9 @@ from pathlib import Path
 
 import pytest
 
-from hil import batch
+from hil.batch import local, planning, reporting, runner
+from hil.batch.tomlwrite import dumps_toml
+from hil.batch.trial import metrics, run_trial
 from hil.cli import main
 from hil.errors import HilError, ScenarioError
 from hil.scenario import (
@@ -103,7 +105,7 @@ def test_batch_json_trials_seeds_and_aggregates(local_batch: Path) -> None:
         assert ran["seed"] == trial["seed"] and ran["duration"] == 0.3
         summary = load(folder / "summary.json")
         assert summary["seed"] == trial["seed"] and summary["status"] == "completed"
-        assert trial["metrics"] == batch.metrics(summary)
+        assert trial["metrics"] == metrics(summary)
         assert trial["metrics"]["rms_tracking_error"] == summary["rms_tracking_error"]
     errors = [t["metrics"]["rms_tracking_error"] for t in trials]
     assert len(set(errors)) == 3, "the seeds made no difference: the camera noise is not seeded"
@@ -124,15 +126,13 @@ def test_parallel_trials_step_their_fmus_in_turn_unless_the_user_says(
     """Trials side by side on the cores leave no core to the kernel's worker thread: a worker
     of a parallel batch sets SOFTHIL_KERNEL_THREAD=0, a user's own value stays, one worker alone
     leaves it unset (each run decides)."""
-    from hil.batch import _share_cores
-
     monkeypatch.delenv("SOFTHIL_KERNEL_THREAD", raising=False)
-    _share_cores(False)
+    local._share_cores(False)
     assert "SOFTHIL_KERNEL_THREAD" not in os.environ
-    _share_cores(True)
+    local._share_cores(True)
     assert os.environ["SOFTHIL_KERNEL_THREAD"] == "0"
     monkeypatch.setenv("SOFTHIL_KERNEL_THREAD", "1")
-    _share_cores(True)
+    local._share_cores(True)
     assert os.environ["SOFTHIL_KERNEL_THREAD"] == "1"
 
 
@@ -140,14 +140,14 @@ def test_metrics_leave_out_the_wall_clock(local_batch: Path) -> None:
     summary = load(local_batch / "trial-000" / "summary.json")
     clock = {"wall_time", "real_time_factor", "startup_time", "periods_on_kernel_thread"}
     assert clock <= summary.keys()
-    names = set(batch.metrics(summary))
+    names = set(metrics(summary))
     assert "rms_tracking_error" in names and "bus_load" in names
     assert not names & {*clock, "seed", "duration"}
-    assert batch.metrics({"a": 1, "b": 2.5, "ok": True, "t": {"x": 1}, "s": "x", "n": None}) == {
+    assert metrics({"a": 1, "b": 2.5, "ok": True, "t": {"x": 1}, "s": "x", "n": None}) == {
         "a": 1,
         "b": 2.5,
     }
-    assert batch.metrics({"controller_wall_time": 1.0, "planner_startup_time": 2.0}) == {}
+    assert metrics({"controller_wall_time": 1.0, "planner_startup_time": 2.0}) == {}
 
 
 def test_dask_local_cluster_gives_the_local_batch_json(
@@ -246,10 +246,10 @@ def test_a_stopped_batch_keeps_the_trials_that_finished(
 
     def two_then_stop(specs, workers, done):  # noqa: ANN001, ANN202
         for spec in specs[:2]:
-            done(spec, batch.run_trial(spec))
+            done(spec, run_trial(spec))
         raise KeyboardInterrupt if signal_name == "interrupted" else Terminated
 
-    monkeypatch.setattr(batch, "_run_local", two_then_stop)
+    monkeypatch.setattr(runner, "run_local", two_then_stop)
     out = tmp_path / "batch"
     code, _, err = hil(capsys, "batch", "short", "--trials", 3, "--out", out, "--no-progress")
     assert code == (130 if signal_name == "interrupted" else 143)
@@ -279,7 +279,7 @@ def test_trials_running_when_the_batch_is_stopped_are_kept(
         yield next(iter(as_completed(futures)))
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(batch, "as_completed", first_then_stop)
+    monkeypatch.setattr(local, "as_completed", first_then_stop)
     out = tmp_path / "batch"
     code, _, _ = hil(capsys, "batch", "short", "--trials", 3, "--workers", 2, "--out", out,
                      "--no-progress")  # fmt: skip
@@ -443,7 +443,7 @@ def test_every_example_command_plans(
 
     import hil.cli.batch
 
-    planned: list[batch.Plan] = []
+    planned: list[planning.Plan] = []
     monkeypatch.setattr(
         hil.cli.batch,
         "run_plan",
@@ -531,12 +531,12 @@ def test_trial_warnings_reach_batch_json_and_the_terminal(
 
 
 def test_a_trial_without_warnings_has_none_in_batch_json(builtins: Path, tmp_path: Path) -> None:
-    plan = batch.make_plan(
+    plan = planning.make_plan(
         builtins / "short.toml", kind="batch", command="c", out=tmp_path / "p", trials=3
     )
     done = {"status": "completed", "error": None, "metrics": {"e": 1.0}, "success": None}
     outcomes = [{**done, "warnings": []}, {**done, "warnings": ["w"]}, dict(done)]
-    report = batch.report(plan, outcomes)
+    report = reporting.report(plan, outcomes)
     assert ["warnings" in t for t in report["trials"]] == [False, True, False]
     assert report["warned"] == 1 and [t["index"] for t in report["warned_trials"]] == [1]
 
@@ -546,12 +546,12 @@ def test_the_terminal_names_five_warned_trials_and_counts_the_rest(
 ) -> None:
     from hil.cli.batch import WARNED_SHOWN, _print
 
-    plan = batch.make_plan(
+    plan = planning.make_plan(
         builtins / "short.toml", kind="batch", command="c", out=tmp_path / "p", trials=8
     )
     done = {"status": "completed", "error": None, "metrics": {"e": 1.0}, "success": None}
     outcomes = [{**done, "warnings": [f"w{i}"] if i != 2 else []} for i in range(8)]
-    _print(plan, batch.report(plan, outcomes))
+    _print(plan, reporting.report(plan, outcomes))
     err = capsys.readouterr().err.splitlines()
     assert WARNED_SHOWN == 5 and err == [
         *(f"  warning: trial {i} (seed {i + 1}): w{i}" for i in (0, 1, 3, 4, 5)),
@@ -588,12 +588,12 @@ def test_set_errors_are_one_line_before_anything_runs(
 def test_a_bare_date_in_set_is_the_string_it_was_typed_as(builtins: Path, tmp_path: Path) -> None:
     """A bare word is a string, and so is an unquoted date: `recording.start=2016-01-01T00:00:00Z`
     sweeps the instant the README writes that way (it was a TypeError traceback)."""
-    option = batch.parse_set("recording.start=2016-01-01T00:00:00Z,1979-05-27T07:32:00Z")
+    option = planning.parse_set("recording.start=2016-01-01T00:00:00Z,1979-05-27T07:32:00Z")
     assert option.values == ("2016-01-01T00:00:00Z", "1979-05-27T07:32:00Z")
-    assert batch.parse_set("a.b=[1979-05-27]").values == (["1979-05-27"],)
-    spaced = batch.parse_set("recording.start=2016-01-01 00:00:00Z")  # TOML allows the space
+    assert planning.parse_set("a.b=[1979-05-27]").values == (["1979-05-27"],)
+    spaced = planning.parse_set("recording.start=2016-01-01 00:00:00Z")  # TOML allows the space
     assert spaced.values == ("2016-01-01 00:00:00Z",)  # as typed, not re-formatted
-    plan = batch.make_plan(builtins / "short.toml", kind="sweep", command="c",
+    plan = planning.make_plan(builtins / "short.toml", kind="sweep", command="c",
                            out=tmp_path / "p", trials=1, overrides=[option])  # fmt: skip
     texts = [tomllib.loads(spec.scenario_text)["recording"]["start"] for spec in plan.trials]
     assert texts == ["2016-01-01T00:00:00Z", "1979-05-27T07:32:00Z"]
@@ -609,55 +609,59 @@ def test_a_batch_too_big_is_refused_before_anything_is_checked(
                        "--set", f"camera.noise={values}", "--out", out)  # fmt: skip
     assert code == 1 and err == [
         "hil: error: --set: 1000000 grid points x 1 trial = 1000000 trials; at most "
-        f"{batch.MAX_TRIALS} in one batch or sweep (split it: fewer values, or --seed and "
+        f"{planning.MAX_TRIALS} in one batch or sweep (split it: fewer values, or --seed and "
         "--trials in parts)"
     ]
     code, _, err = hil(capsys, "batch", "short", "--trials", 100_000_000, "--out", out)
     assert code == 1 and err[0].startswith("hil: error: --trials: 100000000 trials; at most ")
     assert not out.exists()
-    assert batch.MAX_TRIALS == 10_000
-    noted = batch.make_plan(
+    assert planning.MAX_TRIALS == 10_000
+    noted = planning.make_plan(
         builtins / "short.toml",
         kind="sweep",
         command="c",
         out=out,
         trials=1,
         overrides=[
-            batch.parse_set("camera.noise=0,0.001,0.002"),
-            batch.parse_set("controller.crossover=" + ",".join(values.split(",")[:30])),
+            planning.parse_set("camera.noise=0,0.001,0.002"),
+            planning.parse_set("controller.crossover=" + ",".join(values.split(",")[:30])),
         ],
     )
-    assert len(noted.points) == 3 * 30 > batch.CHECK_NOTE_POINTS
+    assert len(noted.points) == 3 * 30 > planning.CHECK_NOTE_POINTS
     assert capsys.readouterr().err.splitlines() == [
         "hil: note: checking 90 grid points before anything runs"
     ]  # fmt: skip
-    assert len(batch.make_plan(builtins / "short.toml", kind="batch", command="c", out=out,
-                               trials=batch.MAX_TRIALS).trials) == batch.MAX_TRIALS  # fmt: skip
+    largest = planning.make_plan(
+        builtins / "short.toml", kind="batch", command="c", out=out, trials=planning.MAX_TRIALS
+    )
+    assert len(largest.trials) == planning.MAX_TRIALS
 
 
 def test_parse_set_values_and_the_robot_fallback() -> None:
-    crossover = batch.parse_set("controller.crossover=0.5,1,2e-1")
+    crossover = planning.parse_set("controller.crossover=0.5,1,2e-1")
     assert crossover.key == "controller.crossover" and crossover.values == (0.5, 1, 0.2)
-    assert batch.parse_set("segment.bore=0.02").key == "robot.segment.bore"
-    assert batch.parse_set("robot.segments=1,2").key == "robot.segments"
-    assert batch.parse_set("duration=0.2").key == "duration"
-    assert batch.parse_set("controller.estimator=kf,ukf").values == ("kf", "ukf")
-    assert batch.parse_set('a.b="x,y",true,[1, 2]').values == ("x,y", True, [1, 2])
+    assert planning.parse_set("segment.bore=0.02").key == "robot.segment.bore"
+    assert planning.parse_set("robot.segments=1,2").key == "robot.segments"
+    assert planning.parse_set("duration=0.2").key == "duration"
+    assert planning.parse_set("controller.estimator=kf,ukf").values == ("kf", "ukf")
+    assert planning.parse_set('a.b="x,y",true,[1, 2]').values == ("x,y", True, [1, 2])
     data = {"robot": {"kind": "planar_arm"}, "camera": {"noise": 0.0}}
-    changed = batch.apply_overrides(data, [("robot.segment.3.bore", 0.02), ("camera.noise", 1.0)])
+    changed = planning.apply_overrides(
+        data, [("robot.segment.3.bore", 0.02), ("camera.noise", 1.0)]
+    )
     assert changed == {
         "robot": {"kind": "planar_arm", "segment": {"3": {"bore": 0.02}}},
         "camera": {"noise": 1.0},
     }
     assert data["camera"]["noise"] == 0.0  # the parsed scenario is not touched
     with pytest.raises(HilError, match="camera.noise is not a table"):
-        batch.apply_overrides(data, [("camera.noise.x", 1.0)])
+        planning.apply_overrides(data, [("camera.noise.x", 1.0)])
 
 
 def test_toml_writer_round_trip(builtins: Path) -> None:
     for scenario in [DEFAULT_SCENARIO, builtins / "short.toml"]:
         data = tomllib.loads(scenario.read_text())
-        assert tomllib.loads(batch.dumps_toml(data)) == data
+        assert tomllib.loads(dumps_toml(data)) == data
     data = {
         "name": 'quote " backslash \\ newline \n tab \t del \x7f e\u0301 \U0001f41f',
         "f": [0.1, 1e-300, 1.7976931348623157e308, -0.0, 5e-324, math.inf, -math.inf],
@@ -672,13 +676,13 @@ def test_toml_writer_round_trip(builtins: Path) -> None:
         ],
         "table": {},
     }
-    assert tomllib.loads(batch.dumps_toml(data)) == data
-    assert math.isnan(tomllib.loads(batch.dumps_toml({"x": math.nan}))["x"])
+    assert tomllib.loads(dumps_toml(data)) == data
+    assert math.isnan(tomllib.loads(dumps_toml({"x": math.nan}))["x"])
 
 
 def test_success_rate_counts_failed_trials_as_unsuccessful(builtins: Path, tmp_path: Path) -> None:
     """Later tasks' summaries carry a boolean `success`; the rate is over every trial."""
-    plan = batch.make_plan(
+    plan = planning.make_plan(
         builtins / "short.toml", kind="batch", command="c", out=tmp_path / "p", trials=4
     )
     outcomes = [
@@ -687,7 +691,7 @@ def test_success_rate_counts_failed_trials_as_unsuccessful(builtins: Path, tmp_p
         {"status": "completed", "error": None, "metrics": {"e": 2.0}, "success": True},
         {"status": "failed", "error": "boom", "metrics": {}, "success": None},
     ]
-    report = batch.report(plan, outcomes)
+    report = reporting.report(plan, outcomes)
     assert report["success_rate"] == 0.5
     assert report["aggregate"]["e"] == {"mean": 2.0, "std": 1.0, "min": 1.0, "max": 3.0, "n": 3}
     assert report["failed_trials"] == [

@@ -18,11 +18,12 @@ import pytest
 
 import hil.bus.hosted as hosted_module
 import rigbus.binary as binary_module
-from hil import run as run_module
+from hil import run_bus
 from hil.bus.hosted import HostedBus
 from hil.bus.loopback import LoopbackHub
 from hil.errors import HilError
-from hil.run import BUSY_POLL, RunOptions
+from hil.run import RunOptions
+from hil.run_bus import BUSY_POLL
 from rigbus.binary import SofthilBus, busy_poll_seconds
 from rigbus.canbus import BusOpenError, BusSpec, open_bus
 from tests.test_binary_bus import (  # noqa: F401 - the autouse guard applies here too
@@ -198,14 +199,14 @@ def test_hil_run_busy_polls_only_with_a_hosted_hub_two_cores_and_no_pacing(
     monkeypatch.delenv("SOFTHIL_BUSY_POLL", raising=False)
     lockstep, paced = RunOptions(out=tmp_path), RunOptions(out=tmp_path, realtime=True)
     monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 1})
-    assert run_module._busy_poll("plant", lockstep) == BUSY_POLL > 0.0
-    assert run_module._busy_poll("plant", paced) == 0.0
-    assert run_module._busy_poll("process", lockstep) == 0.0
-    assert run_module._busy_poll("thread", lockstep) == 0.0
+    assert run_bus.hub_busy_poll("plant", lockstep) == BUSY_POLL > 0.0
+    assert run_bus.hub_busy_poll("plant", paced) == 0.0
+    assert run_bus.hub_busy_poll("process", lockstep) == 0.0
+    assert run_bus.hub_busy_poll("thread", lockstep) == 0.0
     monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0})
-    assert run_module._busy_poll("plant", lockstep) == 0.0  # one core: polling would starve
+    assert run_bus.hub_busy_poll("plant", lockstep) == 0.0  # one core: polling would starve
     monkeypatch.setenv("SOFTHIL_BUSY_POLL", "0.004")
-    assert run_module._busy_poll("thread", paced) == 0.004  # the user's word wins
+    assert run_bus.hub_busy_poll("thread", paced) == 0.004  # the user's word wins
     monkeypatch.setenv("SOFTHIL_BUSY_POLL", "2")
     with pytest.raises(HilError, match="SOFTHIL_BUSY_POLL: softhil busy_poll '2'"):
-        run_module._busy_poll("plant", lockstep)
+        run_bus.hub_busy_poll("plant", lockstep)

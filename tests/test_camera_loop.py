@@ -14,8 +14,8 @@ import pytest
 from controllers import kinematics
 from controllers.estimation import MarkerFrame
 from hil.bus.loopback import LoopbackHub
+from hil.cycles import config_beside
 from hil.estimation import estimation_report, marker_residuals, measured_cycles, score
-from hil.replay import config_beside
 from hil.run import RunOptions, run_scenario
 from hil.scenario import DEFAULT_SCENARIO, load_scenario
 from hil.summary import read_signals

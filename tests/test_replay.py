@@ -15,7 +15,8 @@ import can
 import pytest
 
 from hil.cli import main
-from hil.replay import ReplayError, assert_replays, replay
+from hil.errors import ReplayError
+from hil.replay import assert_replays, replay
 from hil.run import RunOptions, run_scenario
 from hil.scenario import DEFAULT_SCENARIO, load_scenario
 
@@ -182,7 +183,8 @@ def test_a_log_lacking_a_frame_the_controller_waits_for_is_named_before_the_repl
     a frame missing here from a log of another robot (which never holds the frame)."""
     import dataclasses
 
-    from hil.replay import check_served, read_cycles, read_log
+    from hil.cycles import read_cycles, read_log
+    from hil.replay import check_served
     from rigbus.protocol import Protocol
 
     lines = recorded.read_text().splitlines()
@@ -364,7 +366,8 @@ def test_bad_logs_get_one_line(recorded: Path, tmp_path: Path) -> None:
 
 def test_compare_checks_every_signal_of_every_frame() -> None:
     """A difference in a frame's last signal only is found and named."""
-    from hil.replay import Cycle, compare
+    from hil.cycles import Cycle
+    from hil.replay import compare
     from rigbus.protocol import ControllerState, DriveCommand, Protocol
 
     protocol = Protocol()
@@ -391,7 +394,8 @@ def test_a_frame_the_dbc_lacks_or_of_the_wrong_length_is_a_divergence_not_a_trac
 ) -> None:
     """A controller under test that sends an id the DBC does not have, or a DBC message of
     the wrong length, diverges there (a KeyError or cantools DecodeError traceback before)."""
-    from hil.replay import Protocol, compare, read_cycles, read_log
+    from hil.cycles import read_cycles, read_log
+    from hil.replay import Protocol, compare
 
     protocol = Protocol()
     cycles = read_cycles(read_log(recorded), protocol, str(recorded))[:3]

@@ -214,10 +214,10 @@ def test_a_hand_started_controller_that_leaves_mid_run_is_noticed_by_its_closed_
 def test_a_closed_sync_connection_is_taken_for_gone_only_after_the_grace(monkeypatch) -> None:
     """A program's exit is named first (by its code); a connection closed for less than
     CLOSED_GRACE, or replaced by one that sends the SYNCs again, is not the controller gone."""
-    from hil import run
+    from hil import controller_peer as peers
 
     now = [100.0]
-    monkeypatch.setattr(run.time, "monotonic", lambda: now[0])
+    monkeypatch.setattr(peers.time, "monotonic", lambda: now[0])
 
     class Hub:
         where: str | None = None
@@ -225,23 +225,23 @@ def test_a_closed_sync_connection_is_taken_for_gone_only_after_the_grace(monkeyp
         def sender_gone(self) -> str | None:
             return self.where
 
-    peer = run._Peer()
+    peer = peers.ControllerPeer()
     peer.hub = Hub()  # type: ignore[assignment]
     assert peer.gone() is None
     peer.hub.where = "127.0.0.1:5"
     assert peer.gone() is None  # just closed
-    now[0] += run.CLOSED_GRACE * 0.99
+    now[0] += peers.CLOSED_GRACE * 0.99
     assert peer.gone() is None
     peer.hub.where = None  # another connection sent a SYNC: the grace starts again
     assert peer.gone() is None
     peer.hub.where = "127.0.0.1:6"
-    now[0] += run.CLOSED_GRACE * 0.99
+    now[0] += peers.CLOSED_GRACE * 0.99
     assert peer.gone() is None
-    now[0] += run.CLOSED_GRACE
+    now[0] += peers.CLOSED_GRACE
     assert peer.gone() == (
         "the controller's connection to the run's hub (127.0.0.1:6, which sent the SYNCs) closed"
     )
-    assert 0.5 <= run.CLOSED_GRACE <= 2.0
+    assert 0.5 <= peers.CLOSED_GRACE <= 2.0
 
 
 def _ending_after(tmp_path: Path, cycles: int) -> str:

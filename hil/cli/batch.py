@@ -10,7 +10,8 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from hil.batch import Execution, Override, Plan, count, make_plan, parse_set, run_plan
+from hil.batch.planning import Override, Plan, count, make_plan, parse_set
+from hil.batch.runner import Execution, run_plan
 from hil.errors import HilError
 from hil.scenario import resolve_scenario
 

@@ -187,6 +187,23 @@ def load_spec(folder: Path) -> ModelSpec:
     name = str(model["name"])
     if name != folder.name or not name.isidentifier():
         raise BuildError(f"{path}: model.name {name!r} must equal the folder name {folder.name!r}")
+    variables, families = _declared(path, data)
+    unknown = set(data) - {"model", *CAUSALITIES}
+    if unknown:
+        raise BuildError(f"{path}: unknown table(s) {sorted(unknown)}")
+    return ModelSpec(
+        name=name,
+        description=str(model.get("description", "")),
+        step_size=float(model.get("step_size", 1e-3)),
+        variables=tuple(variables),
+        folder=folder,
+        families=tuple(families.items()),
+    )
+
+
+def _declared(path: Path, data: dict) -> tuple[list[Variable], dict[str, int]]:
+    """The variables `data` declares, in value-reference order (parameters, inputs, outputs;
+    a family as its members), their dependencies expanded and checked; and the families."""
     variables: list[Variable] = []
     families: dict[str, int] = {}
     for group in CAUSALITIES:
@@ -205,6 +222,12 @@ def load_spec(folder: Path) -> ModelSpec:
         raise BuildError(f"{path}: variable(s) {twice} declared twice (a family member?)")
     if families:
         variables = [_expand_dependencies(v, families) for v in variables]
+    _check_dependencies(path, variables, known)
+    return variables, families
+
+
+def _check_dependencies(path: Path, variables: list[Variable], known: dict[str, Variable]) -> None:
+    """Every name in an output's depends_on is an input or a parameter of the model."""
     for v in variables:
         for dependency in v.depends_on:
             if dependency not in known or known[dependency].causality == "output":
@@ -212,17 +235,6 @@ def load_spec(folder: Path) -> ModelSpec:
                     f"{path}: outputs.{v.name}.depends_on: {dependency!r} is not an input or "
                     "parameter"
                 )
-    unknown = set(data) - {"model", *CAUSALITIES}
-    if unknown:
-        raise BuildError(f"{path}: unknown table(s) {sorted(unknown)}")
-    return ModelSpec(
-        name=name,
-        description=str(model.get("description", "")),
-        step_size=float(model.get("step_size", 1e-3)),
-        variables=tuple(variables),
-        folder=folder,
-        families=tuple(families.items()),
-    )
 
 
 def _family(path: Path, group: str, name: str, decl: dict) -> list[tuple[str, dict]]:
@@ -369,6 +381,19 @@ def generate_model_description(
         listed = ET.SubElement(cosim, "SourceFiles")
         for name in source_files:
             ET.SubElement(listed, "File", name=name)
+    _unit_definitions(root, spec)
+    categories = ET.SubElement(root, "LogCategories")
+    for category in ("logStatusError", "logStatusWarning"):
+        ET.SubElement(categories, "Category", name=category)
+    ET.SubElement(root, "DefaultExperiment", startTime="0.0", stepSize=repr(spec.step_size))
+    _model_variables(root, spec)
+    _model_structure(root, spec)
+    ET.indent(root)
+    return '<?xml version="1.0" encoding="UTF-8"?>\n' + ET.tostring(root, encoding="unicode") + "\n"
+
+
+def _unit_definitions(root: ET.Element, spec: ModelSpec) -> None:
+    """<UnitDefinitions>: every unit the variables use, in SI base units, with display units."""
     used = sorted({v.unit for v in spec.variables if v.unit is not None})
     if used:
         units = ET.SubElement(root, "UnitDefinitions")
@@ -377,10 +402,10 @@ def generate_model_description(
             ET.SubElement(unit, "BaseUnit", {k: str(e) for k, e in _UNITS[name].items()})
             for display, factor in _DISPLAY_UNITS.get(name, []):
                 ET.SubElement(unit, "DisplayUnit", name=display, factor=repr(1.0 / factor))
-    categories = ET.SubElement(root, "LogCategories")
-    for category in ("logStatusError", "logStatusWarning"):
-        ET.SubElement(categories, "Category", name=category)
-    ET.SubElement(root, "DefaultExperiment", startTime="0.0", stepSize=repr(spec.step_size))
+
+
+def _model_variables(root: ET.Element, spec: ModelSpec) -> None:
+    """<ModelVariables>: one ScalarVariable per variable, in value-reference order."""
     variables = ET.SubElement(root, "ModelVariables")
     for v in spec.variables:
         attrs = {
@@ -393,20 +418,30 @@ def generate_model_description(
         if v.causality == "parameter":
             attrs["initial"] = "exact"
         element = ET.SubElement(variables, "ScalarVariable", attrs)
-        type_attrs: dict[str, str] = {}
-        if v.unit is not None:
-            type_attrs["unit"] = v.unit
-        if v.min is not None:
-            type_attrs["min"] = _format_number(v.min, v.type)
-        if v.max is not None:
-            type_attrs["max"] = _format_number(v.max, v.type)
-        if v.start is not None:
-            type_attrs["start"] = _format_number(v.start, v.type)
-        ET.SubElement(element, v.type, type_attrs)
-    # Outputs change only in fmi2DoStep (the glue recomputes them from the state there), so in
-    # step mode no output depends directly on an input: empty dependencies, no false algebraic
-    # loop for a master. In initialisation mode an output follows the parameters and the inputs
-    # its model.toml lists in depends_on.
+        ET.SubElement(element, v.type, _type_attributes(v))
+
+
+def _type_attributes(v: Variable) -> dict[str, str]:
+    """The attributes of a variable's type element: unit, min, max, start (those it has)."""
+    type_attrs: dict[str, str] = {}
+    if v.unit is not None:
+        type_attrs["unit"] = v.unit
+    if v.min is not None:
+        type_attrs["min"] = _format_number(v.min, v.type)
+    if v.max is not None:
+        type_attrs["max"] = _format_number(v.max, v.type)
+    if v.start is not None:
+        type_attrs["start"] = _format_number(v.start, v.type)
+    return type_attrs
+
+
+def _model_structure(root: ET.Element, spec: ModelSpec) -> None:
+    """<ModelStructure>: the outputs and their initial dependencies.
+
+    Outputs change only in fmi2DoStep (the glue recomputes them from the state there), so in
+    step mode no output depends directly on an input: empty dependencies, no false algebraic
+    loop for a master. In initialisation mode an output follows the parameters and the inputs
+    its model.toml lists in depends_on."""
     structure = ET.SubElement(root, "ModelStructure")
     index = {v.name: i + 1 for i, v in enumerate(spec.variables)}
     outputs_list = [v for v in spec.variables if v.causality == "output"]
@@ -423,5 +458,3 @@ def generate_model_description(
                 index=str(index[v.name]),
                 dependencies=" ".join(map(str, known)),
             )
-    ET.indent(root)
-    return '<?xml version="1.0" encoding="UTF-8"?>\n' + ET.tostring(root, encoding="unicode") + "\n"

@@ -96,8 +96,10 @@ def beat_mean(values: np.ndarray, window: int) -> np.ndarray:
 
 
 def fish_metrics(robot: Fish, scenario: Scenario, signals: Mapping[str, Any]) -> dict[str, Any]:
+    """The fish's metrics for summary.json (module docstring): the first manoeuvre's turn, the
+    work split of every manoeuvre, the swimming speed, the gas, the task's score and why the
+    run ended; `task_warnings` for summary.json's warnings."""
     t = signals["time"]
-    r = scenario.robot
     starts = manoeuvre_starts(signals)
     length = robot.body_length(scenario)
     bounds = [k for k, _ in starts] + [t.size]
@@ -110,15 +112,8 @@ def fish_metrics(robot: Fish, scenario: Scenario, signals: Mapping[str, Any]) ->
     begin = starts[0][0] if starts else 0
     surge = signals["surge"][begin:]
     forward = float(np.mean(surge)) if surge.size else 0.0
-    empty = np.nan_to_num(signals["empty"]) > 0.5
-    mode = signals["mode"]
-    reported_no_gas = np.nan_to_num(mode) == NO_GAS_MODE
     reported = signals["manoeuvres_left"][np.isfinite(signals["manoeuvres_left"])]
     gas_used = float(signals["m_canister"][0] - signals["m_canister"][-1])
-    left: int | None = None  # the true figure: the report saturates at 255 (an 8-bit signal)
-    if starts and gas_used > 0.0:
-        usable = float(signals["m_canister"][-1]) - robot.controller_config(scenario).gas_reserve
-        left = max(0, math.floor(usable / (gas_used / len(starts))))
     metrics: dict[str, Any] = {
         "heading_change": first.get("heading_change"),  # its size; the turn's way:
         "turn_direction": first.get("direction"),  # "left" (yaw up) or "right"
@@ -131,7 +126,7 @@ def fish_metrics(robot: Fish, scenario: Scenario, signals: Mapping[str, Any]) ->
         "final_heading": math.degrees(float(signals["yaw"][-1])),
         "gas_used": gas_used,
         "manoeuvres": len(starts),
-        "manoeuvres_left": left,
+        "manoeuvres_left": _manoeuvres_left(robot, scenario, signals, len(starts), gas_used),
         "manoeuvres_left_reported": int(reported[-1]) if reported.size else None,
         "work": manoeuvres,
         "work_violations": sum(
@@ -148,49 +143,80 @@ def fish_metrics(robot: Fish, scenario: Scenario, signals: Mapping[str, Any]) ->
     elif kind == "swim":
         success = forward > 0.0
     else:
-        holding = np.flatnonzero(np.nan_to_num(mode) == HOLD_MODE)
-        window = round(1.0 / (r.frequency * scenario.timing.control_period))
-        mean_yaw = beat_mean(signals["yaw"], window)
-        target = math.radians(r.heading)
-        errors = np.degrees(np.abs((mean_yaw - target + math.pi) % (2 * math.pi) - math.pi))
-        if holding.size:
-            # after the first turn, once the head has come to rest and the fish swims on; the
-            # last half beat is left out (the centred mean is one-sided there)
-            held = errors[holding[0] : max(holding[0] + 1, t.size - window // 2)]
-            metrics["hold_start"] = float(t[holding[0]])
-            metrics["heading_error_max"] = float(held.max())
-            metrics["heading_error_mean"] = float(held.mean())
-            success = bool(held.max() <= math.degrees(scenario_tolerance()))
-            left = metrics["nose_out_of_view_at"]
-            if left is not None and left < metrics["hold_start"]:
-                warnings.append(
-                    f"the nose left the camera's view at t = {left:.3f} s, before the hold "
-                    f"({metrics['hold_start']:.3f} s): the controller glided without a "
-                    "heading estimate; the heading is scored from the true signals"
-                )
-        else:
-            metrics["hold_start"] = metrics["heading_error_max"] = None
-            metrics["heading_error_mean"] = None
-            success = False
-    if empty.any():
-        k = int(np.argmax(empty))
-        told = f"t = {t[int(np.argmax(reported_no_gas))]:.3f} s" if reported_no_gas.any() else None
-        metrics["end_reason"] = (
-            f"the canister ran down at t = {t[k]:.3f} s (supply below the set pressure); "
-            + (
-                f"the controller reported no gas at {told} and stopped manoeuvring"
-                if told
-                else "the controller did not report it"
-            )
-        )
-        metrics["gas_exhausted"] = True
-        success = False
-    else:
-        metrics["end_reason"] = f"the {kind} task ran its {scenario.duration:g} s"
-        metrics["gas_exhausted"] = False
+        success = _heading_held(scenario, signals, metrics, warnings)
+    success = _end_reason(scenario, signals, metrics) and success
     metrics["success"] = bool(success)
     metrics["task_warnings"] = warnings  # summary.json's warnings, not a metric of its own
     return metrics
+
+
+def _manoeuvres_left(
+    robot: Fish, scenario: Scenario, signals: Mapping[str, Any], starts: int, gas_used: float
+) -> int | None:
+    """How many more manoeuvres the gas left above the controller's reserve allows, at the
+    mean gas of the `starts` made; None if none was made (or no gas used). The true figure:
+    the controller's report saturates at 255 (an 8-bit signal)."""
+    if not (starts and gas_used > 0.0):
+        return None
+    usable = float(signals["m_canister"][-1]) - robot.controller_config(scenario).gas_reserve
+    return max(0, math.floor(usable / (gas_used / starts)))
+
+
+def _heading_held(
+    scenario: Scenario, signals: Mapping[str, Any], metrics: dict[str, Any], warnings: list[str]
+) -> bool:
+    """The heading task: whether the beat-averaged heading stayed within the controller's
+    tolerance of the set heading from the hold's start on; its start and errors into
+    `metrics`, and a warning into `warnings` if the nose left the camera's view before it."""
+    t, r = signals["time"], scenario.robot
+    holding = np.flatnonzero(np.nan_to_num(signals["mode"]) == HOLD_MODE)
+    window = round(1.0 / (r.frequency * scenario.timing.control_period))
+    mean_yaw = beat_mean(signals["yaw"], window)
+    target = math.radians(r.heading)
+    errors = np.degrees(np.abs((mean_yaw - target + math.pi) % (2 * math.pi) - math.pi))
+    if not holding.size:
+        metrics["hold_start"] = metrics["heading_error_max"] = None
+        metrics["heading_error_mean"] = None
+        return False
+    # after the first turn, once the head has come to rest and the fish swims on; the
+    # last half beat is left out (the centred mean is one-sided there)
+    held = errors[holding[0] : max(holding[0] + 1, t.size - window // 2)]
+    metrics["hold_start"] = float(t[holding[0]])
+    metrics["heading_error_max"] = float(held.max())
+    metrics["heading_error_mean"] = float(held.mean())
+    left = metrics["nose_out_of_view_at"]
+    if left is not None and left < metrics["hold_start"]:
+        warnings.append(
+            f"the nose left the camera's view at t = {left:.3f} s, before the hold "
+            f"({metrics['hold_start']:.3f} s): the controller glided without a "
+            "heading estimate; the heading is scored from the true signals"
+        )
+    return bool(held.max() <= math.degrees(scenario_tolerance()))
+
+
+def _end_reason(scenario: Scenario, signals: Mapping[str, Any], metrics: dict[str, Any]) -> bool:
+    """Why the run ended, into `metrics` (`end_reason`, `gas_exhausted`): the canister ran
+    down (saying whether the controller reported it), or the task ran its duration. False if
+    the gas ran out (no task succeeds then)."""
+    t = signals["time"]
+    empty = np.nan_to_num(signals["empty"]) > 0.5
+    if not empty.any():
+        metrics["end_reason"] = f"the {scenario.task.kind} task ran its {scenario.duration:g} s"
+        metrics["gas_exhausted"] = False
+        return True
+    reported_no_gas = np.nan_to_num(signals["mode"]) == NO_GAS_MODE
+    k = int(np.argmax(empty))
+    told = f"t = {t[int(np.argmax(reported_no_gas))]:.3f} s" if reported_no_gas.any() else None
+    metrics["end_reason"] = (
+        f"the canister ran down at t = {t[k]:.3f} s (supply below the set pressure); "
+        + (
+            f"the controller reported no gas at {told} and stopped manoeuvring"
+            if told
+            else "the controller did not report it"
+        )
+    )
+    metrics["gas_exhausted"] = True
+    return False
 
 
 def scenario_tolerance() -> float:

@@ -188,31 +188,12 @@ def _point_to_point(
     phase: np.ndarray,
     task: Any,
 ) -> dict[str, Any]:
-    per_target = []
-    for k, target in enumerate(targets):
-        rows = (index == k) & np.isin(phase, ON_TARGET_PHASES)
-        entry: dict[str, Any] = {"target": [target[0], target[1]], "reached": bool(rows.any())}
-        if rows.any():
-            tk, error = t[rows], np.linalg.norm(tips[rows] - np.array(target), axis=1)
-            window = tk >= tk[-1] - task.settle_time + 1e-9
-            outside = np.nonzero(error > task.band)[0]
-            if outside.size == 0:
-                settle: float | None = 0.0
-            elif outside[-1] + 1 < tk.size:
-                settle = float(tk[outside[-1] + 1] - tk[0])
-            else:
-                settle = None  # never within the band
-            entry.update(
-                error=float(np.mean(error[window])),
-                final_error=float(error[-1]),
-                time_to_settle=settle,
-                settled=bool(np.any(phase[rows] == PHASE["settled"])),
-                start=float(tk[0]),
-            )
-        per_target.append(entry)
+    """Per target its error, time to settle and whether it settled (module docstring); over
+    the targets their statistics, with a warning if the run ended before some were reached."""
+    per_target = [
+        _target(k, target, t, tips, index, phase, task) for k, target in enumerate(targets)
+    ]
     reached = [e for e in per_target if e["reached"]]
-    errors = np.array([e["error"] for e in reached])
-    settle_times = [e["time_to_settle"] for e in reached if e["time_to_settle"] is not None]
     settled = sum(1 for e in reached if e["settled"])
     never = [k for k, e in enumerate(per_target) if not e["reached"]]
     warned = (
@@ -224,6 +205,21 @@ def _point_to_point(
         else []
     )
     return {
+        **_reached_statistics(reached),
+        "targets": len(targets),
+        "targets_settled": settled,
+        "success": settled == len(targets),
+        "per_target": per_target,
+        "task_warnings": warned,  # summary.json's warnings
+    }
+
+
+def _reached_statistics(reached: list[dict[str, Any]]) -> dict[str, float | None]:
+    """The error over the targets reached (mean, standard deviation, maximum) and their time
+    to settle (mean over those that settled, maximum only if every one did); None without."""
+    errors = np.array([e["error"] for e in reached])
+    settle_times = [e["time_to_settle"] for e in reached if e["time_to_settle"] is not None]
+    return {
         "tip_error_mean": float(np.mean(errors)) if errors.size else None,
         "tip_error_std": float(np.std(errors)) if errors.size else None,
         "tip_error_max": float(np.max(errors)) if errors.size else None,
@@ -231,12 +227,45 @@ def _point_to_point(
         "time_to_settle_max": (
             max(settle_times) if settle_times and len(settle_times) == len(reached) else None
         ),
-        "targets": len(targets),
-        "targets_settled": settled,
-        "success": settled == len(targets),
-        "per_target": per_target,
-        "task_warnings": warned,  # summary.json's warnings
     }
+
+
+def _target(
+    k: int,
+    target: tuple[float, float],
+    t: np.ndarray,
+    tips: np.ndarray,
+    index: np.ndarray,
+    phase: np.ndarray,
+    task: Any,
+) -> dict[str, Any]:
+    """Target `k`'s entry: whether the controller reached it (pursued it in an on-target
+    phase) and then its mean error over the last `settle_time`, final error, time to settle,
+    whether it reported it settled, and when it started on it."""
+    rows = (index == k) & np.isin(phase, ON_TARGET_PHASES)
+    entry: dict[str, Any] = {"target": [target[0], target[1]], "reached": bool(rows.any())}
+    if rows.any():
+        tk, error = t[rows], np.linalg.norm(tips[rows] - np.array(target), axis=1)
+        window = tk >= tk[-1] - task.settle_time + 1e-9
+        entry.update(
+            error=float(np.mean(error[window])),
+            final_error=float(error[-1]),
+            time_to_settle=_time_to_settle(tk, error, task.band),
+            settled=bool(np.any(phase[rows] == PHASE["settled"])),
+            start=float(tk[0]),
+        )
+    return entry
+
+
+def _time_to_settle(tk: np.ndarray, error: np.ndarray, band: float) -> float | None:
+    """From the target's start `tk[0]` until the tip enters and stays within `band` of it
+    [s]; None if it never does."""
+    outside = np.nonzero(error > band)[0]
+    if outside.size == 0:
+        return 0.0
+    if outside[-1] + 1 < tk.size:
+        return float(tk[outside[-1] + 1] - tk[0])
+    return None  # never within the band
 
 
 def _paths(
