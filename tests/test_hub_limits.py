@@ -21,7 +21,7 @@ import can
 import pytest
 
 from hil.bus import loopback
-from hil.bus.loopback import HubSettingError, LoopbackHub, main
+from hil.bus.loopback import HubSettingError, LoopbackHub, limits, main, standalone
 from tests.helpers import blocking_sockets_time_out
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -313,7 +313,7 @@ def test_rate_limited_log_per_kind_with_one_summary_line(
     logger = logging.getLogger("test_hub_limits.rate")
     caplog.set_level(logging.WARNING, logger=logger.name)
     clock = _Clock()
-    limited = loopback._RateLimitedLog(logger, burst=3, interval=10.0, clock=clock)
+    limited = limits.RateLimitedLog(logger, burst=3, interval=10.0, clock=clock)
     for i in range(5):
         limited.log(logging.WARNING, "junk", "junk %d", i)
     limited.log(logging.ERROR, "slow", "slow client")
@@ -401,7 +401,7 @@ def test_unresolvable_host_is_one_line(
     def no_dns(*args: object, **kwargs: object) -> object:
         raise socket.gaierror(socket.EAI_NONAME, "Name or service not known")
 
-    monkeypatch.setattr(loopback.socket, "getaddrinfo", no_dns)
+    monkeypatch.setattr(limits.socket, "getaddrinfo", no_dns)
     assert main(["--host", "no-such-host.invalid", "--port", "0"]) == 2
     err = capsys.readouterr().err
     assert err.startswith("error: cannot resolve hub host 'no-such-host.invalid'")
@@ -426,7 +426,7 @@ def test_main_passes_the_limits_on(monkeypatch: pytest.MonkeyPatch) -> None:
         def serve_forever(self) -> None:
             return
 
-    monkeypatch.setattr(loopback, "LoopbackHub", Recording)
+    monkeypatch.setattr(standalone, "LoopbackHub", Recording)
     assert main(["--port", "0", "--max-clients", "3", "--max-buffer", "3M"]) == 0
     assert made[0].max_client_buffer == 1024 * 1024
 

@@ -25,8 +25,7 @@ from pathlib import Path
 import can
 import pytest
 
-from hil.bus import loopback
-from hil.bus.loopback import DEFAULT_PORT, LoopbackHub, main
+from hil.bus.loopback import DEFAULT_PORT, LoopbackHub, fanout, main
 
 ROOT = Path(__file__).resolve().parents[1]
 TIMEOUT = 10.0  # upper bound for any single wait; never reached when things work
@@ -315,7 +314,7 @@ def test_wire_format_and_zero_length_frames(
     fake_time = types.SimpleNamespace(
         monotonic=time.monotonic, time_ns=lambda: 1_700_000_000_000_005_999
     )
-    monkeypatch.setattr(loopback, "time", fake_time)
+    monkeypatch.setattr(fanout, "time", fake_time)
     a = make_bus("w")
     raw = RawClient(hub.port, "w")
     try:
