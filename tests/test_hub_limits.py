@@ -21,7 +21,14 @@ import can
 import pytest
 
 from hil.bus import loopback
-from hil.bus.loopback import HubSettingError, LoopbackHub, limits, main, standalone
+from hil.bus.loopback import (
+    MIN_CLIENT_SHARE,
+    HubSettingError,
+    LoopbackHub,
+    limits,
+    main,
+    standalone,
+)
 from tests.helpers import blocking_sockets_time_out
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -119,6 +126,30 @@ def test_stalled_client_is_dropped_at_its_share_while_the_others_get_every_frame
             reader.close()
             stalled.close()
     assert hub.buffered_bytes == 0  # every disconnect returns its bytes to the budget
+
+
+def test_a_client_may_hold_exactly_its_share_and_not_one_frame_more() -> None:
+    """The share bounds the bytes held for a client, inclusive. Frames held during a (long)
+    handshake grace never reach its socket, so the bytes counted are exactly those queued."""
+    frame = (0x123, False, bytes(8))
+    size = len(b"< frame 123 1700000000.000000 0000000000000000 >")
+    fit = MIN_CLIENT_SHARE // size + 1
+    hub = LoopbackHub(max_clients=1, max_buffer_bytes=fit * size, handshake_grace=3600.0)
+    member = hub.host("s")
+    client = Raw(hub.port, "s")
+    try:
+        for _ in range(10):  # accept, then the handshake: a turn each at most
+            if hub.clients:
+                break
+            hub.poll(TIMEOUT)
+        client.handshake()
+        hub.send_from(member, [frame] * fit)
+        assert (hub.buffered_bytes, hub.slow_clients_dropped) == (fit * size, 0)
+        hub.send_from(member, [frame])
+        assert (hub.buffered_bytes, hub.slow_clients_dropped) == (0, 1)
+    finally:
+        client.close()
+        hub.stop()
 
 
 def test_total_buffer_is_bounded_with_many_stalled_clients() -> None:
@@ -380,6 +411,13 @@ def test_bad_settings_are_one_line_value_errors(kwargs: dict, message: str) -> N
         LoopbackHub(**kwargs)
     assert isinstance(info.value, ValueError)
     assert "\n" not in str(info.value)
+
+
+def test_the_smallest_share_allowed_is_min_client_share() -> None:
+    hub = LoopbackHub(max_clients=2, max_buffer_bytes=2 * MIN_CLIENT_SHARE)
+    assert hub.max_client_buffer == MIN_CLIENT_SHARE
+    with pytest.raises(HubSettingError, match=f"less than {MIN_CLIENT_SHARE} bytes"):
+        LoopbackHub(max_clients=2, max_buffer_bytes=2 * MIN_CLIENT_SHARE - 1)
 
 
 def test_address_in_use_names_host_and_port(capsys: pytest.CaptureFixture[str]) -> None:

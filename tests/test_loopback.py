@@ -387,6 +387,23 @@ def test_malformed_input_is_ignored(
     raw.close()
 
 
+def test_a_nul_from_a_socketcand_client_in_rawmode_is_junk_not_a_binary_hello(
+    hub: LoopbackHub, make_bus: BusFactory
+) -> None:
+    """Only a connection that has not joined yet may start softhil's binary hello (a NUL); from
+    a socketcand client in rawmode a NUL is text outside < >, skipped like any other junk."""
+    a = make_bus("n")
+    raw = RawClient(hub.port, "n")
+    try:
+        raw.send(b"\0SHB\x01\x01n < send 123 1 5 >")
+        assert_same(recv_n(a, 1)[0], msg(0x123, [5]))
+        assert hub.malformed_messages == 1
+        a.send(msg(0x124, [6]))
+        assert raw.read_msg().startswith(b"< frame 124 ")
+    finally:
+        raw.close()
+
+
 def test_handshake_errors_are_reported_to_the_client(hub: LoopbackHub) -> None:
     raw = RawClient(hub.port)
     try:
