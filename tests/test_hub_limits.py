@@ -21,7 +21,14 @@ import can
 import pytest
 
 from hil.bus import loopback
-from hil.bus.loopback import HubSettingError, LoopbackHub, main
+from hil.bus.loopback import (
+    MIN_CLIENT_SHARE,
+    HubSettingError,
+    LoopbackHub,
+    limits,
+    main,
+    standalone,
+)
 from tests.helpers import blocking_sockets_time_out
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -119,6 +126,30 @@ def test_stalled_client_is_dropped_at_its_share_while_the_others_get_every_frame
             reader.close()
             stalled.close()
     assert hub.buffered_bytes == 0  # every disconnect returns its bytes to the budget
+
+
+def test_a_client_may_hold_exactly_its_share_and_not_one_frame_more() -> None:
+    """The share bounds the bytes held for a client, inclusive. Frames held during a (long)
+    handshake grace never reach its socket, so the bytes counted are exactly those queued."""
+    frame = (0x123, False, bytes(8))
+    size = len(b"< frame 123 1700000000.000000 0000000000000000 >")
+    fit = MIN_CLIENT_SHARE // size + 1
+    hub = LoopbackHub(max_clients=1, max_buffer_bytes=fit * size, handshake_grace=3600.0)
+    member = hub.host("s")
+    client = Raw(hub.port, "s")
+    try:
+        for _ in range(10):  # accept, then the handshake: a turn each at most
+            if hub.clients:
+                break
+            hub.poll(TIMEOUT)
+        client.handshake()
+        hub.send_from(member, [frame] * fit)
+        assert (hub.buffered_bytes, hub.slow_clients_dropped) == (fit * size, 0)
+        hub.send_from(member, [frame])
+        assert (hub.buffered_bytes, hub.slow_clients_dropped) == (0, 1)
+    finally:
+        client.close()
+        hub.stop()
 
 
 def test_total_buffer_is_bounded_with_many_stalled_clients() -> None:
@@ -313,7 +344,7 @@ def test_rate_limited_log_per_kind_with_one_summary_line(
     logger = logging.getLogger("test_hub_limits.rate")
     caplog.set_level(logging.WARNING, logger=logger.name)
     clock = _Clock()
-    limited = loopback._RateLimitedLog(logger, burst=3, interval=10.0, clock=clock)
+    limited = limits.RateLimitedLog(logger, burst=3, interval=10.0, clock=clock)
     for i in range(5):
         limited.log(logging.WARNING, "junk", "junk %d", i)
     limited.log(logging.ERROR, "slow", "slow client")
@@ -382,6 +413,13 @@ def test_bad_settings_are_one_line_value_errors(kwargs: dict, message: str) -> N
     assert "\n" not in str(info.value)
 
 
+def test_the_smallest_share_allowed_is_min_client_share() -> None:
+    hub = LoopbackHub(max_clients=2, max_buffer_bytes=2 * MIN_CLIENT_SHARE)
+    assert hub.max_client_buffer == MIN_CLIENT_SHARE
+    with pytest.raises(HubSettingError, match=f"less than {MIN_CLIENT_SHARE} bytes"):
+        LoopbackHub(max_clients=2, max_buffer_bytes=2 * MIN_CLIENT_SHARE - 1)
+
+
 def test_address_in_use_names_host_and_port(capsys: pytest.CaptureFixture[str]) -> None:
     with socket.socket() as busy:
         busy.bind(("127.0.0.1", 0))
@@ -401,7 +439,7 @@ def test_unresolvable_host_is_one_line(
     def no_dns(*args: object, **kwargs: object) -> object:
         raise socket.gaierror(socket.EAI_NONAME, "Name or service not known")
 
-    monkeypatch.setattr(loopback.socket, "getaddrinfo", no_dns)
+    monkeypatch.setattr(limits.socket, "getaddrinfo", no_dns)
     assert main(["--host", "no-such-host.invalid", "--port", "0"]) == 2
     err = capsys.readouterr().err
     assert err.startswith("error: cannot resolve hub host 'no-such-host.invalid'")
@@ -426,7 +464,7 @@ def test_main_passes_the_limits_on(monkeypatch: pytest.MonkeyPatch) -> None:
         def serve_forever(self) -> None:
             return
 
-    monkeypatch.setattr(loopback, "LoopbackHub", Recording)
+    monkeypatch.setattr(standalone, "LoopbackHub", Recording)
     assert main(["--port", "0", "--max-clients", "3", "--max-buffer", "3M"]) == 0
     assert made[0].max_client_buffer == 1024 * 1024
 

@@ -25,8 +25,7 @@ from pathlib import Path
 import can
 import pytest
 
-from hil.bus import loopback
-from hil.bus.loopback import DEFAULT_PORT, LoopbackHub, main
+from hil.bus.loopback import DEFAULT_PORT, LoopbackHub, fanout, main
 
 ROOT = Path(__file__).resolve().parents[1]
 TIMEOUT = 10.0  # upper bound for any single wait; never reached when things work
@@ -315,7 +314,7 @@ def test_wire_format_and_zero_length_frames(
     fake_time = types.SimpleNamespace(
         monotonic=time.monotonic, time_ns=lambda: 1_700_000_000_000_005_999
     )
-    monkeypatch.setattr(loopback, "time", fake_time)
+    monkeypatch.setattr(fanout, "time", fake_time)
     a = make_bus("w")
     raw = RawClient(hub.port, "w")
     try:
@@ -386,6 +385,23 @@ def test_malformed_input_is_ignored(
     assert any("bogus command" in w for w in warnings)
     assert hub.frames_forwarded == 4
     raw.close()
+
+
+def test_a_nul_from_a_socketcand_client_in_rawmode_is_junk_not_a_binary_hello(
+    hub: LoopbackHub, make_bus: BusFactory
+) -> None:
+    """Only a connection that has not joined yet may start softhil's binary hello (a NUL); from
+    a socketcand client in rawmode a NUL is text outside < >, skipped like any other junk."""
+    a = make_bus("n")
+    raw = RawClient(hub.port, "n")
+    try:
+        raw.send(b"\0SHB\x01\x01n < send 123 1 5 >")
+        assert_same(recv_n(a, 1)[0], msg(0x123, [5]))
+        assert hub.malformed_messages == 1
+        a.send(msg(0x124, [6]))
+        assert raw.read_msg().startswith(b"< frame 124 ")
+    finally:
+        raw.close()
 
 
 def test_handshake_errors_are_reported_to_the_client(hub: LoopbackHub) -> None:
