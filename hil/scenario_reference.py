@@ -11,7 +11,7 @@ missing from the schema.
 from __future__ import annotations
 
 import typing
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from dataclasses import is_dataclass
 from typing import Any
 
@@ -38,15 +38,16 @@ line naming the file, the key, the rule and the value.
 COLUMNS = "| key | type | unit | range | default | description |\n|---|---|---|---|---|---|"
 
 
-def reference() -> str:
-    """The reference, as Markdown."""
+def reference(kinds: Iterable[str] | None = None) -> str:
+    """The reference, as Markdown, with the robot kinds `kinds` (default: every kind found,
+    plug-ins too; docs/scenario-keys.md has the built-in ones)."""
     from hil.robots import known_kinds, robot_kind
     from hil.scenario import Scenario
 
     parts = [HEADER]
     for path, cls, doc in _sections(Scenario, "", "The scenario's own keys."):
         parts.append(_section(path, cls, doc, _title(path)))
-    for kind in known_kinds():
+    for kind in known_kinds() if kinds is None else kinds:
         spec = robot_kind(kind).spec_class
         parts.append(_section("robot", spec, _doc(spec), f"[robot] (kind {kind})"))
         for table in getattr(spec, "TABLES", ()):
