@@ -88,7 +88,9 @@ class RobotKind(Protocol):
     """What a robot kind provides; see the module docstring."""
 
     name: str
-    spec_class: type  # the dataclass of its [robot] section
+    # the dataclass of its [robot] section: keys declared with hil.schema.setting, rules
+    # between keys in RULES, its tables in TABLES; `check` holds the checks that are code
+    spec_class: type
 
     def check(self, scenario: Scenario) -> None: ...
     def ports(self, scenario: Scenario) -> dict[str, tuple[set[str], set[str]]]: ...

@@ -250,7 +250,11 @@ def test_hil_estimate_rescores_a_recorded_run(default_run, tmp_path: Path) -> No
         (("dropout = 0.01", "dropout = 1.5"), "camera.dropout", "[0, 1]"),
         (("outlier_rate = 0.001", "outlier_rate = -0.1"), "camera.outlier_rate", "[0, 1]"),
         (("latency = 0.006", "latency = 0.0065"), "camera.latency", "integer multiple"),
-        (('estimator = "ukf"', 'estimator = "ekf"'), "controller.estimator", "unknown estimator"),
+        (
+            ('estimator = "ukf"', 'estimator = "ekf"'),
+            "controller.estimator",
+            "must be one of raw, kf, ukf",
+        ),
         (("noise = 0.0005", "noise = 0.2"), "camera.noise", "field of view"),
         (
             ("dropout = 0.01", 'dropout = 0.01\nocclusion_scope = "half"'),

@@ -105,7 +105,7 @@ def test_no_environment_section_no_environment_fmu(tmp_path: Path) -> None:
         (
             'actuator = "cylindrical"',
             'actuator = "octagonal"',
-            r"robot\.actuator: unknown parameter set",
+            r"robot\.actuator: must be one of rectangular, cylindrical, got 'octagonal'",
         ),
     ],
 )

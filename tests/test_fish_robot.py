@@ -334,7 +334,7 @@ def test_the_highest_beat_frequency_loads_and_errors_list_tasks_by_name(tmp_path
     path.write_text(text.replace("[robot]", "[robot]\nfrequency = 125.0", 1))
     assert load_scenario(path).robot.frequency == 125.0
     path.write_text(text.replace('kind = "escape"', 'kind = "dance"'))
-    with pytest.raises(ScenarioError, match=r"\(known: escape, swim, heading\)$"):
+    with pytest.raises(ScenarioError, match=r"must be one of escape, swim, heading, got 'dance'$"):
         load_scenario(path)
 
 

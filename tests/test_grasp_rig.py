@@ -102,7 +102,7 @@ def test_the_camera_reports_the_object_marker_after_the_arms(approach_run) -> No
         (
             "[robot.gripper]\ntheta_closed",
             "[robot.segment]\ntheta_start",
-            r"robot\.gripper: a grasp task needs the gripper",
+            r"robot\.gripper: must be given when task\.kind is 'grasp'",
         ),
         ("grasp_time = 1.0", "grasp_time = -1.0", r"task\.grasp_time: must be positive"),
         ("torque_std = 0.01", "torque_std = 0.0", r"controller\.torque_std: must be positive"),
@@ -114,7 +114,7 @@ def test_the_camera_reports_the_object_marker_after_the_arms(approach_run) -> No
         (
             "objects = [{ radius = 0.0125, mass = 0.005, height = 0.05 }]",
             "objects = []",
-            r"robot\.environment\.objects: a grasp task needs its object",
+            r"robot\.environment\.objects: must be given when task\.kind is 'grasp'",
         ),
         (
             "objects = [{ radius = 0.0125, mass = 0.005, height = 0.05 }]",
@@ -150,7 +150,9 @@ def test_gripper_and_grasp_keys_are_checked(
 def test_a_gripper_needs_the_environment(tmp_path: Path) -> None:
     start = GRASP.index("[robot.environment]")
     text = GRASP[:start] + GRASP[GRASP.index("[camera]") :]
-    with pytest.raises(ScenarioError, match=r"robot\.gripper: needs \[robot\.environment\]"):
+    with pytest.raises(
+        ScenarioError, match=r"robot\.environment: must be given when robot\.gripper is given"
+    ):
         load_scenario(write(tmp_path, text))
 
 

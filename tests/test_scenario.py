@@ -329,7 +329,7 @@ def test_scenario_is_frozen() -> None:
             "robot",
             "beyond the camera's +-0.6 m",
         ),
-        ("[camera]\nlatency = 0.7\n", "camera.latency", "must be below 0.5 s"),
+        ("[camera]\nlatency = 0.7\n", "camera.latency", "must be below 0.49 s"),
         (
             '[[connections]]\nfrom = "segment1.kappa"\nto = "cylinder1.nothing"\n',
             "connections[0].to",

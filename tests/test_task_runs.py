@@ -153,12 +153,16 @@ def test_targets_depend_on_the_seed_only(tmp_path: Path) -> None:
             {"count": "paths = [[0.1, 0.1, 0.1, 0.45]]"},
             r"task\.paths\[0\]: .* out of the arm's reach",
         ),
-        ("planar-path", {"count": "targets = [[0.1, 0.1]]"}, r"task\.targets: a path task takes"),
+        (
+            "planar-path",
+            {"count": "targets = [[0.1, 0.1]]"},
+            r"task\.targets: must be left out when task\.kind is 'path' \(a path task takes",
+        ),
         ("planar-point-to-point", {"tolerance": "tolerance = 0.0"}, r"task\.tolerance: must be"),
         (
             "planar-point-to-point",
             {'kind = "point_to_point"': 'kind = "circle"'},
-            r"task\.kind: unknown task 'circle'",
+            r"task\.kind: must be one of curvature_profile, .*, got 'circle'",
         ),
         ("planar-point-to-point", {"settle_time": "settle_time = 9.0"}, r"task\.settle_time"),
     ],

@@ -22,9 +22,9 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 
@@ -32,6 +32,7 @@ from controllers.config import CameraTiming
 from hil.cosim import Connection, FmuParticipant, Participant
 from hil.devices import HEARTBEAT_PERIOD, CameraNode
 from hil.rig import PlotSpec, Rig, SignalSpec, fmu_ref, scenario_camera
+from hil.schema import Dbc, Key, Needs, OneOf, Range, Ref, Rule, Table, positive, setting
 from hil.vision import exposure_delay_bound
 from rigbus.protocol import Protocol
 from robots.fish.controller import CALIBRATION, TASKS, FishConfig
@@ -47,23 +48,93 @@ CAMERA_MARKERS = (("nose_x", "nose_y"), ("x", "y"), ("tail_3_x", "tail_3_y"))
 STAGE_ONE_ONSET = 0.01  # of the peak yaw rate: the head has started to turn
 
 
+START_POSE = ("x_start", "y_start", "yaw_start")  # FishBody's, set from robot.base
+START_WHY = "the start pose is robot.base"
+TURN_MAX = math.degrees(CALIBRATION[-1][1])  # [deg] the calibration's largest turn
+VALVE_TABLE = Table(
+    "robot.valve",
+    (
+        Key(
+            "open_time",
+            float,
+            0.0,
+            "s",
+            "escape: the valve's open time, for the controller (0: from turn_angle)",
+            Range(0, Dbc("ValveCommand1", "open_time")),
+        ),
+    ),
+    fmu="FishValve",
+    doc="both valves' FishValve parameters; [robot.valve.1] and [robot.valve.2] one valve's",
+)
+
+
 @dataclass(frozen=True)
 class FishSpec:
     """The `[robot]` section of the soft fish (module docstring)."""
 
-    kind: str = "fish"
-    base: tuple[float, float, float] = (0.0, 0.0, 0.0)  # start x [m], y [m], yaw [rad]
-    source: dict[str, Any] = field(default_factory=dict)
-    valve: dict[str, Any] = field(default_factory=dict)
-    body: dict[str, Any] = field(default_factory=dict)
-    start: float = 0.05  # first manoeuvre [s]
-    side: int = 1  # escape: valve 1 (channel a, turn left) or 2 (channel b, right)
-    turn_angle: float = 60.0  # escape: kept heading change wanted [deg] (without open_time)
-    frequency: float = 2.0  # swim, heading: tail beats per second
-    duty: float = 0.1  # swim, heading: share of each half beat a valve is open
-    heading: float = 60.0  # heading task: commanded heading [deg]
-    max_channel_pressure: float = 300e3  # the valve driver vents beyond it [Pa gauge]: the
-    # top of ValveStatus.p_channel, above the 400 kPa abs supply (a fault, not a working limit)
+    kind: str = setting("fish", doc="the robot kind")
+    base: tuple[float, float, float] = setting(
+        (0.0, 0.0, 0.0), "m, m, rad", "the start: x, y, yaw (of the head-tail joint)"
+    )
+    source: dict[str, Any] = setting(factory=dict, doc="GasSource parameters ([robot.source])")
+    valve: dict[str, Any] = setting(factory=dict, doc="FishValve parameters ([robot.valve])")
+    body: dict[str, Any] = setting(factory=dict, doc="FishBody parameters ([robot.body])")
+    start: float = setting(
+        0.05, "s", "the first manoeuvre", Range(0, Ref("duration"), hi_open=True, why="the run")
+    )
+    side: int = setting(
+        1,
+        doc="escape: the valve that fires",
+        choices={1: "channel a, turn left", 2: "channel b, turn right"},
+    )
+    turn_angle: float = setting(
+        60.0,
+        "deg",
+        "escape: the kept heading change wanted (without robot.valve.open_time)",
+        Range(0, TURN_MAX, lo_open=True, why="the calibration"),
+    )
+    # a stroke every half beat, opened and closed on the controller's clock: a shorter half beat
+    # would fall behind a stroke per cycle and beat slower than asked
+    frequency: float = setting(
+        2.0,
+        "Hz",
+        "swim, heading: tail beats per second",
+        Range(
+            0,
+            Ref("timing.control_period", 0.25, per=True),
+            lo_open=True,
+            why="a half beat of at least two control periods",
+        ),
+    )
+    duty: float = setting(
+        0.1,
+        "",
+        "swim, heading: the share of each half beat a valve is open",
+        Range(0, 1, lo_open=True),
+    )
+    heading: float = setting(60.0, "deg", "heading task: the commanded heading", Range(-180, 180))
+    # the top of ValveStatus.p_channel, above the 400 kPa abs supply (a fault, not a working limit)
+    max_channel_pressure: float = setting(
+        300e3, "Pa", "the valve driver vents beyond it (gauge)", positive()
+    )
+
+    RULES: ClassVar[tuple[Rule, ...]] = (
+        Needs("task.kind", OneOf(TASKS)),
+        Needs("timing.step", Range(hi=1e-3), why="the fish's valves", unit="s"),
+    )
+    TABLES: ClassVar[tuple[Table, ...]] = (
+        Table("robot.source", (), fmu="GasSource", checked=False, doc="the canister's"),
+        VALVE_TABLE,
+        Table(
+            "robot.body",
+            (),
+            fmu="FishBody",
+            checked=False,
+            doc="the body's",
+            refused=START_POSE,
+            refused_why=START_WHY,
+        ),
+    )
 
 
 SIGNALS: tuple[tuple[str, str, str, str], ...] = (
@@ -179,40 +250,17 @@ class Fish:
     # ------------------------------------------------------------------ checks
 
     def check(self, scenario: Scenario) -> None:
+        """The fish's checks that are code (its keys and rules are FishSpec's)."""
         from hil.scenario import check_parameter, fail, fmu_interface
-        from robots.planar_arm.plant.rig import _number
 
         s, file, r = scenario, scenario.source, scenario.robot
-        if s.task.kind not in TASKS:
-            raise fail(
-                file, "task.kind", f"unknown fish task {s.task.kind!r} (known: {', '.join(TASKS)})"
-            )
         for table, model in TABLES.items():
             interface = fmu_interface(file, f"robot.{table}", model)
             for index in range(1, (VALVES if table == "valve" else 1) + 1):
                 for name, (value, key) in self._given(s, table, index).items():
-                    if name in ("x_start", "y_start", "yaw_start"):
-                        raise fail(file, key, "the start pose is robot.base")
+                    if name in START_POSE:
+                        raise fail(file, key, START_WHY)
                     check_parameter(file, key, interface, name, value)
-        if "open_time" in r.valve:
-            t_open = _number(file, "robot.valve.open_time", r.valve["open_time"])
-            high = Protocol().signal_range("ValveCommand1", "open_time")[1]
-            if not 0.0 <= t_open <= high:
-                raise fail(file, "robot.valve.open_time", f"must be in [0, {high:g}] s")
-        if r.side not in (1, 2):
-            raise fail(file, "robot.side", f"must be 1 (turn left) or 2 (turn right), got {r.side}")
-        if not 0.0 < r.duty <= 1.0:
-            raise fail(file, "robot.duty", f"must be in (0, 1], got {r.duty}")
-        highest = 1.0 / (4.0 * s.timing.control_period)
-        if not 0.0 < r.frequency <= highest:
-            # a stroke every half beat, opened and closed on the controller's clock: a shorter
-            # half beat would fall behind a stroke per cycle and beat slower than asked
-            raise fail(
-                file,
-                "robot.frequency",
-                f"must be in (0, {highest:g}] Hz (a half beat of at least two control periods "
-                f"of {s.timing.control_period:g} s), got {r.frequency:g}",
-            )
         stroke = r.duty * 0.5 / r.frequency  # a swim stroke's valve-open time [s]
         if s.task.kind in ("swim", "heading") and stroke < s.timing.step - 1e-12:
             # the valve driver opens for whole steps: a shorter stroke never opens it
@@ -224,23 +272,6 @@ class Fish:
                 f"raise robot.duty (got {r.duty:g}) or lower robot.frequency "
                 f"(got {r.frequency:g} Hz)",
             )
-        if not 0.0 <= r.start < s.duration:
-            raise fail(
-                file, "robot.start", f"must be in [0, {s.duration:g}) s (the run), got {r.start:g}"
-            )
-        if not 0.0 < r.turn_angle <= math.degrees(CALIBRATION[-1][1]):
-            raise fail(
-                file,
-                "robot.turn_angle",
-                f"must be in (0, {math.degrees(CALIBRATION[-1][1]):.0f}] deg (the calibration), "
-                f"got {r.turn_angle:g}",
-            )
-        if not -180.0 <= r.heading <= 180.0:
-            raise fail(file, "robot.heading", f"must be in [-180, 180] deg, got {r.heading:g}")
-        if r.max_channel_pressure <= 0:
-            raise fail(file, "robot.max_channel_pressure", "must be positive")
-        if s.timing.step > 1e-3 + 1e-12:
-            raise fail(file, "timing.step", "the fish's valves need a step of at most 1 ms")
         if s.camera and s.camera.rate and len(CAMERA_MARKERS) > Protocol().count("CameraMarker"):
             raise fail(file, "camera", "more markers than the DBC's CameraMarker frames")
 

@@ -20,22 +20,73 @@ from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
 from hil.rig import SignalSpec
+from hil.schema import Key, Table
 
 if TYPE_CHECKING:
     from hil.scenario import Scenario
 
 FMU = "Environment"
-OWN_KEYS = ("walls", "objects", "width")
-OBJECT_KEYS = {
-    "x": None,
-    "y": None,
-    "radius": 0.015,
-    "mass": 0.01,
-    "mu": 0.3,
-    "yaw": 0.0,
-    "height": 0.05,
-}
 MAX_WALLS, MAX_VERTICES, MAX_OBJECTS, MAX_SEGMENTS = 2, 16, 4, 7
+# parameters a scenario may set directly (the rest come from the arm or the keys below)
+SETTABLE = (
+    "n_samples",
+    "k_contact",
+    "d_contact",
+    "mu_arm",
+    "mu_table",
+    "mu_table_object",
+    "v_slip",
+    "gravity",
+    "coupling_delay",
+    "substep",
+)
+TABLE = Table(
+    "robot.environment",
+    (
+        Key(
+            "walls",
+            tuple[tuple[tuple[float, float], ...], ...],
+            (),
+            "m",
+            f"up to {MAX_WALLS} polylines of 2..{MAX_VERTICES} [x, y] vertices (channel walls)",
+        ),
+        Key(
+            "objects",
+            tuple[dict[str, float], ...],
+            (),
+            "",
+            f"up to {MAX_OBJECTS} disks on the table (robot.environment.objects[i])",
+        ),
+        Key(
+            "width",
+            float | tuple[float, ...],
+            None,
+            "m",
+            "the backbone's width for contact, or one per segment (absent: the actuator's)",
+        ),
+    ),
+    others="the Environment FMU's parameters " + ", ".join(SETTABLE),
+    fmu=FMU,
+    checked=False,
+    doc="the arm's world: contact with walls and objects, table friction",
+    settable=SETTABLE,
+)
+# an object's keys, each checked against the Environment FMU's range for it (its parameter)
+OBJECT = Table(
+    "robot.environment.objects[i]",
+    (
+        Key("x", float, None, "m", "where it starts (absent: placed by a grasp task)"),
+        Key("y", float, None, "m", "where it starts (absent: placed by a grasp task)"),
+        Key("radius", float, 0.015, "m", "the disk's radius"),
+        Key("mass", float, 0.01, "kg", "its mass"),
+        Key("mu", float, 0.3, "", "its friction coefficient against the arm"),
+        Key("yaw", float, 0.0, "rad", "its start heading"),
+        Key("height", float, 0.05, "m", "its height (it tips over beyond its base)"),
+    ),
+    checked=False,
+    doc="one disk of robot.environment.objects",
+)
+OBJECT_KEYS = {key.name: key.default for key in OBJECT.keys}
 
 
 def present(scenario: Scenario) -> bool:
@@ -63,20 +114,51 @@ def parameters(
             f"the Environment FMU carries at most {MAX_SEGMENTS} segments",
         )
     interface = fmu_interface(file, "robot.environment", FMU)
-    values: dict[str, float] = {"n_segments": float(n)}
+    values = _arm(scenario, segments, raw.get("width", width))
+    values.update(_walls(file, raw.get("walls", [])))
+    values.update(_objects(scenario, placed or {}))
+    for name, value in raw.items():
+        if name in TABLE_KEYS:
+            continue
+        key = f"robot.environment.{name}"
+        number = _number(file, key, value)
+        if name in values or name not in SETTABLE:
+            raise fail(file, key, "set by the robot, not by the scenario")
+        values[name] = number
+    for name, value in values.items():
+        key = f"robot.environment.{name}" if name in raw else f"robot.environment ({name})"
+        check_parameter(file, key, interface, name, value)
+    return values
+
+
+TABLE_KEYS = tuple(key.name for key in TABLE.keys)
+
+
+def _arm(
+    scenario: Scenario, segments: Sequence[Mapping[str, float]], width: Any
+) -> dict[str, float]:
+    """The arm's parameters: its base, each segment's length, mass and width, its mobility."""
+    n = len(segments)
     base = scenario.robot.base
+    values: dict[str, float] = {"n_segments": float(n)}
     values.update(base_x=base[0], base_y=base[1], base_heading=base[2])
-    widths = _per_segment(file, "robot.environment.width", raw.get("width", width), n)
+    widths = _per_segment(scenario.source, "robot.environment.width", width, n)
     for i, segment in enumerate(segments, start=1):
         values[f"length_{i}"] = segment["length"]
         values[f"mass_{i}"] = segment["mass"]
         values[f"width_{i}"] = widths[i - 1]
     # the implicit coupling predicts the arm with its mobility: at least the most mobile segment's
     values["arm_mobility"] = max(1.0 / max(s["d_bend"], 1e-12) for s in segments)
-    walls = raw.get("walls", [])
+    return values
+
+
+def _walls(file: str, walls: Any) -> dict[str, float]:
+    """The walls' parameters: how many, and each one's vertices."""
+    from hil.scenario import fail
+
     if not isinstance(walls, list) or len(walls) > MAX_WALLS:
         raise fail(file, "robot.environment.walls", f"a list of at most {MAX_WALLS} polylines")
-    values["n_walls"] = float(len(walls))
+    values = {"n_walls": float(len(walls))}
     for w, wall in enumerate(walls, start=1):
         key = f"robot.environment.walls[{w - 1}]"
         if not isinstance(wall, list) or not 2 <= len(wall) <= MAX_VERTICES:
@@ -85,29 +167,26 @@ def parameters(
         for v, vertex in enumerate(wall, start=1):
             x, y = _point(file, f"{key}[{v - 1}]", vertex)
             values[f"wall{w}_x_{v}"], values[f"wall{w}_y_{v}"] = x, y
+    return values
+
+
+def _objects(scenario: Scenario, placed: Mapping[int, tuple[float, float]]) -> dict[str, float]:
+    """The objects' parameters: how many, and each one's keys (a placed one's position from
+    `placed`)."""
+    from hil.scenario import fail
+
     items = objects(scenario)
-    values["n_objects"] = float(len(items))
+    values = {"n_objects": float(len(items))}
     for o, item in enumerate(items, start=1):
         key = f"robot.environment.objects[{o - 1}]"
         for name, value in item.items():
-            if placed and o in placed and name in ("x", "y"):
+            if o in placed and name in ("x", "y"):
                 if value is not None:
-                    raise fail(file, f"{key}.{name}", "placed by the task: leave it out")
+                    raise fail(scenario.source, f"{key}.{name}", "placed by the task: leave it out")
                 value = placed[o][0 if name == "x" else 1]
             if value is None:
-                raise fail(file, f"{key}.{name}", "missing required key")
+                raise fail(scenario.source, f"{key}.{name}", "missing required key")
             values[_object_parameter(name, o)] = value
-    for name, value in raw.items():
-        if name in OWN_KEYS:
-            continue
-        key = f"robot.environment.{name}"
-        number = _number(file, key, value)
-        if name in values or not _settable(name):
-            raise fail(file, key, "set by the robot, not by the scenario")
-        values[name] = number
-    for name, value in values.items():
-        key = f"robot.environment.{name}" if name in raw else f"robot.environment ({name})"
-        check_parameter(file, key, interface, name, value)
     return values
 
 
@@ -229,22 +308,6 @@ def signals(scenario: Scenario) -> list[SignalSpec]:
                 )
             )
     return specs
-
-
-def _settable(name: str) -> bool:
-    """Parameters a scenario may set directly (the rest come from the arm or the keys above)."""
-    return name in (
-        "n_samples",
-        "k_contact",
-        "d_contact",
-        "mu_arm",
-        "mu_table",
-        "mu_table_object",
-        "v_slip",
-        "gravity",
-        "coupling_delay",
-        "substep",
-    )
 
 
 def _per_segment(file: str, key: str, value: Any, n: int) -> list[float]:

@@ -20,11 +20,11 @@ through its contact. Invariant: the FeaSegment's bend angle is the Environment's
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any
 
+from hil.schema import Key, Range, Ref, Table, not_negative, positive
 from robots.planar_arm.controller.gripper import GripperGeometry
 
 if TYPE_CHECKING:
@@ -45,8 +45,56 @@ GRIPPER_SEGMENT: dict[str, float] = {
     "C_a": 5e-11,
     "theta_max": 1.4,
 }
-GEOMETRY_KEYS = tuple(f.name for f in dataclasses.fields(GripperGeometry))
 OWN_TABLES = ("segment", "cylinder")
+_GEOMETRY = GripperGeometry()  # its defaults
+TABLE = Table(
+    "robot.gripper",
+    (
+        Key("finger_length", float, _GEOMETRY.finger_length, "m", "a finger's length", positive()),
+        Key(
+            "finger_width",
+            float,
+            _GEOMETRY.finger_width,
+            "m",
+            "a finger's width (its capsule's diameter)",
+            not_negative(),
+        ),
+        Key(
+            "root_offset",
+            float,
+            _GEOMETRY.root_offset,
+            "m",
+            "each finger's root, sideways from the tip",
+            not_negative(),
+        ),
+        Key(
+            "grasp_offset",
+            float,
+            _GEOMETRY.grasp_offset,
+            "m",
+            "where a held object's centre sits, ahead of the tip",
+            positive(),
+        ),
+        Key(
+            "theta_open",
+            float,
+            _GEOMETRY.theta_open,
+            "rad",
+            "the open fingers' bend (approach, release)",
+            Range(hi=Ref("robot.gripper.theta_closed"), hi_open=True),
+        ),
+        Key(
+            "theta_closed",
+            float,
+            _GEOMETRY.theta_closed,
+            "rad",
+            "the bend the closing stroke aims for (beyond contact)",
+        ),
+    ),
+    skip=OWN_TABLES,
+    doc="the finger pair at the tip (robots.planar_arm.controller.gripper.GripperGeometry); needs "
+    "[robot.environment]",
+)
 
 
 def present(scenario: Scenario) -> bool:
@@ -59,28 +107,9 @@ def node(scenario: Scenario) -> int:
 
 
 def geometry(scenario: Scenario) -> GripperGeometry:
-    """The fingers' geometry from `[robot.gripper]`; ScenarioError naming the key."""
-    from hil.scenario import fail
-
+    """The fingers' geometry from `[robot.gripper]` (TABLE, checked with the scenario)."""
     raw: Mapping[str, Any] = scenario.robot.gripper or {}
-    values = {}
-    for name, value in raw.items():
-        if name in OWN_TABLES:
-            continue
-        key = f"robot.gripper.{name}"
-        if name not in GEOMETRY_KEYS:
-            known = ", ".join((*GEOMETRY_KEYS, *OWN_TABLES))
-            raise fail(scenario.source, key, f"unknown key (known: {known})")
-        values[name] = _number(scenario.source, key, value)
-    built = GripperGeometry(**values)
-    for name in ("finger_length", "grasp_offset"):
-        if getattr(built, name) <= 0.0:
-            raise fail(scenario.source, f"robot.gripper.{name}", "must be positive")
-    if built.finger_width < 0.0 or built.root_offset < 0.0:
-        raise fail(scenario.source, "robot.gripper", "finger_width and root_offset >= 0")
-    if not built.theta_open < built.theta_closed:
-        raise fail(scenario.source, "robot.gripper.theta_open", "must be below theta_closed")
-    return built
+    return GripperGeometry(**{k: float(v) for k, v in raw.items() if k not in OWN_TABLES})
 
 
 def table(scenario: Scenario, name: str) -> dict[str, float]:

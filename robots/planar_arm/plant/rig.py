@@ -5,15 +5,19 @@ Per-actuator parameters: in `[robot.segment]` and `[robot.cylinder]` a scalar se
 actuator, a list sets one value per actuator, and a table named by the 1-based actuator index
 (`[robot.segment.3]`) overrides that one actuator. Each segment's gas circuit takes its own
 cylinder's bore and stroke and is sealed where that piston starts.
+
+The module stays above the house's 600 lines (about 930): the `[robot]` section, the rig, the
+controller's configuration and the task plan all read one per-actuator parameter resolution
+(`_given`, `parameters`) and are one robot kind; its scenario checks are in checks.py.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 
@@ -25,11 +29,13 @@ from controllers.loop_design import effective_delay, estimator_delay, outer_loop
 from hil.cosim import Connection, FmuParticipant, Participant
 from hil.devices import HEARTBEAT_PERIOD, CameraNode, DriveNode
 from hil.rig import PlotSpec, Rig, SignalSpec, fmu_ref, scenario_camera
+from hil.schema import Dbc, Range, Rule, Table, setting
 from hil.vision import exposure_delay_bound
 from rigbus.protocol import Protocol
 from robots.planar_arm.controller.config import ControllerConfig, GripperConfig
 from robots.planar_arm.controller.tasks import TASK_KINDS, TaskPlan, draw_paths, draw_targets
-from robots.planar_arm.plant import environment, gripper
+from robots.planar_arm.plant import checks, environment, gripper
+from robots.planar_arm.plant.checks import IK_RANGE_SHARE
 
 if TYPE_CHECKING:
     from hil.scenario import Scenario
@@ -48,35 +54,8 @@ PLAN_KEYS = (
     "clearance",
     "grasp_time",
 )
-IK_RANGE_SHARE = 0.9  # of each segment's reachable curvature range that IK may use: the rest is
-# left for the curvature loop to correct in
 
 _LAYOUTS: dict[str, tuple[tuple[float, float], tuple[float, float]]] = {}  # grasp_layout's
-
-SEGMENT_GEOMETRY = (
-    "bore",
-    "stroke",
-    "x_seal",
-)  # the segment's circuit takes them from its cylinder
-
-
-@dataclass(frozen=True)
-class PlanarArmSpec:
-    """The `[robot]` section of a planar arm."""
-
-    kind: str = "planar_arm"
-    segments: int = 1
-    base: tuple[float, float, float] = (0.0, 0.0, math.pi / 2)  # x [m], y [m], heading [rad]
-    segment_fmu: str = "FeaSegment"  # model name or path to an .fmu
-    cylinder_fmu: str = "DriveCylinder"
-    segment: dict[str, Any] = field(default_factory=dict)  # per-actuator parameters
-    cylinder: dict[str, Any] = field(default_factory=dict)
-    segment_decimation: int = 1
-    cylinder_decimation: int = 1
-    actuator: str = "rectangular"  # the FEA parameter set (PARAMETER_SETS) under the given values
-    environment: dict[str, Any] = field(default_factory=dict)  # walls, objects: environment.py
-    gripper: dict[str, Any] | None = None  # the finger pair at the tip: gripper.py
-
 
 # The thesis's two planar arms [thesis, PHYSICS.md section 6]: free space uses bidirectional
 # "rectangular" FEAs (the FeaSegment defaults), confined spaces bidirectional "cylindrical" FEAs.
@@ -91,6 +70,93 @@ PARAMETER_SETS: dict[str, dict[str, dict[str, float]]] = {
     },
 }
 ACTUATOR_WIDTH = {"rectangular": 0.02, "cylindrical": 0.016}  # backbone width for contact [m]
+PER_ACTUATOR = (
+    "a value sets every actuator, a list one value per actuator, a table [robot.{table}.N] "
+    "actuator N's"
+)
+
+
+TABLES = (
+    Table(
+        "robot.segment",
+        (),
+        fmu="FeaSegment",
+        checked=False,
+        doc=PER_ACTUATOR.format(table="segment"),
+        refused=checks.SEGMENT_GEOMETRY,
+        refused_why=checks.GEOMETRY_WHY,
+    ),
+    Table(
+        "robot.cylinder",
+        (),
+        fmu="DriveCylinder",
+        checked=False,
+        doc=PER_ACTUATOR.format(table="cylinder"),
+    ),
+    environment.TABLE,
+    environment.OBJECT,
+    gripper.TABLE,
+    Table(
+        "robot.gripper.segment",
+        (),
+        fmu=gripper.SEGMENT_FMU,
+        checked=False,
+        doc="the finger pair's FeaSegment parameters (its length is robot.gripper's finger_length)",
+        starts=gripper.GRIPPER_SEGMENT,
+        refused=checks.SEGMENT_GEOMETRY,
+        refused_why="set them in robot.gripper.cylinder",
+    ),
+    Table(
+        "robot.gripper.cylinder",
+        (),
+        fmu=gripper.CYLINDER_FMU,
+        checked=False,
+        doc="the gripper's drive cylinder's parameters",
+    ),
+)
+
+
+@dataclass(frozen=True)
+class PlanarArmSpec:
+    """The `[robot]` section of a planar arm."""
+
+    kind: str = setting("planar_arm", doc="the robot kind")
+    segments: int = setting(
+        1, "", "segments, each with its drive cylinder and drive", Range(1, Dbc("DriveStatus"))
+    )
+    base: tuple[float, float, float] = setting(
+        (0.0, 0.0, math.pi / 2), "m, m, rad", "the base: x, y, heading"
+    )
+    segment_fmu: str = setting(
+        "FeaSegment", doc="a segment's FMU: a softhil model, or an .fmu (relative to the file)"
+    )
+    cylinder_fmu: str = setting("DriveCylinder", doc="a drive cylinder's FMU, as segment_fmu")
+    segment: dict[str, Any] = setting(
+        factory=dict, doc="FeaSegment parameters per actuator (the module docstring)"
+    )
+    cylinder: dict[str, Any] = setting(
+        factory=dict, doc="DriveCylinder parameters per actuator (as robot.segment)"
+    )
+    segment_decimation: int = setting(
+        1, "", "segment FMUs step every N macro steps, N dividing a control period's", Range(1)
+    )
+    cylinder_decimation: int = setting(
+        1, "", "cylinder FMUs step every N macro steps, as segment_decimation", Range(1)
+    )
+    actuator: str = setting(
+        "rectangular",
+        doc="the FEA parameter set (PARAMETER_SETS) under the given values",
+        choices=tuple(PARAMETER_SETS),
+    )
+    environment: dict[str, Any] = setting(
+        factory=dict, doc="walls and objects: the Environment FMU ([robot.environment])"
+    )
+    gripper: dict[str, Any] | None = setting(
+        None, doc="the finger pair at the tip ([robot.gripper])"
+    )
+
+    RULES: ClassVar[tuple[Rule, ...]] = checks.RULES
+    TABLES: ClassVar[tuple[Table, ...]] = TABLES
 
 
 PER_SEGMENT: tuple[tuple[str, str, str], ...] = (
@@ -196,103 +262,8 @@ class PlanarArm:
     # ------------------------------------------------------------------ checks
 
     def check(self, scenario: Scenario) -> None:
-        from hil.scenario import check_parameter, fail, fmu_interface
-
-        s, file = scenario, scenario.source
-        r: PlanarArmSpec = s.robot
-        protocol = Protocol()
-        drives = protocol.count("DriveStatus")
-        if not 1 <= r.segments <= drives:
-            raise fail(file, "robot.segments", f"must be 1..{drives}, got {r.segments}")
-        if r.actuator not in PARAMETER_SETS:
-            raise fail(
-                file,
-                "robot.actuator",
-                f"unknown parameter set {r.actuator!r} (known: {', '.join(PARAMETER_SETS)})",
-            )
-        if environment.present(s):
-            environment.objects(s)  # the markers and a grasp task's draw count on them
-        if s.camera and self.markers(s) > protocol.count("CameraMarker"):
-            raise fail(file, "robot.segments", "more markers than the DBC's CameraMarker frames")
-        for name in ("segment_decimation", "cylinder_decimation"):
-            d = getattr(r, name)
-            if d < 1 or s.control_ticks % d:
-                raise fail(
-                    file,
-                    f"robot.{name}",
-                    f"must divide the control period's {s.control_ticks} ticks",
-                )
-        interfaces = {
-            "segment": fmu_interface(file, "robot.segment_fmu", r.segment_fmu),
-            "cylinder": fmu_interface(file, "robot.cylinder_fmu", r.cylinder_fmu),
-        }
-        for table, interface in interfaces.items():
-            for given in self._given(s, table):
-                for name, (value, key) in given.items():
-                    if table == "segment" and name in SEGMENT_GEOMETRY:
-                        raise fail(
-                            file,
-                            key,
-                            "the gas circuit takes the drive cylinder's geometry: set stroke, "
-                            "bore or x_start in robot.cylinder",
-                        )
-                    check_parameter(file, key, interface, name, value)
-        piston_max = protocol.signal_range("DriveCommand1", "piston_setpoint")[1]
-        for i, cylinder in enumerate(self.parameters(s, "cylinder")):
-            stroke = cylinder["stroke"]
-            if not 0.0 <= cylinder["x_start"] <= stroke:
-                raise fail(
-                    file,
-                    _key("cylinder", "x_start", r.segments, i),
-                    f"must lie within the stroke [0, {stroke:g}] m",
-                )
-            if stroke > piston_max:
-                raise fail(
-                    file,
-                    _key("cylinder", "stroke", r.segments, i),
-                    f"{stroke:g} m is beyond the {piston_max:g} m that DriveStatus/DriveCommand "
-                    "can carry",
-                )
-        try:
-            self.start_pistons(s)
-        except ValueError as exc:
-            raise fail(file, "robot.segment.theta_start", f"no piston holds it: {exc}") from None
-        if gripper.present(s):
-            self._check_gripper(s, protocol)
-        if environment.present(s):
-            self._check_placements(s, self.environment_parameters(s))
-        self._check_task(s)
-
-    def _check_gripper(self, s: Scenario, protocol: Protocol) -> None:
-        from hil.scenario import check_parameter, fail, fmu_interface
-
-        file = s.source
-        if not environment.present(s):
-            raise fail(
-                file, "robot.gripper", "needs [robot.environment]: the fingers act through contact"
-            )
-        if gripper.node(s) > protocol.count("DriveStatus"):
-            raise fail(file, "robot.segments", "no DriveStatus frame left for the gripper's drive")
-        gripper.geometry(s)
-        for name, fmu in (("segment", gripper.SEGMENT_FMU), ("cylinder", gripper.CYLINDER_FMU)):
-            interface = fmu_interface(file, f"robot.gripper.{name}", fmu)
-            values = gripper.segment_values(s) if name == "segment" else gripper.table(s, name)
-            for key, value in values.items():
-                if name == "segment" and key in SEGMENT_GEOMETRY:
-                    raise fail(file, f"robot.gripper.segment.{key}", "set it in the cylinder")
-                check_parameter(file, f"robot.gripper.{name}.{key}", interface, key, value)
-        lo, hi = self.gripper_model(s).reachable_curvature()
-        g = gripper.geometry(s)
-        for name in ("theta_open", "theta_closed"):
-            theta = getattr(g, name)
-            if not lo * g.finger_length <= theta <= hi * g.finger_length:
-                raise fail(
-                    file,
-                    f"robot.gripper.{name}",
-                    f"{theta:g} rad is outside the fingers' reachable bend "
-                    f"[{lo * g.finger_length:.4g}, {hi * g.finger_length:.4g}] rad (their static "
-                    "equilibrium at either end of the stroke, within theta_max)",
-                )
+        """The arm's scenario checks that are code (robots.planar_arm.plant.checks)."""
+        checks.check(self, scenario)
 
     def environment_parameters(self, s: Scenario) -> dict[str, float]:
         """The Environment FMU's parameters: `[robot.environment]`, the arm's segments, the
@@ -307,153 +278,11 @@ class PlanarArm:
             values["arm_mobility"] = max(values["arm_mobility"], 1.0 / max(d_bend, 1e-12))
         return values
 
-    def _check_placements(self, s: Scenario, values: Mapping[str, float]) -> None:
-        """Every object's start (Environment parameters `values`) clear of the arm's start pose
-        (its backbone capsules from the base, and the fingers both at their start bend and open)
-        and of the other objects; a grasp task's place clear of the base and of the other
-        objects. An object started inside the arm holds the penalty energy of that overlap and
-        is pushed out by it, where none was meant: ScenarioError naming the key, as a drawn
-        layout is kept clear by construction
-        (robots.planar_arm.controller.grasp.draw_grasp_task)."""
-        from hil.scenario import fail
-
-        file, task = s.source, s.task
-        count = int(values["n_objects"])
-        centres = [
-            np.array([values[f"object_x0_{o}"], values[f"object_y0_{o}"]])
-            for o in range(1, count + 1)
-        ]
-        radii = [values[f"object_radius_{o}"] for o in range(1, count + 1)]
-        grasping = task.kind == "grasp"
-
-        def key(o: int) -> str:
-            if grasping and o == 0:
-                return "task.pick" if task.pick is not None else "task (the drawn object)"
-            return f"robot.environment.objects[{o}]"
-
-        kappas = np.array(
-            [p.get("theta_start", 0.0) / p["length"] for p in self.parameters(s, "segment")]
-        )
-        lengths = [p["length"] for p in self.parameters(s, "segment")]
-        widths = [values[f"width_{i}"] for i in range(1, len(lengths) + 1)]
-        # the backbone finely sampled: its chords lie within (L / 64)^2 |kappa| / 8 of the arcs
-        samples = 64
-        poses = kinematics.backbone(kappas, lengths, s.robot.base, per_segment=samples)
-        sag = np.repeat(
-            [(L / samples) ** 2 * abs(k) / 8.0 for L, k in zip(lengths, kappas, strict=True)],
-            samples,
-        )
-        bodies = [
-            ("the arm's start pose", poses[:, :2], np.repeat(np.array(widths) / 2, samples) + sag)
-        ]
-        if gripper.present(s):
-            from robots.planar_arm.controller.gripper import finger_points
-
-            geometry = gripper.geometry(s)
-            start = gripper.segment_values(s).get("theta_start", 0.0)
-            for theta, state in ((start, "at their start"), (geometry.theta_open, "open")):
-                for finger in finger_points(geometry, tuple(poses[-1]), theta, samples):
-                    bodies.append(
-                        (
-                            f"the fingers {state}",
-                            finger,
-                            np.full(samples, geometry.finger_width / 2),
-                        )
-                    )
-        for w in range(1, int(values["n_walls"]) + 1):  # the arm starts clear of the walls
-            wall = np.array(
-                [
-                    [values[f"wall{w}_x_{v}"], values[f"wall{w}_y_{v}"]]
-                    for v in range(1, int(values[f"wall{w}_n"]) + 1)
-                ]
-            )
-            for what, points, reach in bodies:
-                at = np.append(reach, reach[-1])  # each point's: its piece's (the last, its own)
-                overlap = at - np.array([np.min(_segment_distances(wall, p)) for p in points])
-                worst = int(np.argmax(overlap))
-                if overlap[worst] > 0.0:
-                    raise fail(
-                        file,
-                        f"robot.environment.walls[{w - 1}]",
-                        f"{what} overlaps the wall by {1e3 * overlap[worst]:.1f} mm at "
-                        f"({points[worst][0]:.4g}, {points[worst][1]:.4g}) m: start the arm clear "
-                        "of it (robot.base, robot.segment.theta_start, robot.environment.width)",
-                    )
-        for o, (centre, radius) in enumerate(zip(centres, radii, strict=True)):
-            where = f"({centre[0]:.4g}, {centre[1]:.4g}) m"
-            for what, points, reach in bodies:
-                overlap = radius + reach - _segment_distances(points, centre)
-                if np.max(overlap) > 0.0:
-                    raise fail(
-                        file,
-                        key(o),
-                        f"an object of radius {radius:g} m at {where} overlaps {what} by "
-                        f"{1e3 * float(np.max(overlap)):.1f} mm: it would start inside the arm "
-                        "and be pushed out by the contact; place it clear of the arm",
-                    )
-            for other in range(o):
-                gap = float(np.linalg.norm(centre - centres[other])) - radius - radii[other]
-                if gap < 0.0:
-                    raise fail(
-                        file,
-                        key(o),
-                        f"an object at {where} overlaps {key(other)} by {-1e3 * gap:.1f} mm",
-                    )
-        if grasping and task.place is not None:
-            place = np.array(task.place)
-            where = f"({place[0]:.4g}, {place[1]:.4g}) m"
-            base_gap = float(np.linalg.norm(place - poses[0, :2])) - radii[0] - widths[0] / 2
-            if base_gap < 0.0:
-                raise fail(
-                    file,
-                    "task.place",
-                    f"{where} overlaps the arm's base by {-1e3 * base_gap:.1f} mm",
-                )
-            for other in range(1, count):
-                gap = float(np.linalg.norm(place - centres[other])) - radii[0] - radii[other]
-                if gap < 0.0:
-                    raise fail(
-                        file, "task.place", f"{where} overlaps {key(other)} by {-1e3 * gap:.1f} mm"
-                    )
-
     def _placed(self, s: Scenario) -> dict[int, tuple[float, float]]:
         """Objects the task places: a grasp task's object, from the seed unless given."""
         if s.task.kind != "grasp":
             return {}
         return {1: self.grasp_layout(s)[0]}
-
-    def _check_task(self, s: Scenario) -> None:
-        from hil.scenario import fail
-
-        file, task = s.source, s.task
-        known = ("curvature_profile", *TASK_KINDS)
-        if task.kind not in known:
-            raise fail(file, "task.kind", f"unknown task {task.kind!r} (known: {', '.join(known)})")
-        if task.kind in TASK_KINDS:
-            self._check_task_space(s)
-            return
-        if len(task.scale) > s.robot.segments:
-            raise fail(
-                file,
-                "task.scale",
-                f"has {len(task.scale)} values for {s.robot.segments} segment(s)",
-            )
-        protocol = Protocol()
-        carried = protocol.signal_range("ControllerState1", "kappa_ref")[1]
-        for i, segment in enumerate(self.parameters(s, "segment")):
-            limit = min(segment["theta_max"] / segment["length"], carried)
-            scale = abs(task.scale[i % len(task.scale)])
-            peaks = [(f"task.steps[{j}]", abs(k)) for j, (_, k) in enumerate(task.steps)]
-            if task.sine is not None:
-                peaks.append(("task.sine", abs(task.sine.offset) + abs(task.sine.amplitude)))
-            for key, peak in peaks:
-                if peak * scale > limit:
-                    raise fail(
-                        file,
-                        key,
-                        f"curvature {peak * scale:g} 1/m for segment {i + 1} is beyond the "
-                        f"reachable {limit:.3g} 1/m (theta_max / length)",
-                    )
 
     def ports(self, scenario: Scenario) -> dict[str, tuple[set[str], set[str]]]:
         """What each participant offers: (outputs, inputs), for the scenario's connections."""
@@ -1043,92 +872,6 @@ class PlanarArm:
             **{name: getattr(task, name) for name in PLAN_KEYS},
         )
 
-    def _check_task_space(self, s: Scenario) -> None:
-        """Targets and paths within reach; positive tolerances, times and speeds."""
-        from hil.scenario import fail
-
-        file, task = s.source, s.task
-        for name in ("tolerance", "settle_time", "max_time", "speed", "acceleration", "band"):
-            if getattr(task, name) <= 0:
-                raise fail(file, f"task.{name}", f"must be positive, got {getattr(task, name)}")
-        if task.task_gain < 0:
-            raise fail(file, "task.task_gain", "must not be negative")
-        if task.task_gain * s.timing.control_period >= 1.0:
-            raise fail(file, "task.task_gain", "times the control period must stay below 1")
-        if not 0.0 < task.margin <= 1.0:
-            raise fail(file, "task.margin", f"must be in (0, 1], got {task.margin}")
-        if task.settle_time >= task.max_time:
-            raise fail(file, "task.settle_time", "must be shorter than task.max_time")
-        if not 1 <= task.count <= 65535:
-            raise fail(file, "task.count", f"must be 1..65535, got {task.count}")
-        if task.kind == "path" and task.targets:
-            raise fail(file, "task.targets", "a path task takes task.paths ([x0, y0, x1, y1])")
-        if task.kind == "point_to_point" and task.paths:
-            raise fail(file, "task.paths", "a point_to_point task takes task.targets ([x, y])")
-        if task.kind == "pipe":
-            if task.goal is None:
-                raise fail(file, "task.goal", "a pipe task needs its goal [x, y]")
-            if len(task.centreline) < 2:
-                raise fail(file, "task.centreline", "a pipe task needs the channel's centreline")
-            if not s.robot.environment.get("walls"):
-                raise fail(file, "robot.environment.walls", "a pipe task needs the channel's walls")
-            if task.clearance < 0:
-                raise fail(file, "task.clearance", "must not be negative")
-            from robots.planar_arm.controller.confined import Channel
-
-            try:
-                Channel(
-                    tuple(tuple(map(tuple, w)) for w in s.robot.environment["walls"]),
-                    task.centreline,
-                )
-            except ValueError as exc:
-                raise fail(file, "robot.environment.walls", str(exc)) from None
-            points = [("task.goal", np.array(task.goal))]
-        if task.kind == "grasp":
-            if not gripper.present(s):
-                raise fail(file, "robot.gripper", "a grasp task needs the gripper")
-            if not s.robot.environment.get("objects"):
-                raise fail(file, "robot.environment.objects", "a grasp task needs its object")
-            if task.grasp_time <= 0:
-                raise fail(file, "task.grasp_time", "must be positive")
-        if task.kind == "path" and task.path_length <= 0:
-            raise fail(file, "task.path_length", f"must be positive, got {task.path_length:g} m")
-        from robots.planar_arm.controller.ik import solve_ik
-
-        lower, upper, _ = self.curvature_limits(s)
-        mid, half = 0.5 * (lower + upper), 0.5 * (upper - lower) * IK_RANGE_SHARE
-        lengths = [p["length"] for p in self.parameters(s, "segment")]
-        points = [(f"task.targets[{i}]", np.array(p)) for i, p in enumerate(task.targets)]
-        if task.kind == "pipe" and task.goal is not None:
-            points.append(("task.goal", np.array(task.goal)))
-        if task.kind == "grasp":  # the grasp poses themselves are checked by grasp_layout
-            points += [
-                (f"task.{name}", np.array(p))
-                for name, p in (("pick", task.pick), ("place", task.place))
-                if p is not None
-            ]
-        for i, path in enumerate(task.paths):
-            a, b = np.array(path[:2]), np.array(path[2:])
-            if np.linalg.norm(b - a) == 0.0:
-                raise fail(file, f"task.paths[{i}]", "start and end are the same point")
-            points += [(f"task.paths[{i}]", a + f * (b - a)) for f in np.linspace(0, 1, 11)]
-        guess = np.zeros(len(lengths))
-        for key, point in points:
-            result = solve_ik(point, guess, lengths, s.robot.base, mid - half, mid + half)
-            if not result.converged:
-                raise fail(
-                    file,
-                    key,
-                    f"({point[0]:.4g}, {point[1]:.4g}) m is out of the arm's reach within "
-                    f"{100 * IK_RANGE_SHARE:g} % of each segment's curvature range (closest: "
-                    f"{1e3 * result.position_error:.3g} mm away)",
-                )
-            guess = result.kappas
-        try:
-            self.task_plan(s)
-        except ValueError as exc:
-            raise fail(file, "task", str(exc)) from None
-
     # ------------------------------------------------------------------ scoring
 
     def task_metrics(self, scenario: Scenario, signals: Mapping[str, Any]) -> dict[str, Any]:
@@ -1139,16 +882,6 @@ class PlanarArm:
 
             return task_space_metrics(self, scenario, signals)
         return curvature_metrics(scenario, signals)
-
-
-def _segment_distances(points: np.ndarray, centre: np.ndarray) -> np.ndarray:
-    """Distance [m] from `centre` to each piece of the polyline `points` (shape (k, 2))."""
-    a, b = points[:-1], points[1:]
-    ab = b - a
-    t = np.clip(
-        np.sum((centre - a) * ab, axis=1) / np.maximum(np.sum(ab * ab, axis=1), 1e-300), 0.0, 1.0
-    )
-    return np.asarray(np.linalg.norm(centre - (a + t[:, None] * ab), axis=1))
 
 
 def _defaults(scenario: Scenario, key: str, fmu: str) -> dict[str, float]:
@@ -1177,10 +910,6 @@ def _interface(scenario: Scenario, table: str) -> Mapping[str, Any]:
 
     fmu = scenario.robot.segment_fmu if table == "segment" else scenario.robot.cylinder_fmu
     return fmu_interface(scenario.source, f"robot.{table}_fmu", fmu)
-
-
-def _key(table: str, name: str, count: int, index: int) -> str:
-    return f"robot.{table}.{name}" if count == 1 else f"robot.{table}.{name} (actuator {index + 1})"
 
 
 def _number(file: str, key: str, value: Any) -> float:
