@@ -245,7 +245,7 @@ class ArmReference:
 
         y0 = np.concatenate([q0, np.zeros(n)])
         sol = solve_ivp(
-            rhs, (times[0], times[-1]), y0, method="DOP853", t_eval=times, rtol=1e-10, atol=1e-11
+            rhs, (times[0], times[-1]), y0, method="DOP853", t_eval=times, rtol=1e-9, atol=1e-10
         )
         assert sol.success, sol.message
         return sol.y[:n].T, sol.y[n:].T

@@ -166,6 +166,34 @@ def test_damped_driven_arm_balances_energy(arm_body_fmu) -> None:
     assert np.max(np.abs(total)) / scale < 1e-6
 
 
+def test_planar_arm_is_the_spatial_arm_held_in_its_plane(arm_body_fmu) -> None:
+    # the planar path (its own reduced arithmetic) against the spatial one, which the
+    # independent formulation checks: gravity in the x-z plane, y pairs at rest, x pairs and
+    # external torques driving, every x-z quantity and energy the same to rounding
+    def inputs(t: float) -> dict[str, float]:
+        out = {}
+        for i in range(1, 5):
+            out[f"x_piston_x_{i}"] = 0.05 + 0.03 * math.sin(2 * math.pi * 0.8 * t + i)
+            out[f"tau_ext_x_{i}"] = 0.01 * math.cos(4.0 * t - i)
+        return out
+
+    params = {
+        "g_x": -6.0,
+        "g_z": -7.76,
+        "substep": 2.5e-4,
+        **per_segment(4, theta_x_start=(0.4, -0.3, 0.5, 0.2)),
+    }
+    names = [f"{v}_{i}" for v in ("theta_x", "theta_dot_x", "tip_x", "tip_z") for i in range(1, 5)]
+    names += ENERGIES + ["M_11"]
+    planar = run(arm_body_fmu, {**params, "planar": 1}, 1.0, names, inputs, every=10)
+    spatial = run(arm_body_fmu, params, 1.0, names + ["theta_y_1", "tip_y_4"], inputs, every=10)
+    assert np.all(spatial["theta_y_1"] == 0.0) and np.all(spatial["tip_y_4"] == 0.0)
+    assert np.ptp(planar["theta_x_4"]) > 0.3
+    for name in names:
+        scale = max(np.max(np.abs(spatial[name])), 1e-3)
+        assert np.max(np.abs(planar[name] - spatial[name])) < 1e-10 * scale, name
+
+
 # ------------------------------------------------------------------ 3: independent formulation
 
 

@@ -40,7 +40,7 @@
 #define MAX_SEGMENTS 8
 #define MAX_Q (2 * MAX_SEGMENTS)
 #define MAX_NODES 8
-#define N_TERMS 12         /* series terms: the last one kept is below 2e-18 for W < 1 */
+#define N_TERMS 10         /* series terms for W < 1: truncation below 1e-19 relative */
 #define SERIES_BELOW 1.0   /* W = (bend angle)^2 below which a, b, c take their series */
 #define PISTON_TOLERANCE 1e-9
 #define RK4_RADIUS 2.5     /* RK4 is stable on the left half-disc |h lambda| <= 2.6 */
@@ -56,7 +56,8 @@ typedef struct {
     double m_node[MAX_SEGMENTS][MAX_NODES], m_end[MAX_SEGMENTS];
     double xi[MAX_NODES];                   /* Gauss-Legendre nodes on [0, 1] */
     double g[3];                            /* gravity in the base frame [m/s^2] */
-    double series[3][N_TERMS];              /* Taylor coefficients of a, b, c in W */
+    double series[N_TERMS][8];              /* Taylor coefficients in W of a, a', a'', b,
+                                               b', b'', c, c' (term j of each) */
     GasCircuit circuit[MAX_SEGMENTS];       /* per segment (its G_a); n_poly = 1 */
     double gas_mass[2];                     /* sealed gas mass of side a, b (every pair) [kg] */
     double V_seal[2];                       /* their volume at sealing [m^3] */
@@ -84,28 +85,23 @@ typedef struct {
     double a[3], b[3], c[2];
 } Bend;
 
-/* sum_j coef[j] W^j and its first two derivatives, by Horner. */
-static void series_sum(const double coef[N_TERMS], double W, double out[3]) {
-    double f0 = 0.0, f1 = 0.0, f2 = 0.0;
-    int j;
-    for (j = N_TERMS - 1; j >= 0; j--) {
-        f0 = f0 * W + coef[j];
-        if (j >= 1) f1 = f1 * W + j * coef[j];
-        if (j >= 2) f2 = f2 * W + j * (j - 1) * coef[j];
-    }
-    out[0] = f0;
-    out[1] = f1;
-    out[2] = f2;
-}
-
+/* a, b, c and their derivatives from their Taylor series: eight Horner sums run together. */
 static void bend_functions(const State *s, double W, Bend *f) {
     if (W < SERIES_BELOW) {
-        double c[3];
-        series_sum(s->series[0], W, f->a);
-        series_sum(s->series[1], W, f->b);
-        series_sum(s->series[2], W, c);
-        f->c[0] = c[0];
-        f->c[1] = c[1];
+        /* terms for a relative truncation below 1e-16 (checked against 40-digit arithmetic) */
+        const int terms = W < 0.01 ? 5 : (W < 0.1 ? 7 : N_TERMS);
+        double sum[8] = {0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0};
+        int j, e;
+        for (j = terms - 1; j >= 0; j--)
+            for (e = 0; e < 8; e++) sum[e] = sum[e] * W + s->series[j][e];
+        f->a[0] = sum[0];
+        f->a[1] = sum[1];
+        f->a[2] = sum[2];
+        f->b[0] = sum[3];
+        f->b[1] = sum[4];
+        f->b[2] = sum[5];
+        f->c[0] = sum[6];
+        f->c[1] = sum[7];
     } else {
         const double t = sqrt(W), sn = sin(t), cs = cos(t), W2 = W * W;
         f->a[0] = sn / t;
@@ -139,128 +135,225 @@ static void rotate(const double R[3][3], const double v[3], double out[3]) {
     for (i = 0; i < 3; i++) out[i] = R[i][0] * v[0] + R[i][1] * v[1] + R[i][2] * v[2];
 }
 
+/* R^T v */
+static void rotate_back(const double R[3][3], const double v[3], double out[3]) {
+    int i;
+    for (i = 0; i < 3; i++) out[i] = R[0][i] * v[0] + R[1][i] * v[1] + R[2][i] * v[2];
+}
+
+static double dot(const double a[3], const double b[3]) {
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
+}
+
+/* The local shape functions of point k of segment i (k == n_nodes: the tip frame's origin) at
+ * T = u^2 + v^2: F, F', F'' and G, G', G'' (r = (F u, F v, G)), its mass, and the bend functions
+ * of the whole segment (set at the tip). */
+static double point_shape(const State *s, int i, int k, double T, double F[3], double G[3],
+                          Bend *whole) {
+    const double L = s->L[i], Lp = s->Lp[i];
+    if (k < s->n_nodes) {
+        const double x = s->xi[k], x2 = x * x;
+        Bend f;
+        bend_functions(s, x2 * T, &f);
+        F[0] = L * x2 * f.b[0];
+        F[1] = L * x2 * x2 * f.b[1];
+        F[2] = L * x2 * x2 * x2 * f.b[2];
+        G[0] = Lp + L * x * f.a[0];
+        G[1] = L * x * x2 * f.a[1];
+        G[2] = L * x * x2 * x2 * f.a[2];
+        return s->m_node[i][k];
+    }
+    bend_functions(s, T, whole);
+    F[0] = L * whole->b[0] + Lp * whole->a[0];
+    F[1] = L * whole->b[1] + Lp * whole->a[1];
+    F[2] = L * whole->b[2] + Lp * whole->a[2];
+    G[0] = 2.0 * Lp + L * whole->a[0] - Lp * T * whole->b[0];
+    G[1] = L * whole->a[1] - Lp * (whole->b[0] + T * whole->b[1]);
+    G[2] = L * whole->a[2] - Lp * (2.0 * whole->b[1] + T * whole->b[2]);
+    return s->m_end[i];
+}
+
 /* The arm at (q, q'): M, f, the tips and the gravitational energy. A walk from the base carries
  * each segment's base frame (R, p), its angular velocity Om, the velocity-product parts of its
- * angular and linear accelerations (al, A) and its Jacobians (JO angular, JV linear, 3 x n_q). */
-static void arm_dynamics(const State *s, const double q[], const double qd[], Dynamics *out) {
+ * angular and linear accelerations (al, A) and its Jacobians (JO angular, JV linear, 3 x n_q).
+ * A point at rho = R r from its segment's base has the Jacobian columns JV_j + JO_j x rho on the
+ * coordinates before its segment's and R dr/dq_a on its own, so a segment's points enter M and f
+ * through a few sums over them (the composite-body form of sum m J^T J and sum m J^T (g - a)):
+ * the mass m_s, first moment c = sum m rho, inertia I_c = sum m (|rho|^2 I - rho rho^T),
+ * P_a = sum m R dr_a, Q_a = sum m rho x R dr_a, the own block sum m (R dr_a) . (R dr_b), and the
+ * force F = sum m w and moment N = sum m rho x w of w = g - a, the points' gravity less their
+ * velocity-product acceleration:
+ *   M_jl += m_s JV_j . JV_l + JV_j . (JO_l x c) + JV_l . (JO_j x c) + JO_j . I_c JO_l,
+ *   M_j,a += JV_j . P_a + JO_j . Q_a,   f_j += JV_j . F + JO_j . N,   f_a += sum m R dr_a . w. */
+static void spatial_dynamics(const State *s, const double q[], const double qd[],
+                             Dynamics *out) {
     double R[3][3] = {{1.0, 0.0, 0.0}, {0.0, 1.0, 0.0}, {0.0, 0.0, 1.0}};
     double p[3] = {0.0, 0.0, 0.0}, Om[3] = {0.0, 0.0, 0.0}, al[3] = {0.0, 0.0, 0.0};
     double A[3] = {0.0, 0.0, 0.0};
-    double JO[3][MAX_Q], JV[3][MAX_Q], J[3][MAX_Q];
+    double JO[3][MAX_Q], JV[3][MAX_Q];
     const int nd = s->n_dof, nq = s->n_q;
-    int i, j, l, k, e;
+    int i, j, l, k, e, a, b;
     memset(out, 0, sizeof *out);
     memset(JO, 0, sizeof JO);
     memset(JV, 0, sizeof JV);
     for (i = 0; i < s->n_seg; i++) {
-        const int c0 = i * nd, cn = c0 + nd;
+        const int c0 = i * nd;
         const double u = q[c0], v = nd == 2 ? q[c0 + 1] : 0.0;
         const double ud = qd[c0], vd = nd == 2 ? qd[c0 + 1] : 0.0;
         const double T = u * u + v * v, Td = 2.0 * (u * ud + v * vd);
         const double S = 2.0 * (ud * ud + vd * vd);
-        const double L = s->L[i], Lp = s->Lp[i];
-        double tip_p[3] = {0.0, 0.0, 0.0}, tip_A[3] = {0.0, 0.0, 0.0};
-        double tip_J[3][MAX_Q];
+        double tip_rho[3], tip_A[3], tip_u[2][3], tip_r[3] = {0.0, 0.0, 0.0};
+        double tip_acc[3] = {0.0, 0.0, 0.0}, tip_dr[2][3] = {{0.0, 0.0, 0.0}, {0.0, 0.0, 0.0}};
+        double A_l[3], al_l[3], Om_l[3], g_l[3], E_local = 0.0;
+        /* the segment's sums over its points, about its base in its own axes (rotated to the
+         * base's below) */
+        double m_s = 0.0, c[3] = {0.0, 0.0, 0.0}, Ic[3][3], P[2][3], Q[2][3], own[2][2];
+        double F[3] = {0.0, 0.0, 0.0}, N[3] = {0.0, 0.0, 0.0}, fo[2] = {0.0, 0.0};
         Bend tipf;
+        memset(Ic, 0, sizeof Ic);
+        memset(P, 0, sizeof P);
+        memset(Q, 0, sizeof Q);
+        memset(own, 0, sizeof own);
+        rotate_back(R, A, A_l);
+        rotate_back(R, al, al_l);
+        rotate_back(R, Om, Om_l);
+        rotate_back(R, s->g, g_l);
         for (k = 0; k <= s->n_nodes; k++) {
             /* node k of the arc, or the tip frame's origin (k == n_nodes) */
-            double F[3], G[3], m;
-            double r[3], dr[2][3], rd[3], rdd[3], rho[3], t1[3], t2[3], t3[3], acc[3], gmacc[3];
-            if (k < s->n_nodes) {
-                const double x = s->xi[k], x2 = x * x;
-                Bend f;
-                bend_functions(s, x2 * T, &f);
-                F[0] = L * x2 * f.b[0];
-                F[1] = L * x2 * x2 * f.b[1];
-                F[2] = L * x2 * x2 * x2 * f.b[2];
-                G[0] = Lp + L * x * f.a[0];
-                G[1] = L * x * x2 * f.a[1];
-                G[2] = L * x * x2 * x2 * f.a[2];
-                m = s->m_node[i][k];
-            } else {
-                bend_functions(s, T, &tipf);
-                F[0] = L * tipf.b[0] + Lp * tipf.a[0];
-                F[1] = L * tipf.b[1] + Lp * tipf.a[1];
-                F[2] = L * tipf.b[2] + Lp * tipf.a[2];
-                G[0] = 2.0 * Lp + L * tipf.a[0] - Lp * T * tipf.b[0];
-                G[1] = L * tipf.a[1] - Lp * (tipf.b[0] + T * tipf.b[1]);
-                G[2] = L * tipf.a[2] - Lp * (2.0 * tipf.b[1] + T * tipf.b[2]);
-                m = s->m_end[i];
-            }
-            /* local position, its derivatives in u and v (dT/du = 2u), velocity and
-             * velocity-product acceleration */
-            r[0] = F[0] * u;
-            r[1] = F[0] * v;
+            double Fs[3], G[3], r[3], dr[2][3], rd[3], rdd[3], t1[3], t2[3], t3[3], acc[3], w[3];
+            const double m = point_shape(s, i, k, T, Fs, G, &tipf);
+            /* local position (F u, F v, G), its derivatives in u and v (dT/du = 2u), velocity
+             * and velocity-product acceleration */
+            r[0] = Fs[0] * u;
+            r[1] = Fs[0] * v;
             r[2] = G[0];
-            dr[0][0] = 2.0 * u * F[1] * u + F[0];
-            dr[0][1] = 2.0 * u * F[1] * v;
+            dr[0][0] = 2.0 * u * Fs[1] * u + Fs[0];
+            dr[0][1] = 2.0 * u * Fs[1] * v;
             dr[0][2] = 2.0 * u * G[1];
-            dr[1][0] = 2.0 * v * F[1] * u;
-            dr[1][1] = 2.0 * v * F[1] * v + F[0];
+            dr[1][0] = 2.0 * v * Fs[1] * u;
+            dr[1][1] = 2.0 * v * Fs[1] * v + Fs[0];
             dr[1][2] = 2.0 * v * G[1];
-            rd[0] = F[1] * Td * u + F[0] * ud;
-            rd[1] = F[1] * Td * v + F[0] * vd;
+            rd[0] = Fs[1] * Td * u + Fs[0] * ud;
+            rd[1] = Fs[1] * Td * v + Fs[0] * vd;
             rd[2] = G[1] * Td;
-            rdd[0] = (F[2] * Td * Td + F[1] * S) * u + 2.0 * F[1] * Td * ud;
-            rdd[1] = (F[2] * Td * Td + F[1] * S) * v + 2.0 * F[1] * Td * vd;
+            rdd[0] = (Fs[2] * Td * Td + Fs[1] * S) * u + 2.0 * Fs[1] * Td * ud;
+            rdd[1] = (Fs[2] * Td * Td + Fs[1] * S) * v + 2.0 * Fs[1] * Td * vd;
             rdd[2] = G[2] * Td * Td + G[1] * S;
-            /* to the base frame: a = A + al x rho + Om x (Om x rho) + 2 Om x R r' + R r'' */
-            rotate(R, r, rho);
-            cross(al, rho, t1);
-            cross(Om, rho, t2);
-            cross(Om, t2, t3);
-            for (e = 0; e < 3; e++) acc[e] = A[e] + t1[e] + t3[e];
-            rotate(R, rd, t1);
-            cross(Om, t1, t2);
-            rotate(R, rdd, t3);
+            /* its acceleration in the segment's frame (the base's vectors rotated into it once:
+             * A_l, al_l, Om_l, g_l): a = A + al x r + Om x (Om x r) + 2 Om x r' + r'' */
+            cross(al_l, r, t1);
+            cross(Om_l, r, t2);
+            cross(Om_l, t2, t3);
+            cross(Om_l, rd, t2);
             for (e = 0; e < 3; e++) {
-                acc[e] += 2.0 * t2[e] + t3[e];
-                gmacc[e] = s->g[e] - acc[e];
-            }
-            for (j = 0; j < c0; j++) {
-                const double w[3] = {JO[0][j], JO[1][j], JO[2][j]};
-                cross(w, rho, t1);
-                for (e = 0; e < 3; e++) J[e][j] = JV[e][j] + t1[e];
-            }
-            for (j = 0; j < nd; j++) {
-                rotate(R, dr[j], t1);
-                for (e = 0; e < 3; e++) J[e][c0 + j] = t1[e];
-            }
-            if (m != 0.0) {
-                for (j = 0; j < cn; j++) {
-                    for (l = j; l < cn; l++)
-                        out->M[j][l] += m * (J[0][j] * J[0][l] + J[1][j] * J[1][l] +
-                                             J[2][j] * J[2][l]);
-                    out->f[j] += m * (J[0][j] * gmacc[0] + J[1][j] * gmacc[1] +
-                                      J[2][j] * gmacc[2]);
-                }
-                out->E_gravity -= m * (s->g[0] * (p[0] + rho[0]) + s->g[1] * (p[1] + rho[1]) +
-                                       s->g[2] * (p[2] + rho[2]));
+                acc[e] = A_l[e] + t1[e] + t3[e] + 2.0 * t2[e] + rdd[e];
+                w[e] = g_l[e] - acc[e];
             }
             if (k == s->n_nodes) {
                 for (e = 0; e < 3; e++) {
-                    tip_p[e] = p[e] + rho[e];
-                    tip_A[e] = acc[e];
-                    for (j = 0; j < cn; j++) tip_J[e][j] = J[e][j];
+                    tip_r[e] = r[e];
+                    tip_acc[e] = acc[e];
+                    for (a = 0; a < nd; a++) tip_dr[a][e] = dr[a][e];
                 }
             }
+            if (m == 0.0) continue;
+            {
+                const double rr = dot(r, r);
+                m_s += m;
+                for (e = 0; e < 3; e++) {
+                    c[e] += m * r[e];
+                    F[e] += m * w[e];
+                    for (l = 0; l < 3; l++) Ic[e][l] -= m * r[e] * r[l];
+                    Ic[e][e] += m * rr;
+                }
+                cross(r, w, t1);
+                for (e = 0; e < 3; e++) N[e] += m * t1[e];
+                for (a = 0; a < nd; a++) {
+                    cross(r, dr[a], t1);
+                    for (e = 0; e < 3; e++) {
+                        P[a][e] += m * dr[a][e];
+                        Q[a][e] += m * t1[e];
+                    }
+                    fo[a] += m * dot(dr[a], w);
+                    for (b = a; b < nd; b++) own[a][b] += m * dot(dr[a], dr[b]);
+                }
+                E_local -= m * dot(g_l, r);
+            }
+        }
+        /* the sums to the base's axes: vectors by R, the inertia by R I_c R^T */
+        {
+            double t[3][3], v3[3];
+            rotate(R, c, v3);
+            memcpy(c, v3, sizeof c);
+            rotate(R, F, v3);
+            memcpy(F, v3, sizeof F);
+            rotate(R, N, v3);
+            memcpy(N, v3, sizeof N);
+            for (a = 0; a < nd; a++) {
+                rotate(R, P[a], v3);
+                memcpy(P[a], v3, sizeof v3);
+                rotate(R, Q[a], v3);
+                memcpy(Q[a], v3, sizeof v3);
+                rotate(R, tip_dr[a], tip_u[a]);
+            }
+            for (e = 0; e < 3; e++)
+                for (l = 0; l < 3; l++)
+                    t[e][l] = Ic[e][0] * R[l][0] + Ic[e][1] * R[l][1] + Ic[e][2] * R[l][2];
+            for (e = 0; e < 3; e++)
+                for (l = 0; l < 3; l++)
+                    Ic[e][l] = R[e][0] * t[0][l] + R[e][1] * t[1][l] + R[e][2] * t[2][l];
+            rotate(R, tip_r, tip_rho);
+            rotate(R, tip_acc, tip_A);
+            out->E_gravity += E_local - m_s * dot(s->g, p);
+        }
+        /* the segment's points into M and f */
+        {
+            double cx[MAX_Q][3], Io[MAX_Q][3]; /* JO_j x c and I_c JO_j */
+            for (j = 0; j < c0; j++) {
+                const double JOj[3] = {JO[0][j], JO[1][j], JO[2][j]};
+                cross(JOj, c, cx[j]);
+                rotate((const double(*)[3])Ic, JOj, Io[j]);
+            }
+            for (j = 0; j < c0; j++) {
+                const double JVj[3] = {JV[0][j], JV[1][j], JV[2][j]};
+                const double JOj[3] = {JO[0][j], JO[1][j], JO[2][j]};
+                for (l = j; l < c0; l++) {
+                    const double JVl[3] = {JV[0][l], JV[1][l], JV[2][l]};
+                    out->M[j][l] += m_s * dot(JVj, JVl) + dot(JVj, cx[l]) + dot(JVl, cx[j]) +
+                                    dot(JOj, Io[l]);
+                }
+                for (a = 0; a < nd; a++) out->M[j][c0 + a] += dot(JVj, P[a]) + dot(JOj, Q[a]);
+                out->f[j] += dot(JVj, F) + dot(JOj, N);
+            }
+        }
+        for (a = 0; a < nd; a++) {
+            for (b = a; b < nd; b++) out->M[c0 + a][c0 + b] += own[a][b];
+            out->f[c0 + a] += fo[a];
         }
         /* the next segment's base frame: R_loc = I + a K + b K^2, angular velocity J_l phi' with
          * phi = (-v, u, 0) (columns J_l e_y for u, -J_l e_x for v), and the velocity-product part
          * of its derivative, b' T' (phi x phi') + c' T' phi x (phi x phi') + c phi' x (phi x phi'),
          * with phi x phi' = (0, 0, u v' - v u') */
         {
-            const double a = tipf.a[0], b = tipf.b[0], c = tipf.c[0];
+            const double ta = tipf.a[0], tb = tipf.b[0], tc = tipf.c[0];
             const double w3 = u * vd - v * ud;
-            const double Rl[3][3] = {{1.0 - b * u * u, -b * u * v, a * u},
-                                     {-b * u * v, 1.0 - b * v * v, a * v},
-                                     {-a * u, -a * v, 1.0 - b * T}};
-            const double col[2][3] = {{-c * u * v, 1.0 - c * v * v, -b * v},
-                                      {-1.0 + c * u * u, c * u * v, b * u}};
-            const double al_loc[3] = {tipf.c[1] * Td * w3 * u + c * w3 * ud,
-                                      tipf.c[1] * Td * w3 * v + c * w3 * vd,
+            const double Rl[3][3] = {{1.0 - tb * u * u, -tb * u * v, ta * u},
+                                     {-tb * u * v, 1.0 - tb * v * v, ta * v},
+                                     {-ta * u, -ta * v, 1.0 - tb * T}};
+            const double col[2][3] = {{-tc * u * v, 1.0 - tc * v * v, -tb * v},
+                                      {-1.0 + tc * u * u, tc * u * v, tb * u}};
+            const double al_loc[3] = {tipf.c[1] * Td * w3 * u + tc * w3 * ud,
+                                      tipf.c[1] * Td * w3 * v + tc * w3 * vd,
                                       tipf.b[1] * Td * w3};
             double w_loc[3], Rw[3], t1[3], t2[3], Rn[3][3];
+            /* the tip's linear Jacobian first (it reads JO before the own columns are set) */
+            for (j = 0; j < c0; j++) {
+                const double JOj[3] = {JO[0][j], JO[1][j], JO[2][j]};
+                cross(JOj, tip_rho, t1);
+                for (e = 0; e < 3; e++) JV[e][j] += t1[e];
+            }
+            for (a = 0; a < nd; a++)
+                for (e = 0; e < 3; e++) JV[e][c0 + a] = tip_u[a][e];
             for (e = 0; e < 3; e++) w_loc[e] = col[0][e] * ud + col[1][e] * vd;
             rotate(R, w_loc, Rw);
             cross(Om, Rw, t1);
@@ -269,24 +362,131 @@ static void arm_dynamics(const State *s, const double q[], const double qd[], Dy
                 al[e] += t1[e] + t2[e];
                 Om[e] += Rw[e];
             }
-            for (j = 0; j < nd; j++) {
-                rotate(R, col[j], t1);
-                for (e = 0; e < 3; e++) JO[e][c0 + j] = t1[e];
+            for (a = 0; a < nd; a++) {
+                rotate(R, col[a], t1);
+                for (e = 0; e < 3; e++) JO[e][c0 + a] = t1[e];
             }
             for (e = 0; e < 3; e++)
                 for (l = 0; l < 3; l++)
                     Rn[e][l] = R[e][0] * Rl[0][l] + R[e][1] * Rl[1][l] + R[e][2] * Rl[2][l];
             memcpy(R, Rn, sizeof R);
             for (e = 0; e < 3; e++) {
-                p[e] = tip_p[e];
+                p[e] += tip_rho[e];
                 A[e] = tip_A[e];
-                out->tip[i][e] = tip_p[e];
-                for (j = 0; j < cn; j++) JV[e][j] = tip_J[e][j];
+                out->tip[i][e] = p[e];
             }
         }
     }
     for (j = 0; j < nq; j++)
         for (l = 0; l < j; l++) out->M[j][l] = out->M[l][j];
+}
+
+/* The planar arm (v = 0): spatial_dynamics with every frame turned about y by the sum psi of the
+ * bends before it, so that every angular Jacobian column is e_y, the angular velocity-product
+ * acceleration vanishes and the sums reduce to the plane's (x, z): the same equations, a fifth
+ * of the arithmetic (checked against the spatial path in tests/test_arm_body.py). With
+ * e_y x (x, z) = (z, -x) and h = e_y x c:
+ *   M_jl += m_s JV_j . JV_l + (JV_j + JV_l) . h + I_yy,  M_j,a += JV_j . P + Q_y,
+ *   f_j += JV_j . F + N_y,  I_yy = sum m |r|^2, Q_y = sum m (r x dr)_y, N_y = sum m (r x w)_y. */
+static void planar_dynamics(const State *s, const double q[], const double qd[], Dynamics *out) {
+    double psi = 0.0, Om = 0.0, p[2] = {0.0, 0.0}, A[2] = {0.0, 0.0}, JV[2][MAX_Q];
+    const int nq = s->n_q;
+    int i, j, l, k;
+    memset(out, 0, sizeof *out);
+    for (i = 0; i < s->n_seg; i++) {
+        const double u = q[i], ud = qd[i], T = u * u, Td = 2.0 * u * ud, S = 2.0 * ud * ud;
+        const double cp = cos(psi), sp = sin(psi);
+        /* the base's vectors in the segment's axes (R^T, R = Ry(psi)) */
+        const double A_l[2] = {cp * A[0] - sp * A[1], sp * A[0] + cp * A[1]};
+        const double g_l[2] = {cp * s->g[0] - sp * s->g[2], sp * s->g[0] + cp * s->g[2]};
+        double m_s = 0.0, c[2] = {0.0, 0.0}, Iyy = 0.0, P[2] = {0.0, 0.0}, Qy = 0.0, own = 0.0;
+        double F[2] = {0.0, 0.0}, Ny = 0.0, fo = 0.0, E_local = 0.0;
+        double tip_r[2] = {0.0, 0.0}, tip_acc[2] = {0.0, 0.0}, tip_dr[2] = {0.0, 0.0};
+        Bend whole;
+        for (k = 0; k <= s->n_nodes; k++) {
+            double Fs[3], G[3], r[2], dr[2], rd[2], rdd[2], acc[2], w[2];
+            const double m = point_shape(s, i, k, T, Fs, G, &whole);
+            r[0] = Fs[0] * u;
+            r[1] = G[0];
+            dr[0] = 2.0 * u * Fs[1] * u + Fs[0];
+            dr[1] = 2.0 * u * G[1];
+            rd[0] = Fs[1] * Td * u + Fs[0] * ud;
+            rd[1] = G[1] * Td;
+            rdd[0] = (Fs[2] * Td * Td + Fs[1] * S) * u + 2.0 * Fs[1] * Td * ud;
+            rdd[1] = G[2] * Td * Td + G[1] * S;
+            /* a = A + Om x (Om x r) + 2 Om x r' + r'' with Om = (0, Om, 0) */
+            acc[0] = A_l[0] - Om * Om * r[0] + 2.0 * Om * rd[1] + rdd[0];
+            acc[1] = A_l[1] - Om * Om * r[1] - 2.0 * Om * rd[0] + rdd[1];
+            w[0] = g_l[0] - acc[0];
+            w[1] = g_l[1] - acc[1];
+            if (k == s->n_nodes) {
+                tip_r[0] = r[0];
+                tip_r[1] = r[1];
+                tip_acc[0] = acc[0];
+                tip_acc[1] = acc[1];
+                tip_dr[0] = dr[0];
+                tip_dr[1] = dr[1];
+            }
+            if (m == 0.0) continue;
+            m_s += m;
+            c[0] += m * r[0];
+            c[1] += m * r[1];
+            Iyy += m * (r[0] * r[0] + r[1] * r[1]);
+            P[0] += m * dr[0];
+            P[1] += m * dr[1];
+            Qy += m * (r[1] * dr[0] - r[0] * dr[1]);
+            own += m * (dr[0] * dr[0] + dr[1] * dr[1]);
+            F[0] += m * w[0];
+            F[1] += m * w[1];
+            Ny += m * (r[1] * w[0] - r[0] * w[1]);
+            fo += m * (dr[0] * w[0] + dr[1] * w[1]);
+            E_local -= m * (g_l[0] * r[0] + g_l[1] * r[1]);
+        }
+        {
+            /* the sums to the base's axes (R = Ry(psi): (x, z) -> (c x + s z, -s x + c z)) */
+            const double cw[2] = {cp * c[0] + sp * c[1], -sp * c[0] + cp * c[1]};
+            const double Pw[2] = {cp * P[0] + sp * P[1], -sp * P[0] + cp * P[1]};
+            const double Fw[2] = {cp * F[0] + sp * F[1], -sp * F[0] + cp * F[1]};
+            const double h[2] = {cw[1], -cw[0]};
+            const double tip_rho[2] = {cp * tip_r[0] + sp * tip_r[1],
+                                       -sp * tip_r[0] + cp * tip_r[1]};
+            for (j = 0; j < i; j++) {
+                const double hj = JV[0][j] * h[0] + JV[1][j] * h[1];
+                for (l = j; l < i; l++)
+                    out->M[j][l] += m_s * (JV[0][j] * JV[0][l] + JV[1][j] * JV[1][l]) + hj +
+                                    JV[0][l] * h[0] + JV[1][l] * h[1] + Iyy;
+                out->M[j][i] += JV[0][j] * Pw[0] + JV[1][j] * Pw[1] + Qy;
+                out->f[j] += JV[0][j] * Fw[0] + JV[1][j] * Fw[1] + Ny;
+            }
+            out->M[i][i] += own;
+            out->f[i] += fo;
+            out->E_gravity += E_local - m_s * (s->g[0] * p[0] + s->g[2] * p[1]);
+            /* the next base: JV_j + e_y x rho_tip, its own column R dr, A, p, psi, Om */
+            for (j = 0; j < i; j++) {
+                JV[0][j] += tip_rho[1];
+                JV[1][j] -= tip_rho[0];
+            }
+            JV[0][i] = cp * tip_dr[0] + sp * tip_dr[1];
+            JV[1][i] = -sp * tip_dr[0] + cp * tip_dr[1];
+            A[0] = cp * tip_acc[0] + sp * tip_acc[1];
+            A[1] = -sp * tip_acc[0] + cp * tip_acc[1];
+            p[0] += tip_rho[0];
+            p[1] += tip_rho[1];
+            out->tip[i][0] = p[0];
+            out->tip[i][2] = p[1];
+            psi += u;
+            Om += ud;
+        }
+    }
+    for (j = 0; j < nq; j++)
+        for (l = 0; l < j; l++) out->M[j][l] = out->M[l][j];
+}
+
+static void arm_dynamics(const State *s, const double q[], const double qd[], Dynamics *out) {
+    if (s->n_dof == 1)
+        planar_dynamics(s, q, qd, out);
+    else
+        spatial_dynamics(s, q, qd, out);
 }
 
 /* Cholesky factor of the symmetric positive definite n x n A (lower triangle in Lc); 0 if A is
@@ -855,17 +1055,22 @@ static double stability_limit(const State *s, const double q_start[]) {
 }
 
 /* Taylor coefficients in W of a = sum (-W)^j / (2j+1)!, b = sum (-W)^j / (2j+2)!,
- * c = sum (-W)^j / (2j+3)!. */
+ * c = sum (-W)^j / (2j+3)!, and of their derivatives: term j of f' is (j+1) f_(j+1), of f''
+ * (j+1)(j+2) f_(j+2). */
 static void series_coefficients(State *s) {
-    double factorial[2 * N_TERMS + 4];
-    int j;
+    double factorial[2 * N_TERMS + 8], f[3][N_TERMS + 2];
+    int j, k;
     factorial[0] = 1.0;
-    for (j = 1; j < 2 * N_TERMS + 4; j++) factorial[j] = factorial[j - 1] * j;
+    for (j = 1; j < 2 * N_TERMS + 8; j++) factorial[j] = factorial[j - 1] * j;
+    for (j = 0; j < N_TERMS + 2; j++)
+        for (k = 0; k < 3; k++)
+            f[k][j] = (j % 2 == 0 ? 1.0 : -1.0) / factorial[2 * j + 1 + k];
     for (j = 0; j < N_TERMS; j++) {
-        const double sign = j % 2 == 0 ? 1.0 : -1.0;
-        s->series[0][j] = sign / factorial[2 * j + 1];
-        s->series[1][j] = sign / factorial[2 * j + 2];
-        s->series[2][j] = sign / factorial[2 * j + 3];
+        for (k = 0; k < 3; k++) {
+            s->series[j][3 * k] = f[k][j];
+            s->series[j][3 * k + 1] = (j + 1.0) * f[k][j + 1];
+            if (k < 2) s->series[j][3 * k + 2] = (j + 1.0) * (j + 2.0) * f[k][j + 2];
+        }
     }
 }
 
