@@ -383,8 +383,8 @@ static void spatial_dynamics(const State *s, const double q[], const double qd[]
 
 /* The planar arm (v = 0): spatial_dynamics with every frame turned about y by the sum psi of the
  * bends before it, so that every angular Jacobian column is e_y, the angular velocity-product
- * acceleration vanishes and the sums reduce to the plane's (x, z): the same equations, a fifth
- * of the arithmetic (checked against the spatial path in tests/test_arm_body.py). With
+ * acceleration vanishes and the sums reduce to the plane's (x, z): the same equations in less
+ * arithmetic (checked against the spatial path in tests/test_arm_body.py). With
  * e_y x (x, z) = (z, -x) and h = e_y x c:
  *   M_jl += m_s JV_j . JV_l + (JV_j + JV_l) . h + I_yy,  M_j,a += JV_j . P + Q_y,
  *   f_j += JV_j . F + N_y,  I_yy = sum m |r|^2, Q_y = sum m (r x dr)_y, N_y = sum m (r x w)_y. */
