@@ -631,6 +631,38 @@ def test_inconsistent_parameters_and_inputs_fail_with_one_clear_message(arm_body
         slave.do_step(0.0, 1e-3)
 
 
+def test_the_substep_limit_is_the_fastest_mode_of_the_arm(arm_body_fmu) -> None:
+    # six planar FeaSegment segments: the coupled arm's fastest mode is the damping of a tip
+    # motion, lambda = -rho(M^-1 D) (from the independent mass matrix), and RK4 needs
+    # h |lambda| <= 2.5: the FMU takes 2.5e-4 s and refuses 2.7e-4 s, naming that limit
+    n = 6
+    spec = ArmSpec(
+        L=(FEA["L"],) * n,
+        mass=(FEA["mass"],) * n,
+        m_end=(0.0,) * n,
+        L_p=(0.0,) * n,
+        k=(FEA["k"],) * n,
+        d=(FEA["d"],) * n,
+        G_a=(FEA["G_a"],) * n,
+    )
+    M = ArmReference(spec).mass_matrix(np.full(2 * n, 1e-7)[None])[0][::2, ::2]
+    fastest = np.max(np.linalg.eigvals(np.linalg.solve(M, FEA["d"] * np.eye(n))).real)
+    assert fastest == pytest.approx(9650, rel=0.01)
+    params = {
+        "n_segments": n,
+        "planar": 1,
+        "g_x": 0.0,
+        **FEA_GAS,
+        **per_segment(n, **FEA, m_end=0.0, L_p=0.0, x_piston_x=0.025),
+    }
+    with FmuSlave(arm_body_fmu, "arm", {**params, "substep": 2.5e-4}) as slave:
+        slave.do_step(0.0, 1e-3)
+    with pytest.raises(FmuError, match="substep = 0.00027: beyond the stability limit") as error:
+        FmuSlave(arm_body_fmu, "arm", {**params, "substep": 2.7e-4})
+    limit = float(str(error.value).split("stability limit ")[1].split(" s")[0])
+    assert limit == pytest.approx(2.5 / fastest, rel=0.01)
+
+
 def test_eight_segments_run_and_the_limit_stops_segments(arm_body_fmu) -> None:
     # the largest arm (16 coordinates) with its base and tip pairs driven into their bend limit:
     # the segments stop there and rest on it while the tip whips along it; the energy the stops

@@ -672,34 +672,31 @@ static void contact_reactions(const Contacts *c, const int part[], const double 
  * v_t^2 h^2 / theta at a tangential rate v_t), a reaction switching on or off between RK4's
  * stages would make the right-hand side jump (a first-order error in the energy); a segment
  * arriving is left free until the end of its substep, where model_after_substep stops it.
- * acc, the free acceleration, is corrected in place; returns the power the reactions absorb,
- * sum lambda n . q_i' [W] (zero to the integrator's accuracy while the segments rest). */
-static double limit_reactions(const State *s, const double q[], const double qd[],
-                              const double Lc[MAX_Q][MAX_Q], double acc[]) {
+ * acc, the free acceleration, is corrected in place. The reactions do no work (n . q_i' = 0
+ * while a segment rests; what they do on the integrator's drift off the limit is within its
+ * error). */
+static void limit_reactions(const State *s, const double q[], const double qd[],
+                            const double Lc[MAX_Q][MAX_Q], double acc[]) {
     const int nd = s->n_dof, n = s->n_q;
     Contacts c;
-    double b[MAX_SEGMENTS] = {0.0}, rate[MAX_SEGMENTS] = {0.0}, lambda[MAX_SEGMENTS], power = 0.0;
+    double b[MAX_SEGMENTS] = {0.0}, lambda[MAX_SEGMENTS];
     int part[MAX_SEGMENTS] = {0}, a, j;
     find_contacts(s, q, Lc, s->resting, &c);
-    if (c.m == 0) return 0.0;
+    if (c.m == 0) return;
     for (a = 0; a < c.m; a++) {
         const int i = c.seg[a];
-        double speed2 = 0.0;
-        rate[a] = 0.0;
+        double speed2 = 0.0, rate = 0.0;
         for (j = 0; j < nd; j++) {
-            rate[a] += c.normal[a][j] * qd[i * nd + j];
+            rate += c.normal[a][j] * qd[i * nd + j];
             speed2 += qd[i * nd + j] * qd[i * nd + j];
         }
-        b[a] = (speed2 - rate[a] * rate[a]) / c.theta[a];
+        b[a] = (speed2 - rate * rate) / c.theta[a];
         for (j = 0; j < nd; j++) b[a] += c.normal[a][j] * acc[i * nd + j];
         part[a] = 1;
     }
     contact_reactions(&c, part, b, lambda);
-    for (a = 0; a < c.m; a++) {
+    for (a = 0; a < c.m; a++)
         for (j = 0; j < n; j++) acc[j] -= lambda[a] * c.Z[a][j];
-        power += lambda[a] * rate[a];
-    }
-    return power;
 }
 
 int model_derivatives(const Instance *inst, const double y[], double dy[]) {
@@ -721,7 +718,7 @@ int model_derivatives(const Instance *inst, const double y[], double dy[]) {
     }
     if (!cholesky(n, (const double(*)[MAX_Q])dyn.M, Lc)) return 0;
     cholesky_solve(n, (const double(*)[MAX_Q])Lc, acc);
-    damping += limit_reactions(s, q, qd, (const double(*)[MAX_Q])Lc, acc);
+    limit_reactions(s, q, qd, (const double(*)[MAX_Q])Lc, acc);
     for (j = 0; j < n; j++) {
         dy[j] = qd[j];
         dy[n + j] = acc[j];
