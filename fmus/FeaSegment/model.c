@@ -5,6 +5,8 @@
  *   I theta'' + d theta' + k theta = H(g_a) - H(g_b) + tau_ext,   H(g) = integral_0^g G(s) ds,
  * clamped to |theta| <= theta_max.
  *
+ * The gas circuit's functions are shared with ArmBody (fmus/common/gas_circuit.h).
+ *
  * Vacuum: a thin-walled channel below atmospheric pressure partially collapses and transmits less
  * torque per pascal [estimate]. Its bend sensitivity is G(g) = G_a for g >= 0 and
  * G_a (beta + (1 - beta) exp(g / p_collapse)) for g < 0, beta = vacuum_factor: it falls smoothly
@@ -33,24 +35,13 @@
 #include <math.h>
 #include <string.h>
 
+#include "gas_circuit.h"
 #include "glue.h"
 
 #define PI 3.14159265358979323846
 
 /* continuous states, in this order in State.y */
 enum { THETA, OMEGA, M_A, M_B, S_A, S_B, E_DAMP, E_HEAT, W_EXT, N_STATES };
-
-/* A channel at gauge pressure g: its bend sensitivity G(g) = dV/dtheta [m^3/rad] and its torque
- * per unit sign H(g) = int_0^g G(s) ds [N m]. */
-typedef struct {
-    double G, H;
-} Channel;
-
-typedef struct {
-    double g[2];        /* gauge pressures of a and b [Pa] */
-    double V[2];        /* gas volumes [m^3] */
-    Channel channel[2]; /* the channels at those pressures */
-} GasState;
 
 typedef struct {
     double y[N_STATES]; /* theta [rad], omega [rad/s], masses [kg], theta_s [K m^3(n-1)/kg^(n-1)],
@@ -66,151 +57,21 @@ typedef struct {
     double cached_y[N_STATES], cached_x, cached_energy;
     GasState cached_gas;
     int cached;
+    GasCircuit circuit; /* the gas circuit's parameters (gas_circuit.h), set at initialisation */
 } State;
 
 size_t model_state_size(void) { return sizeof(State); }
-
-static double bore_area(const Instance *inst) {
-    return 0.25 * PI * V(inst, bore) * V(inst, bore);
-}
 
 static double bending_inertia(const Instance *inst) {
     return V(inst, mass) * V(inst, length) * V(inst, length) / 20.0;
 }
 
-/* The channel at gauge pressure g, from one expm1 under vacuum (G and H at the same g, as the
- * energy balance needs). */
-static Channel channel_at(const Instance *inst, double g) {
-    const double beta = V(inst, vacuum_factor), pc = V(inst, p_collapse), G_a = V(inst, G_a);
-    Channel channel;
-    if (g >= 0.0) {
-        channel.G = G_a;
-        channel.H = G_a * g;
-    } else {
-        const double em1 = expm1(g / pc);
-        channel.G = G_a * (beta + (1.0 - beta) * (1.0 + em1));
-        channel.H = G_a * (beta * g + (1.0 - beta) * pc * em1);
-    }
-    return channel;
+static const GasCircuit *circuit_of(const Instance *inst) {
+    return &((const State *)inst->state)->circuit;
 }
 
-/* The bend sensitivity G(g) and its slope dG/dg [m^3/(rad Pa)] from one exp: what the Newton
- * solves of the gas pressure need at every iteration. */
-static double sensitivity_and_slope(const Instance *inst, double g, double *slope) {
-    const double G_a = V(inst, G_a), beta = V(inst, vacuum_factor), pc = V(inst, p_collapse);
-    double e;
-    if (g >= 0.0) {
-        *slope = 0.0;
-        return G_a;
-    }
-    e = exp(g / pc);
-    *slope = G_a * (1.0 - beta) / pc * e;
-    return G_a * (beta + (1.0 - beta) * e);
-}
-
-/* Rigid part of a side's volume (without the bend and compliance terms) [m^3]. */
-static double base_volume(const Instance *inst, double swept_length) {
-    return bore_area(inst) * swept_length + V(inst, V_dead) + V(inst, V_ch0);
-}
-
-/* The isothermal vacuum Newton stops once a step is below NEWTON_STEP [Pa]: it converges
- * quadratically, so the error left after that step is of order step^2 / p_collapse, under 1e-10 Pa
- * (measured against a 1e-9 Pa stop over the whole stroke and bend range: 3e-11 Pa), and it takes
- * one exp fewer per solve. */
-#define NEWTON_STEP 1e-3
-
-/* Gauge pressure of a side of gas mass m and invariant theta_s whose volume is V(g): solves
- * ln(p_atm + g) + n ln V(g) = ln(R theta_s m^n), increasing in g (checked at initialisation), by
- * Newton steps kept inside p > 0, V > 0. Returns 0 if no physical root exists. */
-static int gas_pressure(const Instance *inst, double V0, double sign, double theta, double m,
-                        double theta_s, double *gauge) {
-    const double p_atm = V(inst, p_atm), C = V(inst, C_a), n = V(inst, n_poly);
-    double g, lo = -p_atm, target;
-    int iteration;
-    if (!(m > 0.0) || !(theta_s > 0.0)) return 0;
-    if (n == 1.0) {
-        /* isothermal: (p_atm + g) V(g) = m R T. Under pressure G = G_a and this is a quadratic
-         * in g (stable form of the + root); under vacuum Newton from that root */
-        const double mRT = m * V(inst, R_gas) * theta_s;
-        const double V1 = V0 + sign * V(inst, G_a) * theta, B = C * p_atm + V1;
-        const double c0 = p_atm * V1 - mRT, disc = B * B - 4.0 * C * c0;
-        if (V1 > 0.0 && disc >= 0.0) {
-            g = -2.0 * c0 / (B + sqrt(disc));
-            if (g >= 0.0) {
-                *gauge = g;
-                return 1;
-            }
-            for (iteration = 0; iteration < 30; iteration++) {
-                double dG;
-                const double G = sensitivity_and_slope(inst, g, &dG);
-                const double p = p_atm + g, vol = V0 + sign * G * theta + C * g;
-                const double dF = vol + p * (C + sign * dG * theta);
-                double step;
-                if (!(p > 0.0) || !(vol > 0.0) || !(dF > 0.0)) break;
-                step = (p * vol - mRT) / dF;
-                g -= step;
-                if (fabs(step) <= NEWTON_STEP) {
-                    *gauge = g < 0.0 ? g : 0.0;
-                    return 1;
-                }
-            }
-        }
-    }
-    target = log(V(inst, R_gas) * theta_s) + n * log(m);
-    if (!isfinite(target)) return 0;
-    /* start from the rigid solution at the channel's current sensitivity */
-    {
-        const double rigid = V0 + sign * V(inst, G_a) * theta;
-        if (!(rigid > 0.0)) return 0;
-        g = exp(target - n * log(rigid)) - p_atm;
-    }
-    for (iteration = 0; iteration < 60; iteration++) {
-        double dG;
-        const double G = sensitivity_and_slope(inst, g, &dG);
-        const double p = p_atm + g, vol = V0 + sign * G * theta + C * g;
-        double f, df, next;
-        if (!(p > 0.0) || !(vol > 0.0)) {
-            g = 0.5 * (g + lo); /* back into the domain */
-            continue;
-        }
-        f = log(p) + n * log(vol) - target;
-        if (f < 0.0 && g > lo) lo = g;
-        df = 1.0 / p + n * (C + sign * dG * theta) / vol;
-        if (!(df > 0.0)) return 0;
-        next = g - f / df;
-        if (!(next > lo)) next = 0.5 * (g + lo);
-        if (fabs(next - g) <= 1e-12 * p) {
-            *gauge = next;
-            return isfinite(next);
-        }
-        g = next;
-    }
-    return 0;
-}
-
-static const double SIGN[2] = {+1.0, -1.0};
-
-static double swept_length(const Instance *inst, double x, int side) {
-    return side == 0 ? V(inst, stroke) - x : x;
-}
-
-static int gas_state(const Instance *inst, double x, const double y[], GasState *gas) {
-    int side;
-    for (side = 0; side < 2; side++) {
-        const double V0 = base_volume(inst, swept_length(inst, x, side));
-        if (!gas_pressure(inst, V0, SIGN[side], y[THETA], y[M_A + side], y[S_A + side],
-                          &gas->g[side]))
-            return 0;
-        gas->channel[side] = channel_at(inst, gas->g[side]);
-        gas->V[side] =
-            V0 + SIGN[side] * gas->channel[side].G * y[THETA] + V(inst, C_a) * gas->g[side];
-    }
-    return 1;
-}
-
-/* Bending torque of the antagonistic pair, by virtual work (see the header) [N m]. */
-static double bending_torque(const GasState *gas) {
-    return gas->channel[0].H - gas->channel[1].H;
+static int gas_state_of(const Instance *inst, double x, const double y[], GasState *gas) {
+    return gas_state(circuit_of(inst), x, y[THETA], &y[M_A], &y[S_A], gas);
 }
 
 /* Heat flowing from the gas of one side to the walls [W] (zero when isothermal). */
@@ -228,11 +89,11 @@ int model_derivatives(const Instance *inst, const double y[], double dy[]) {
     int side;
     if (s->cached && s->cached_x == s->x && memcmp(s->cached_y, y, sizeof s->y) == 0) {
         gas = s->cached_gas;
-    } else if (!gas_state(inst, s->x, y, &gas)) {
+    } else if (!gas_state_of(inst, s->x, y, &gas)) {
         return 0;
     }
     dy[THETA] = y[OMEGA];
-    dy[OMEGA] = (bending_torque(&gas) + V(inst, tau_ext) - V(inst, k_bend) * y[THETA] -
+    dy[OMEGA] = (gas_bending_torque(&gas) + V(inst, tau_ext) - V(inst, k_bend) * y[THETA] -
                  V(inst, d_bend) * y[OMEGA]) /
                 bending_inertia(inst);
     if ((y[THETA] >= limit && y[OMEGA] >= 0.0 && dy[OMEGA] > 0.0) ||
@@ -255,19 +116,12 @@ int model_derivatives(const Instance *inst, const double y[], double dy[]) {
 
 /* Energy stored in gas, membranes, bending spring and motion [J], given the gas state of y. */
 static double energy_of(const Instance *inst, const double y[], const GasState *gas) {
-    const double n = V(inst, n_poly), p_atm = V(inst, p_atm);
     double total = 0.5 * V(inst, k_bend) * y[THETA] * y[THETA] +
                    0.5 * bending_inertia(inst) * y[OMEGA] * y[OMEGA];
     int side;
     for (side = 0; side < 2; side++) {
-        const double g = gas->g[side], vol = gas->V[side], m = y[M_A + side];
-        const double gas_energy =
-            n == 1.0 ? -m * V(inst, R_gas) * y[S_A + side] * log(vol) + p_atm * vol
-                     : (p_atm + g) * vol / (n - 1.0) + p_atm * vol;
-        const double membrane =
-            0.5 * V(inst, C_a) * g * g +
-            SIGN[side] * y[THETA] * (g * gas->channel[side].G - gas->channel[side].H);
-        total += gas_energy + membrane;
+        total += gas_free_energy(circuit_of(inst), gas, side, y[M_A + side], y[S_A + side]) +
+                 gas_membrane_energy(circuit_of(inst), gas, side, y[THETA]);
     }
     return total;
 }
@@ -275,7 +129,7 @@ static double energy_of(const Instance *inst, const double y[], const GasState *
 /* Energy stored at piston position x [J]; 0 if no physical gas state exists there. */
 static int stored_energy(const Instance *inst, double x, const double y[], double *energy) {
     GasState gas;
-    if (!gas_state(inst, x, y, &gas)) return 0;
+    if (!gas_state_of(inst, x, y, &gas)) return 0;
     *energy = energy_of(inst, y, &gas);
     return 1;
 }
@@ -342,7 +196,7 @@ fmi2Status model_step_start(Instance *inst) {
     } else if (!stored_energy(inst, s->x, s->y, &before)) {
         before = NAN;
     }
-    if (!isfinite(before) || !gas_state(inst, x, s->y, &gas)) {
+    if (!isfinite(before) || !gas_state_of(inst, x, s->y, &gas)) {
         log_message(inst, fmi2Error, "no physical gas state at piston position %g m", x);
         return fmi2Error;
     }
@@ -358,7 +212,7 @@ fmi2Status model_outputs(Instance *inst) {
     const double *y = s->y;
     GasState gas;
     double energy;
-    if (!gas_state(inst, s->x, y, &gas)) {
+    if (!gas_state_of(inst, s->x, y, &gas)) {
         log_message(inst, fmi2Error,
                     "no physical gas state (bend angle %g rad, piston %g m): a volume collapsed",
                     y[THETA], s->x);
@@ -392,12 +246,30 @@ fmi2Status model_outputs(Instance *inst) {
 static double bending_stability_limit(const Instance *inst) {
     const double I = bending_inertia(inst), n = V(inst, n_poly);
     const double V_min = V(inst, V_dead) + V(inst, V_ch0) - V(inst, G_a) * V(inst, theta_max);
-    const double V_max = base_volume(inst, V(inst, stroke)) + V(inst, G_a) * V(inst, theta_max);
+    const double V_max =
+        gas_base_volume(circuit_of(inst), V(inst, stroke)) + V(inst, G_a) * V(inst, theta_max);
     const double p_max = V(inst, p_atm) * pow(V_max / V_min, n);
     const double k_gas = 2.0 * n * p_max * V(inst, G_a) * V(inst, G_a) / V_min;
     double limit = k_gas > 0.0 ? 1.5 / sqrt(k_gas / I) : INFINITY;
     if (n != 1.0 && 2.5 * V(inst, tau_thermal) < limit) limit = 2.5 * V(inst, tau_thermal);
     return limit;
+}
+
+/* The gas circuit's parameters, from the instance's. */
+static GasCircuit circuit_from_parameters(const Instance *inst) {
+    GasCircuit c;
+    c.area = 0.25 * PI * V(inst, bore) * V(inst, bore);
+    c.stroke = V(inst, stroke);
+    c.V_dead = V(inst, V_dead);
+    c.V_ch0 = V(inst, V_ch0);
+    c.C_a = V(inst, C_a);
+    c.G_a = V(inst, G_a);
+    c.vacuum_factor = V(inst, vacuum_factor);
+    c.p_collapse = V(inst, p_collapse);
+    c.p_atm = V(inst, p_atm);
+    c.R_gas = V(inst, R_gas);
+    c.n_poly = V(inst, n_poly);
+    return c;
 }
 
 /* The bending mode's linear part, integrated exactly by the solver: theta' = omega,
@@ -415,6 +287,7 @@ fmi2Status model_initialize(Instance *inst, OdeSystem *ode) {
     const double stroke = V(inst, stroke), x_seal = V(inst, x_seal), n = V(inst, n_poly);
     const double V_min = V(inst, V_dead) + V(inst, V_ch0) - V(inst, G_a) * V(inst, theta_max);
     int side, j;
+    s->circuit = circuit_from_parameters(inst);
     if (x_seal > stroke) {
         log_message(inst, fmi2Error, "invalid parameter x_seal = %g: outside the stroke [0, %g]",
                     x_seal, stroke);
@@ -458,7 +331,8 @@ fmi2Status model_initialize(Instance *inst, OdeSystem *ode) {
     /* both circuits are sealed at atmospheric pressure and T_gas with the piston at x_seal,
      * unbent */
     for (side = 0; side < 2; side++) {
-        const double v_seal = base_volume(inst, swept_length(inst, x_seal, side));
+        const double v_seal =
+            gas_base_volume(&s->circuit, gas_swept_length(&s->circuit, x_seal, side));
         const double m = V(inst, p_atm) * v_seal / (V(inst, R_gas) * V(inst, T_gas));
         s->y[M_A + side] = m;
         s->y[S_A + side] = V(inst, T_gas) * pow(v_seal / m, n - 1.0);

@@ -110,7 +110,7 @@
 #define LINEAR_BAND 0.01    /* dp_lin at most this share of the larger pressure, by splitting */
 #define MAX_SPLIT 8         /* the glue's MAX_PARTS */
 
-/* continuous states, in this order in State.y (MAX_STATES = 32 in glue.h) */
+/* continuous states, in this order in State.y (at most MAX_STATES, glue.h) */
 enum {
     M_A, U_A, M_B, U_B,                    /* channel gas masses [kg] and internal energies [J] */
     Q_X, Q_Y, Q_PSI, Q_TH,                 /* joint [m], heading [rad], bend angles [rad] ... */

@@ -25,7 +25,7 @@ typedef struct {
 #include "model_variables.h" /* generated: MODEL_IDENTIFIER, MODEL_GUID, VR_*, N_VARIABLES */
 
 /* Continuous states of a model and how the fixed-step solver treats them (see below). */
-#define MAX_STATES 32
+#define MAX_STATES 40 /* the most: ArmBody, 16 coordinates, their rates and 3 energy integrals */
 #define MAX_BLOCK 4
 
 /* The exponential RK4's coefficients for one substep length h, the rates lambda and the block A

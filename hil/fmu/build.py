@@ -204,7 +204,9 @@ def _build_into(work: Path, folder: Path, spec: ModelSpec, model_guid: str) -> N
         if path.suffix in {".c", ".h"}:
             shutil.copy2(path, sources / path.name)
     (sources / "model_variables.h").write_text(generate_header(spec, model_guid))
-    c_files = ["fmu_glue.c", "model.c"]
+    # the glue, the physics shared between models beside it (fmus/common/*.c), and the model
+    shared = sorted(p.name for p in (root / "common").glob("*.c") if p.name != "fmu_glue.c")
+    c_files = ["fmu_glue.c", *shared, "model.c"]
     (unzipped / "modelDescription.xml").write_text(
         generate_model_description(spec, model_guid, source_files=c_files)
     )
