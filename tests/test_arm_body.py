@@ -15,11 +15,11 @@ import pytest
 from fmpy.validation import validate_fmu
 
 import fmus
+from hil.cosim import Algorithm, Connection, FmuParticipant
 from hil.errors import FmuError
 from hil.fmu.build import BuiltFmu, build_fmu
 from hil.fmu.slave import FmuSlave
 from hil.fmu.spec import generate_model_description, guid, load_spec
-from hil.master import Connection, FmuParticipant, Master
 from tests import arm_body_ref
 from tests.arm_reference import ArmReference, ArmSpec
 
@@ -479,7 +479,7 @@ def test_libcosim_runs_the_arm_and_agrees_with_our_master(arm_body_fmu) -> None:
         FmuParticipant(FmuSlave(cylinder, "cylinder1", cylinder_parameters)),
         FmuParticipant(FmuSlave(arm_body_fmu, "arm")),
     ]
-    master = Master(
+    master = Algorithm(
         participants,
         [
             Connection("cylinder1.x", "arm.x_piston_x_1"),
