@@ -18,6 +18,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import os
+import re
 import sys
 from collections.abc import Iterable, Iterator
 from pathlib import Path
@@ -36,6 +37,7 @@ RESULT_FILES = (
     "signals.csv",
     "signals.units.csv",
     "signals.mf4",
+    "signals.parquet",  # a folder: the signals' column blocks (hil.blocks)
     "can.log",
     "can.asc",
     "can.blf",
@@ -60,6 +62,9 @@ RESULT_FILES = (
     "fish.gif",
     "fish.mp4",
 )
+# the folders of blocks a run writes (`BLOCK_FILE` names the files in them)
+BLOCK_FOLDERS = ("signals.parquet",)
+BLOCK_FILE = re.compile(r"\.?part-\d{6,}\.parquet(\.partial)?")
 # what `hil estimate RUN` adds to a run's folder (and to its manifest)
 ESTIMATE_FILES = ("estimation.json", "estimation.png")
 
@@ -198,6 +203,24 @@ class RecordFile:
                 os.close(fd)
 
 
+def remove_blocks(folder: Path) -> bool:
+    """Remove a folder of blocks a run wrote (`BLOCK_FOLDERS`): its block files, then the folder
+    if nothing else is in it; whether it was removed (False: it holds other files, kept)."""
+    for entry in folder.iterdir():
+        if BLOCK_FILE.fullmatch(entry.name) and entry.is_file() and not entry.is_symlink():
+            try:
+                entry.unlink()
+            except OSError as exc:
+                raise HilError(f"{entry}: cannot remove: {_cause(exc)}") from None
+    if any(folder.iterdir()):
+        return False
+    try:
+        folder.rmdir()
+    except OSError as exc:
+        raise HilError(f"{folder}: cannot remove: {_cause(exc)}") from None
+    return True
+
+
 def _batch_input(path: Path) -> bool:
     """True for a trial's scenario.toml as `hil batch` and `hil sweep` write it (its header)."""
     try:
@@ -326,6 +349,12 @@ class ResultsFolder:
                     path.unlink()
                 except OSError as exc:
                     raise HilError(f"{path}: cannot remove: {_cause(exc)}") from None
+            elif name in BLOCK_FOLDERS and path.is_dir() and not path.is_symlink():
+                if not remove_blocks(path):
+                    raise HilError(
+                        f"{path}: holds files softhil did not write; --overwrite replaces only "
+                        "softhil's own files"
+                    )
             elif path.is_dir() and not path.is_symlink() and name not in self.planned:
                 self._remove_folder(path)  # an earlier batch's trial this one does not have
         self.written = [
@@ -343,7 +372,9 @@ class ResultsFolder:
             names.append("scenario.toml")
         for name in names:
             entry = path / name
-            if name not in (LOCK,) and entry.is_file() and not entry.is_symlink():
+            if name in BLOCK_FOLDERS and entry.is_dir() and not entry.is_symlink():
+                remove_blocks(entry)  # what is left of it (a user's files) keeps the trial
+            elif name not in (LOCK,) and entry.is_file() and not entry.is_symlink():
                 try:
                     entry.unlink()
                 except OSError as exc:

@@ -225,6 +225,7 @@ def _run(
             plant_bus = hosted if hosted is not None else _open(plant_spec)
         stack.callback(plant_bus.shutdown)
         folder.claim("signals.units.csv")
+        folder.claim("signals.parquet")  # the folder of the signals' blocks (hil.blocks)
         signals = SignalRecorder(folder.claim("signals.csv"), rig.signals)
         stack.callback(signals.close)
         can_log = CanLogger(folder.claim(recording.can_log), start=start)

@@ -29,7 +29,9 @@ import pytest
 
 import hil.results
 from controllers.node import ControllerNode, RealtimeClock
+from hil.blocks import read_blocks
 from hil.cli import main as hil_main
+from hil.errors import HilError
 from hil.run import controller_config
 from hil.scenario import DEFAULT_SCENARIO, load_scenario
 from hil.summary import realtime_failure
@@ -55,7 +57,7 @@ def scenario_file(tmp_path: Path, duration: float, *edits: tuple[str, str]) -> P
 HOLD = ('policy = "strict"', 'policy = "hold"')
 # [s] simulated, for the runs a test stops midway (a signal, a killed or frozen controller, a
 # killed hub): long enough that a run at 20-40x real time is still going when the test acts
-# after its first recorded rows (flushed every 0.25 s); stopped, it costs no more than a short one
+# after its first recorded block (written every 0.25 s); stopped, it costs no more than a short one
 LONG = 100.0
 
 
@@ -351,6 +353,15 @@ def rows(path: Path) -> int:
         return 0
 
 
+def recorded(out: Path) -> bool:
+    """Whether a run's blocks of signals (written every 0.25 s of wall time; the CSV is written
+    from them when the run ends) hold more than two rows."""
+    try:
+        return sum(data.shape[1] for _, data, _ in read_blocks(out / "signals.parquet")) > 2
+    except HilError:  # a block renamed into place as the folder was listed
+        return False
+
+
 def hil_process(*argv: str) -> subprocess.Popen[str]:
     return subprocess.Popen(
         [sys.executable, "-m", "hil", *argv],
@@ -368,12 +379,12 @@ def test_injected_commands_on_the_hub_from_a_second_client(tmp_path: Path) -> No
     try:
         wait_for(lambda: _listening(port), "the hub")
         run = hil_process(
-            # 20 s: long enough for the intruder to join after the first rows are on disk
+            # 20 s: long enough for the intruder to join after the first block is on disk
             # (the recorders flush in blocks of up to 0.25 s), the run being 15-25x real time
             "run", str(scenario_file(tmp_path, 20.0, HOLD)), "--bus", f"loopback:127.0.0.1:{port}",
             "--out", str(tmp_path / "run"), "--no-progress",
         )  # fmt: skip
-        wait_for(lambda: rows(tmp_path / "run" / "signals.csv") > 2, "progress")
+        wait_for(lambda: recorded(tmp_path / "run"), "progress")
         from rigbus.canbus import BusSpec, open_bus
 
         intruder = Intruder(open_bus(BusSpec.parse(f"loopback:{port}")), foreign_command)
@@ -521,7 +532,7 @@ def scenario_file_static(duration: float) -> Path:
 def test_hil_run_signalled(tmp_path: Path, sig, code: int, line: str, status: str) -> None:
     out = tmp_path / "run"
     run = hil_process("run", str(scenario_file(tmp_path, LONG)), "--out", str(out), "--no-progress")  # noqa: E501
-    wait_for(lambda: rows(out / "signals.csv") > 2, "progress")
+    wait_for(lambda: recorded(out), "progress")
     run.send_signal(sig)
     _, err = run.communicate(timeout=60)
     assert run.returncode == code, err
@@ -540,11 +551,37 @@ def test_hil_run_signalled(tmp_path: Path, sig, code: int, line: str, status: st
     readable(out)
 
 
+def test_hil_run_killed_hard_leaves_blocks_that_hil_csv_writes_the_csv_from(
+    tmp_path: Path, capsys
+) -> None:
+    """SIGKILL of `hil run` itself: no CSV (it is written when a run ends), the blocks written
+    every 0.25 s stay; `hil csv` writes the CSV of their rows (taking the dead run's lock), one
+    row a SYNC from the first, each complete."""
+    out = tmp_path / "run"
+    run = hil_process("run", str(scenario_file(tmp_path, LONG)), "--out", str(out), "--no-progress")  # noqa: E501
+    wait_for(lambda: recorded(out), "progress")
+    run.kill()
+    run.communicate(timeout=60)
+    controller = out / "controller.pid"
+    if controller.exists():  # the controller outlives the plant it served: stop it here
+        with contextlib.suppress(ProcessLookupError, ValueError):
+            os.kill(int(controller.read_text()), signal.SIGKILL)
+    assert not (out / "signals.csv").exists() and (out / hil.results.LOCK).exists()
+    assert hil_main(["csv", str(out)]) == 0
+    printed = capsys.readouterr()
+    assert "took over the stale lock" in printed.err and "rows from" in printed.out
+    with (out / "signals.csv").open() as file:
+        times = [float(row["time"]) for row in csv.DictReader(file)]
+    assert len(times) > 2 and times == [round(0.01 * c, 9) for c in range(len(times))]
+    assert "signals.csv" in hil.results.manifest_names(out)
+    readable(out)
+
+
 @pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGTERM], ids=["KILL", "TERM"])
 def test_controller_killed(tmp_path: Path, sig) -> None:
     out = tmp_path / "run"
     run = hil_process("run", str(scenario_file(tmp_path, LONG)), "--out", str(out), "--no-progress")  # noqa: E501
-    wait_for(lambda: rows(out / "signals.csv") > 2 and rows(out / "controller.pid") > 0, "progress")  # noqa: E501
+    wait_for(lambda: recorded(out) and rows(out / "controller.pid") > 0, "progress")  # noqa: E501
     os.kill(int((out / "controller.pid").read_text()), sig)
     _, err = run.communicate(timeout=60)
     assert run.returncode == 1
@@ -563,7 +600,7 @@ def test_controller_frozen_times_out(tmp_path: Path) -> None:
     run = hil_process(
         "run", str(scenario_file(tmp_path, LONG, short_wait)), "--out", str(out), "--no-progress"
     )  # noqa: E501
-    wait_for(lambda: rows(out / "signals.csv") > 2 and rows(out / "controller.pid") > 0, "progress")  # noqa: E501
+    wait_for(lambda: recorded(out) and rows(out / "controller.pid") > 0, "progress")  # noqa: E501
     pid = int((out / "controller.pid").read_text())
     os.kill(pid, signal.SIGSTOP)
     try:
@@ -588,7 +625,7 @@ def test_hub_killed_under_a_running_plant(tmp_path: Path) -> None:
         "run", str(scenario_file(tmp_path, LONG)), "--bus", f"loopback:127.0.0.1:{port}",
         "--out", str(out), "--no-progress",
     )  # fmt: skip
-    wait_for(lambda: rows(out / "signals.csv") > 2, "progress")
+    wait_for(lambda: recorded(out), "progress")
     hub.kill()
     hub.wait(timeout=10)
     _, err = run.communicate(timeout=60)
