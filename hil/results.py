@@ -5,6 +5,8 @@ the run; a lock left by a dead process is taken over with a note) and lists ever
 there in a manifest (`.softhil-manifest`, one name a line, written before the file itself), so a
 later `--overwrite` can tell softhil's files from the user's: it replaces only files a manifest
 names, never the input scenario, and refuses a folder whose foreign files a run would replace.
+A folder of blocks a manifest names (`BLOCK_FOLDERS`: the signals' blocks) is removed only when
+it holds nothing but block files.
 An existing non-empty folder is refused without `--overwrite`.
 
 Every byte a run writes goes through `write_bytes` (one place to see, and for tests to fail with
@@ -203,6 +205,16 @@ class RecordFile:
                 os.close(fd)
 
 
+def _foreign_in_blocks(folder: Path) -> str | None:
+    """The name of an entry of a folder of blocks that is not a block file, if any."""
+    if not folder.is_dir() or folder.is_symlink():
+        return None
+    for entry in folder.iterdir():
+        if not (BLOCK_FILE.fullmatch(entry.name) and entry.is_file() and not entry.is_symlink()):
+            return entry.name
+    return None
+
+
 def remove_blocks(folder: Path) -> bool:
     """Remove a folder of blocks a run wrote (`BLOCK_FOLDERS`): its block files, then the folder
     if nothing else is in it; whether it was removed (False: it holds other files, kept)."""
@@ -334,34 +346,47 @@ class ResultsFolder:
                 "--overwrite replaces an earlier run's files, not a whole batch; choose another "
                 "--out"
             )
+        self._refuse_foreign(ours)
+        for name in sorted(ours):
+            if "/" not in name and name not in (LOCK, MANIFEST) and not self.kept(name):
+                self._remove_ours(self.out / name)
+        self.written = [
+            n
+            for n in self._manifest()
+            if (self.out / n).exists() and not ((self.out / n).is_dir() and n not in self.planned)
+        ]  # a folder kept for a user's files there is no longer softhil's
+
+    def _refuse_foreign(self, ours: set[str]) -> None:
+        """HilError naming a file the run would replace, or one in a folder of blocks it would
+        remove, that no manifest lists (the input scenario excepted)."""
         for name in self.planned:
             if (self.out / name).exists() and name not in ours and not self.kept(name):
                 raise HilError(
                     f"results folder {self.out}: {name} was not written by softhil (not in "
                     f"{MANIFEST}); --overwrite replaces only softhil's own files"
                 )
-        for name in sorted(ours):
-            path = self.out / name
-            if "/" in name or name in (LOCK, MANIFEST) or self.kept(name):
-                continue
-            if path.is_file() and not path.is_symlink():
-                try:
-                    path.unlink()
-                except OSError as exc:
-                    raise HilError(f"{path}: cannot remove: {_cause(exc)}") from None
-            elif name in BLOCK_FOLDERS and path.is_dir() and not path.is_symlink():
-                if not remove_blocks(path):
-                    raise HilError(
-                        f"{path}: holds files softhil did not write; --overwrite replaces only "
-                        "softhil's own files"
-                    )
-            elif path.is_dir() and not path.is_symlink() and name not in self.planned:
-                self._remove_folder(path)  # an earlier batch's trial this one does not have
-        self.written = [
-            n
-            for n in self._manifest()
-            if (self.out / n).exists() and not ((self.out / n).is_dir() and n not in self.planned)
-        ]  # a folder kept for a user's files there is no longer softhil's
+        for name in ours.intersection(BLOCK_FOLDERS):
+            foreign = _foreign_in_blocks(self.out / name)
+            if foreign:
+                raise HilError(
+                    f"results folder {self.out}: {name}/{foreign} was not written by softhil; "
+                    "--overwrite replaces only softhil's own files"
+                )
+
+    def _remove_ours(self, path: Path) -> None:
+        """Remove an entry an earlier run's manifest lists: a file, a folder of its blocks, or
+        an earlier batch's trial this one does not have (a symbolic link stays)."""
+        if path.is_symlink():
+            return
+        if path.is_file():
+            try:
+                path.unlink()
+            except OSError as exc:
+                raise HilError(f"{path}: cannot remove: {_cause(exc)}") from None
+        elif path.name in BLOCK_FOLDERS and path.is_dir():
+            remove_blocks(path)  # nothing else in it (`_clear` looked)
+        elif path.is_dir() and path.name not in self.planned:
+            self._remove_folder(path)
 
     def _remove_folder(self, path: Path) -> None:
         """Remove a results folder an earlier run made here (a batch's trial): the files its

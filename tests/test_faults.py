@@ -166,6 +166,34 @@ def test_rerun_into_its_own_folder_keeps_the_input_scenario(tmp_path: Path, caps
     ]
 
 
+def test_overwrite_replaces_the_signal_blocks_and_refuses_a_foreign_file_among_them(
+    tmp_path: Path, capsys
+) -> None:
+    """--overwrite removes an earlier run's blocks (a longer run's, more of them: none stays
+    to be read with the new run's); a file softhil did not write among them refuses the
+    rerun before anything is removed."""
+    out = tmp_path / "run"
+    assert (
+        run_cli(capsys, str(scenario_file(tmp_path, 0.3)), "--inprocess", "--out", str(out))[0] == 0
+    )  # noqa: E501
+    blocks = out / "signals.parquet"
+    (blocks / "part-000000.parquet").rename(blocks / "part-000007.parquet")  # as a long run's
+    short = scenario_file(tmp_path, 0.1)
+    assert run_cli(capsys, str(short), "--inprocess", "--out", str(out), "--overwrite")[0] == 0
+    assert [p.name for p in blocks.iterdir()] == ["part-000000.parquet"]
+    text = (out / "signals.csv").read_bytes()
+    assert text.count(b"\n") == 12  # the header and SYNC 0..10
+    (blocks / "mine.txt").write_text("keep me\n")
+    before = sorted(p.name for p in out.iterdir())
+    code, lines = run_cli(capsys, str(short), "--inprocess", "--out", str(out), "--overwrite")
+    assert code == 1 and lines == [
+        f"hil: error: results folder {out}: signals.parquet/mine.txt was not written by "
+        "softhil; --overwrite replaces only softhil's own files"
+    ]
+    assert sorted(p.name for p in out.iterdir()) == before
+    assert (out / "signals.csv").read_bytes() == text and (blocks / "mine.txt").exists()
+
+
 def test_second_run_into_a_locked_folder_is_refused_and_a_stale_lock_taken_over(
     tmp_path: Path, capsys
 ) -> None:
