@@ -8,6 +8,7 @@ import random
 from pathlib import Path
 
 import can
+import pytest
 
 from hil.recording import CanLogger
 from rigbus.protocol import frame_bits
@@ -201,3 +202,40 @@ def test_frames_held_by_log_are_written_in_order_and_on_flush(tmp_path: Path) ->
     logger.close()
     assert (tmp_path / "x.log").read_text().splitlines()[-1] == "(100.020000) can0 105#05 R"
     assert (logger.sent, logger.received) == (1, 5)
+
+
+@pytest.mark.parametrize("suffix", [".asc", ".blf", ".trc"])
+def test_python_can_formats_read_back_with_stamps_directions_and_frames(
+    tmp_path: Path, suffix: str
+) -> None:
+    """The other suffixes go through python-can's writers at each flush: read back with
+    python-can's readers, every frame is there in order with its stamp, direction and data."""
+    rng = random.Random(6)
+    start = 1433116800.0
+    logged = []
+    logger = CanLogger(tmp_path / f"x{suffix}", start=start)
+    for k in range(40):
+        message = can.Message(
+            arbitration_id=rng.randrange(0x800),
+            is_extended_id=False,
+            data=bytes(rng.randrange(256) for _ in range(rng.randrange(9))),
+        )
+        received = k % 3 == 0
+        if k % 2:
+            logger.log(message, k * 0.01, received)
+        else:
+            logger.log_all([message], k * 0.01, received)
+        logged.append((start + k * 0.01, received, message.arbitration_id, bytes(message.data)))
+        if k % 10 == 9:
+            logger.flush(force=True)
+    logger.close()
+    read = [
+        (m.timestamp, m.is_rx, m.arbitration_id, bytes(m.data))
+        for m in can.LogReader(str(tmp_path / f"x{suffix}"))
+    ]
+    assert [r[1:] for r in read] == [w[1:] for w in logged]
+    # stamps as each reader gives them (absolute, or from the log's start): the same steps
+    assert [r[0] - read[0][0] for r in read] == pytest.approx(
+        [w[0] - start for w in logged], abs=1e-4
+    )
+    assert (logger.sent, logger.received) == (26, 14)

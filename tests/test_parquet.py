@@ -25,21 +25,26 @@ def _columns(rows: int) -> np.ndarray:
     return data
 
 
-@pytest.mark.parametrize("rows", [0, 1, 14, 15, 16, 1000])
-def test_pyarrow_reads_what_we_write_bit_for_bit(tmp_path: Path, rows: int) -> None:
+@pytest.mark.parametrize(
+    "rows,width", [(0, 18), (1, 18), (1000, 18), (3, 1), (3, 13), (3, 14), (3, 15), (3, 16)]
+)
+def test_pyarrow_reads_what_we_write_bit_for_bit(tmp_path: Path, rows: int, width: int) -> None:
+    """Every shape, the lists of the footer on either side of Thrift's short form (14 items
+    and fewer: the size in the list's header byte; 15 and more: a varint after it)."""
     pq = pytest.importorskip("pyarrow.parquet")
-    data = _columns(rows)
+    names = NAMES[-width:]
+    data = _columns(rows)[-width:]
     metadata = {"softhil.units": '{"kappa_1 [é]": "1/m"}', "empty": ""}
     path = tmp_path / "block.parquet"
-    path.write_bytes(encode_table(NAMES, data, metadata))
+    path.write_bytes(encode_table(names, data, metadata))
     table = pq.read_table(path)
-    assert table.column_names == NAMES and table.num_rows == rows
+    assert table.column_names == names and table.num_rows == rows
     assert all(str(field.type) == "double" and not field.nullable for field in table.schema)
-    got = np.array([table.column(n).to_numpy() for n in NAMES]).reshape(len(NAMES), rows)
+    got = np.array([table.column(n).to_numpy() for n in names]).reshape(width, rows)
     assert np.array_equal(got.view(np.int64), data.view(np.int64))
     assert pq.read_metadata(path).metadata == {k.encode(): v.encode() for k, v in metadata.items()}
-    names, ours, read_metadata = read_table(path)
-    assert names == NAMES and read_metadata == metadata
+    read_names, ours, read_metadata = read_table(path)
+    assert read_names == names and read_metadata == metadata
     assert np.array_equal(ours.view(np.int64), data.view(np.int64))
 
 
@@ -82,6 +87,12 @@ def test_a_file_cut_short_or_damaged_is_refused(tmp_path: Path) -> None:
             read_table(path)
     path.write_bytes(whole[:4] + bytes(len(whole) - 8) + whole[-4:])  # zeros between the magics
     with pytest.raises(ParquetError, match=r"b.parquet: not a softhil signal block"):
+        read_table(path)
+    one = bytearray(encode_table(["x"], np.zeros((1, 2)), {}))
+    assert one[4:10] == b"\x15\x00\x15\x20\x15\x20"  # page: type 0, sizes 16 and 16
+    one[9] = 0x10  # a page of 8 bytes for 2 doubles
+    path.write_bytes(bytes(one))
+    with pytest.raises(ParquetError, match="a page beyond the file's end"):
         read_table(path)
     with pytest.raises(ParquetError, match="missing.parquet: cannot read"):
         read_table(tmp_path / "missing.parquet")
