@@ -14,15 +14,24 @@ reference).
 To compare two commits, run it from each checkout in turn, interleaved, on the same run:
 
     PYTHONPATH=. python bench/bench_recording.py runs/planar-grasp-1 [--repeat 7] [--json f]
+
+With --instructions it counts instead, under valgrind's callgrind (as bench/instructions.py),
+the instructions of one pass's per-SYNC calls and of its closing: figures that do not move with
+the load of a shared machine, as timings do by a factor of two.
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
+import ctypes
 import json
 import math
+import os
+import re
+import shutil
 import statistics
+import subprocess
 import sys
 import tempfile
 import time
@@ -111,14 +120,26 @@ def load_frames(path: Path) -> list[list[tuple]]:
     return syncs
 
 
+def _no_toggle() -> None:
+    pass
+
+
 def one_pass(
-    specs: list, rows: list, syncs: list, start: float, out: Path, wall: _Wall
+    specs: list,
+    rows: list,
+    syncs: list,
+    start: float,
+    out: Path,
+    wall: _Wall,
+    toggles: tuple = (_no_toggle, _no_toggle),
 ) -> tuple[float, float]:
-    """(seconds of the per-SYNC calls, seconds of closing) of one pass into `out`."""
+    """(seconds of the per-SYNC calls, seconds of closing) of one pass into `out`; the
+    `toggles` are called around each (callgrind's collection, with --instructions)."""
     wall.now = 0.0
     signals = SignalRecorder(out / "signals.csv", specs)
     log = CanLogger(out / "can.log", start=start)
     clock = time.perf_counter
+    toggles[0]()
     began = clock()
     for k, (t, sourced, cells) in enumerate(rows):
         for at, received, messages in syncs[k] if k < len(syncs) else ():
@@ -135,10 +156,48 @@ def one_pass(
         for at, received, messages in late:
             log.log_all(messages, at, received)
     running = clock() - began
+    toggles[0]()
+    toggles[1]()
     began = clock()
     signals.close()
     log.close()
-    return running, clock() - began
+    closing = clock() - began
+    toggles[1]()
+    return running, closing
+
+
+TOGGLE_C = "#include <valgrind/callgrind.h>\nvoid toggle(void) { CALLGRIND_TOGGLE_COLLECT; }\n"
+
+
+def counted(run: Path, part: str) -> int:
+    """Instructions of one pass's per-SYNC calls (`part` "sync") or closing ("close")."""
+    valgrind = shutil.which("valgrind")
+    if valgrind is None:
+        raise SystemExit("--instructions: valgrind is not installed (Debian: apt install valgrind)")
+    env = {**os.environ, "OPENBLAS_NUM_THREADS": "1", "PYTHONHASHSEED": "0"}
+    command = [
+        valgrind,
+        "--tool=callgrind",
+        "--collect-atstart=no",
+        "--callgrind-out-file=/dev/null",
+    ]
+    command += [sys.executable, __file__, str(run), "--count", part]
+    done = subprocess.run(command, env=env, capture_output=True, text=True, check=False)
+    found = re.findall(r"==\d+== Collected : (\d+)", done.stderr)
+    if done.returncode != 0 or not found:
+        raise SystemExit(f"--instructions: the pass under callgrind failed: {done.stderr[-300:]}")
+    return int(found[-1])
+
+
+def _toggle_library(folder: Path) -> ctypes.CDLL:
+    source = folder / "toggle.c"
+    source.write_text(TOGGLE_C)
+    library = folder / "toggle.so"
+    compiler = os.environ.get("CC", "cc")
+    subprocess.run(
+        [compiler, "-O2", "-fPIC", "-shared", "-o", str(library), str(source)], check=True
+    )
+    return ctypes.CDLL(str(library))
 
 
 def main() -> int:
@@ -149,11 +208,27 @@ def main() -> int:
     parser.add_argument(
         "--sync-us", type=float, default=400.0, help="wall time of a SYNC in the run [us]"
     )
+    parser.add_argument("--instructions", action="store_true", help="count under callgrind")
+    parser.add_argument("--count", choices=("sync", "close"), help=argparse.SUPPRESS)
     args = parser.parse_args()
     specs, rows, syncs = load_run(args.run)
-    first = next(can.LogReader(str(args.run / "can.log"))).timestamp
+    first = next(iter(can.LogReader(str(args.run / "can.log")))).timestamp
     wall = _Wall(args.sync_us * 1e-6)
     hil.recording.time = wall  # type: ignore[attr-defined]
+    if args.instructions:
+        figures = {
+            "rows": len(rows),
+            "instructions_per_sync": counted(args.run, "sync") / len(rows),
+            "close_instructions": counted(args.run, "close"),
+        }
+        print(json.dumps(figures))
+        return 0
+    if args.count:  # under callgrind: one pass, collected around the part counted
+        with tempfile.TemporaryDirectory() as tmp:
+            toggle = _toggle_library(Path(tmp)).toggle
+            toggles = (toggle, _no_toggle) if args.count == "sync" else (_no_toggle, toggle)
+            one_pass(specs, rows, syncs, first, Path(tmp), wall, toggles)
+        return 0
     runs, closes = [], []
     for _ in range(args.repeat):
         with tempfile.TemporaryDirectory() as tmp:

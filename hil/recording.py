@@ -26,6 +26,7 @@ import math
 import operator
 import time
 from collections.abc import Callable, Iterable, Sequence
+from itertools import chain
 from pathlib import Path
 
 import can
@@ -196,6 +197,7 @@ def require_asammdf(what: str) -> None:
         ) from None
 
 
+_DATA = operator.attrgetter("data")
 _FRAME_BITS = tuple(frame_bits(dlc) for dlc in range(65))  # by data length (FD: up to 64)
 
 
@@ -300,43 +302,45 @@ class CanLogger:
                 raise WriteError(f"{self.path}: cannot write: {exc.strerror or exc}") from None
 
     def _write_pending(self) -> None:
+        """Write the frames held, and count them (sent, received, bits on the bus)."""
         pending, self._pending = self._pending, []
         if not pending:
             return
-        frames = [message for _, _, messages in pending for message in messages]
         if self._record is not None:
             self._record.write("".join(self._candump_lines(pending)))
         else:
             self._write_python_can(pending)
+        frames = list(chain.from_iterable(messages for _, _, messages in pending))
         received = sum(len(messages) for _, rx, messages in pending if rx)
         self.received += received
         self.sent += len(frames) - received
-        self.bits += sum(_FRAME_BITS[len(message.data)] for message in frames)
+        self.bits += sum(map(_FRAME_BITS.__getitem__, map(len, map(_DATA, frames))))
 
     def _candump_lines(self, pending: list[tuple[float, bool, Sequence[can.Message]]]) -> list[str]:
         """The candump lines of the frames, as python-can's CanutilsLogWriter writes them: a
         stamp before the log's first written as the first; an error frame with python-can's
         error id and no direction; a remote frame's data "R"; an FD frame's "#" and flags."""
-        lines = []
+        lines: list[str] = []
+        add = lines.append
         idents = self._idents
-        last: tuple[float, bool] | None = None
-        prefix = end = ""
+        last = math.nan  # the stamp `prefix` was made for
+        prefix = ""
         for at, received, messages in pending:
             stamp = self.start + at
-            if (at, received) != last or stamp == 0.0:  # a SYNC's frames share a stamp (a
-                last = (at, received)  # zero's sign shows: -0.0 is formatted apart)
+            if stamp != last or stamp == 0.0:  # a SYNC's frames share a stamp, formatted once
+                last = stamp  # (a zero's sign shows: -0.0 is formatted apart)
                 if self._first_stamp is None:
                     self._first_stamp = stamp or 0.0
                 elif stamp < self._first_stamp:
                     stamp = self._first_stamp
                 prefix = f"({stamp:f}) {self._candump_channel} "
-                end = _END[received]
+            end = _END[received]
             for m in messages:
                 if m.is_error_frame or m.is_remote_frame or m.is_fd:
-                    lines.append(prefix + _unusual_line(m, idents, end))
+                    add(prefix + _unusual_line(m, idents, end))
                 else:
-                    key = (m.arbitration_id, m.is_extended_id)
-                    lines.append(prefix + idents[key] + m.data.hex().upper() + end)
+                    ident = idents[m.arbitration_id, m.is_extended_id]
+                    add(f"{prefix}{ident}{m.data.hex().upper()}{end}")
         return lines
 
     def _write_python_can(self, pending: list[tuple[float, bool, Sequence[can.Message]]]) -> None:
