@@ -214,7 +214,7 @@ def main() -> int:
     specs, rows, syncs = load_run(args.run)
     first = next(iter(can.LogReader(str(args.run / "can.log")))).timestamp
     wall = _Wall(args.sync_us * 1e-6)
-    hil.recording.time = wall  # type: ignore[attr-defined]
+    hil.recording.time = wall  # type: ignore[assignment]
     if args.instructions:
         figures = {
             "rows": len(rows),

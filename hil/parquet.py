@@ -16,6 +16,7 @@ from __future__ import annotations
 import struct
 from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -116,7 +117,8 @@ def _text(value: str) -> bytes:
 
 
 class _Reader:
-    """Thrift compact structs decoded as {field id: value} (lists as lists, binary as bytes)."""
+    """Thrift compact structs decoded as {field id: value} (lists as lists, binary as bytes;
+    values typed Any: what a field holds is checked where it is used)."""
 
     def __init__(self, data: bytes, position: int = 0) -> None:
         self.data = data
@@ -140,7 +142,7 @@ class _Reader:
         value = self.varint()
         return (value >> 1) ^ -(value & 1)
 
-    def value(self, kind: int) -> object:
+    def value(self, kind: int) -> Any:
         if kind in (_TRUE, _FALSE):
             return kind == _TRUE
         if kind == _BYTE:
@@ -163,8 +165,8 @@ class _Reader:
             return self.struct()
         raise ValueError(f"Thrift type {kind} (a map) where Parquet has none")
 
-    def struct(self) -> dict[int, object]:
-        fields: dict[int, object] = {}
+    def struct(self) -> dict[int, Any]:
+        fields: dict[int, Any] = {}
         last = 0
         while True:
             header = self._byte()
@@ -256,7 +258,7 @@ def _decode(data: bytes) -> tuple[list[str], np.ndarray, dict[str, str]]:
     names = [bytes(leaf[4]).decode("utf-8") for leaf in leaves]
     columns = np.empty((len(names), rows))
     start = 0
-    for group in footer[4]:  # type: ignore[attr-defined]
+    for group in footer[4]:
         count = group[3]
         for i, chunk in enumerate(group[1]):
             meta = chunk[3]
@@ -275,6 +277,6 @@ def _decode(data: bytes) -> tuple[list[str], np.ndarray, dict[str, str]]:
         raise ValueError(f"row groups of {start} rows in a table of {rows}")
     metadata = {
         bytes(pair[1]).decode("utf-8"): bytes(pair.get(2, b"")).decode("utf-8")
-        for pair in footer.get(5, [])  # type: ignore[attr-defined]
+        for pair in footer.get(5, [])
     }
     return names, columns, metadata
