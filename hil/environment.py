@@ -51,7 +51,7 @@ def two_cores() -> bool:
 
 def check() -> None:
     """HilError naming the first softhil variable whose value is not one softhil reads."""
-    from hil import cformat, cvision
+    from hil import cvision
     from hil.seam import cukf
     from rigbus import ccodec
 
@@ -60,7 +60,6 @@ def check() -> None:
     try:
         ccodec.setting()
         cukf.setting()
-        cformat.setting()
         cvision.setting()
     except ValueError as exc:
         raise HilError(str(exc)) from None

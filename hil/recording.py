@@ -1,46 +1,48 @@
-"""Recorders of a run: the signals (CSV with a units sidecar, optionally MF4) and the CAN log.
+"""Recorders of a run: the signals (column blocks, the CSV made from them, optionally MF4) and the
+CAN log.
 
-The CAN log is written by python-can's writer for its file suffix (`.log` candump, `.asc`,
-`.blf`, `.trc`, `.csv`, `.mf4`), every frame stamped with the log's start instant plus simulation
-time, so CAN tools see a real date (the default start is fixed, so reruns stay byte-identical).
-The `.log` lines are those of `candump -L -x`: `(seconds.micro) can0 ID#DATA T|R`, T for frames
-the plant sent and R for frames it received.
+Signals are one row per SYNC, columns from the robot's signal specs, kept in column blocks and
+written every FLUSH_INTERVAL of wall time as one Parquet file (`hil.blocks`: the format, why it
+was chosen, the bytes of the CSV); `signals.csv` is written from the blocks when the recorder
+closes, whatever stops the run, and `hil csv RUN` writes it after a run killed hard.
+`signals.units.csv` gives every column's unit and meaning (`pandas.read_csv` reads either file
+in one call).
 
-Signals are one CSV row per SYNC, columns from the robot's signal specs; `signals.units.csv`
-beside it gives every column's unit and meaning (`pandas.read_csv` reads either in one call).
-Both the CSV and a candump log are written in whole records (`hil.results.RecordFile`), in
-blocks at most FLUSH_INTERVAL of wall time apart and whenever a run stops, so whatever stops a
-run, a full disk included, leaves complete, readable files up to the last flushed control
-period, without a system call per SYNC. Values are written as `repr` writes them (in C:
-`hil.cformat`), so equal runs give byte-identical files.
+The CAN log holds the frames as the plant logs them and writes them at every flush (at most
+FLUSH_INTERVAL of wall time apart, and whenever a run stops), every frame stamped with the log's
+start instant plus simulation time, so CAN tools see a real date (the default start is fixed, so
+reruns stay byte-identical). A candump `.log` is written here, in whole lines
+(`hil.results.RecordFile`): the lines of `candump -L -x`, `(seconds.micro) can0 ID#DATA T|R`,
+T for frames the plant sent and R for frames it received, as python-can's CanutilsLogWriter
+writes them (the tests compare them byte for byte, for every kind of frame). Every other suffix
+(`.asc`, `.blf`, `.trc`, `.csv`, `.mf4`) is python-can's writer for it. Whatever stops a run, a
+full disk included, leaves complete, readable files up to the last flush.
 """
 
 from __future__ import annotations
 
-import csv
-import io
+import contextlib
 import math
 import operator
 import time
 from collections.abc import Callable, Iterable, Sequence
+from itertools import chain
 from pathlib import Path
-from typing import TextIO, cast
 
 import can
 
-from hil import cformat
+from hil import blocks
 from hil.errors import HilError
 from hil.results import RecordFile, WriteError, write_file
 from hil.rig import SignalSpec
 from rigbus.protocol import frame_bits
 
-UNITS_SUFFIX = ".units.csv"
-_NUMBERS = (float, int)  # the types of a row's cells written by `",".join(map(repr, ...))`
+UNITS_SUFFIX = blocks.UNITS_SUFFIX
 FLUSH_INTERVAL = 0.25  # [s] of wall time between flushes of the recorders
 
 
 class SignalRecorder:
-    """One CSV row per control period, in the robot's column order."""
+    """One row per control period, in the robot's column order, written in column blocks."""
 
     def __init__(self, path: Path, specs: Sequence[SignalSpec]) -> None:
         self.path = path
@@ -64,24 +66,25 @@ class SignalRecorder:
             if s.frame is not None:
                 kind, index, name = s.frame
                 self._by_frame.setdefault((kind, index), []).append((name, s.column))
-        units = io.StringIO()
-        writer = csv.writer(units, lineterminator="\n")
-        writer.writerow(["signal", "unit", "description"])
-        writer.writerow(["time", "s", "simulation time of the SYNC"])
-        for s in self.specs:
-            writer.writerow([s.column, s.unit, s.description])
-        write_file(path.with_name(path.stem + UNITS_SUFFIX), units.getvalue())
-        self._file = RecordFile(path)
+        units = [("time", "s", "simulation time of the SYNC")]
+        units += [(s.column, s.unit, s.description) for s in self.specs]
+        write_file(
+            path.with_name(path.stem + UNITS_SUFFIX),
+            blocks.header_line(["signal", "unit", "description"])
+            + "".join(blocks.header_line(row) for row in units),
+        )
+        self._units = blocks.units_metadata({name: unit for name, unit, _ in units})
+        self.blocks = blocks.blocks_folder(path)
+        if self.blocks.exists():  # a results folder clears an earlier run's (--overwrite)
+            raise WriteError(f"{self.blocks}: exists; the signal blocks need a new folder")
         self._flushed = time.monotonic()
-        self._writer = csv.writer(self._file, lineterminator="\n")
-        self._writer.writerow(self.columns)
-        self._file.flush()
         self._row: tuple[float, Sequence[float]] | None = None  # (time, sourced values)
         self._cells: dict[str, float] = {}
-        module = cformat.load()
-        self._format_row = module.format_row if module is not None else None
+        self._pending: list[list[float]] = []  # the rows of the next block
+        self._written = 0  # blocks written
+        self._failed = False  # a block could not be written: the next ones are not tried
+        self._closed = False
         self.rows = 0
-        self.table: list[list[float]] = []  # every row, for the MF4 copy and the summary
 
     def begin_row(self, time: float, values: Sequence[float]) -> None:
         """Start the row of a SYNC with the plant's values of `source_columns`, in that order
@@ -106,59 +109,76 @@ class SignalRecorder:
             self._cells.update(cells)
 
     def end_row(self) -> None:
+        """End the open row (a number per column: a float, NaN where nobody wrote, an integer
+        or a boolean); its block is written every FLUSH_INTERVAL of wall time."""
         if self._row is None:
             return
         time_, sourced = self._row
         cells = self._cells
-        values = list(  # NaN where nobody wrote
-            self._in_order([time_, *sourced, *map(cells.get, self._cell_columns, self._no_cells)])
+        self._pending.append(
+            list(  # NaN where nobody wrote
+                self._in_order(
+                    [time_, *sourced, *map(cells.get, self._cell_columns, self._no_cells)]
+                )
+            )
         )
         if cells:
             cells.clear()
-        line = self._format_row(values) if self._format_row is not None else None
-        if line is not None:  # floats and ints, the usual row: written in C
-            self._file.write(line)
-        else:
-            self._write_row(values)
-        now = time.monotonic()
-        if now - self._flushed > FLUSH_INTERVAL:  # blocks of whole records, not a write a SYNC
-            self._file.flush()
-            self._flushed = now
-        self.table.append(values)
         self._row = None
         self.rows += 1
+        now = time.monotonic()
+        if now - self._flushed > FLUSH_INTERVAL:
+            self._flushed = now
+            self._write_block()
 
-    def _write_row(self, values: list[float]) -> None:
-        """`values` as csv.writer writes the list of their texts: a NaN float an empty cell,
-        everything else its repr (v != v: NaN, as math.isnan). Numbers alone: their reprs
-        joined, which is what csv.writer writes for them (no repr of an int or a finite float
-        has a character to quote)."""
-        line = ",".join(map(repr, values))
-        if "n" in line or not all(type(v) in _NUMBERS for v in values):  # nan, inf, or more
-            self._writer.writerow(
-                ["" if isinstance(v, float) and v != v else repr(v) for v in values]
-            )
-        else:
-            self._file.write(line + "\n")
+    def _write_block(self) -> None:
+        """The pending rows as the next block file (none if there is no row, or a block
+        failed before: the blocks on disk stay a run's first rows without a gap)."""
+        rows, self._pending = self._pending, []
+        if not rows or self._failed:
+            return
+        self._failed = True  # until the block is on disk
+        data = blocks.encode_block(self.columns, rows, self.rows - len(rows), self._units)
+        if not self._written:
+            try:
+                self.blocks.mkdir()
+            except OSError as exc:
+                raise WriteError(f"{self.blocks}: cannot create: {exc.strerror or exc}") from None
+        write_file(self.blocks / blocks.part_name(self._written), data)
+        self._written += 1
+        self._failed = False
 
     def close(self) -> None:
-        if not self._file.closed:
-            self.end_row()
-            self._file.close()
+        """End the open row, write the last block, then `path` (the CSV) from the blocks on disk.
+        After a failure (raised once: a full disk, a cell that is not a number) the CSV of the
+        blocks written before it is tried quietly."""
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            if not self._failed:
+                self.end_row()
+                self._write_block()
+        finally:
+            if not self._failed:
+                blocks.write_csv(self.path, self.columns)
+            else:
+                with contextlib.suppress(HilError, OSError):
+                    blocks.write_csv(self.path, self.columns)
 
     def write_mf4(self, path: Path) -> None:
-        """The signals as an MF4 file (asammdf), with units and comments."""
-        import numpy as np
-
+        """The signals as an MF4 file (asammdf) from the blocks, with units and comments."""
         require_asammdf(path.name)
         from asammdf import MDF, Signal
 
-        data = np.array(self.table, dtype=float).reshape(-1, len(self.columns))
-        t = data[:, 0]
+        columns, data = blocks.read_columns(self.blocks)
+        if not columns:
+            data = data.reshape(len(self.columns), 0)
+        t = data[0]
         mdf = MDF(version="4.10")
         mdf.append(
             [
-                Signal(data[:, i + 1], t, name=s.column, unit=s.unit, comment=s.description)
+                Signal(data[i + 1], t, name=s.column, unit=s.unit, comment=s.description)
                 for i, s in enumerate(self.specs)
             ],
             comment="softhil signals",
@@ -177,8 +197,8 @@ def require_asammdf(what: str) -> None:
         ) from None
 
 
+_DATA = operator.attrgetter("data")
 _FRAME_BITS = tuple(frame_bits(dlc) for dlc in range(65))  # by data length (FD: up to 64)
-_DIRECTION = {False: " T\n", True: " R\n"}  # a candump line's end, by received
 
 
 class _AscWriter(can.ASCWriter):
@@ -197,25 +217,38 @@ class _AscWriter(can.ASCWriter):
         self.file.write("internal events logged\n")
 
 
+_CHANNEL_DEFAULT = "can0"
+_END = {False: " T\n", True: " R\n"}  # a candump line's end, by received
+_ERROR_ID = f"{0x20000000 | 0x80:08X}#"  # CAN_ERR_FLAG | CAN_ERR_BUSERROR, as python-can writes
+_FD_FLAGS = ("0", "1", "2", "3")  # "##" then BRS (1) | ESI (2), in hex
+
+
+class _Idents(dict[tuple[int, bool], str]):
+    """ "ID#" of a frame as candump writes it, by (id, extended), made once per id."""
+
+    def __missing__(self, key: tuple[int, bool]) -> str:
+        can_id, extended = key
+        ident = self[key] = f"{can_id:08X}#" if extended else f"{can_id:03X}#"
+        return ident
+
+
 class CanLogger:
     """The CAN log as the plant sees the bus: T for frames the plant sent, R for frames it
-    received, stamped `start + simulation time`; the writer is python-can's for the suffix."""
+    received, stamped `start + simulation time`. The frames are held as logged and written at
+    every flush; they must not change after they are logged (the plant's never do)."""
 
-    def __init__(self, path: Path, start: float = 0.0, channel: str = "can0") -> None:
+    def __init__(self, path: Path, start: float = 0.0, channel: str = _CHANNEL_DEFAULT) -> None:
         self.path = path
         self.start = start
         self.channel = channel
+        self._record: RecordFile | None = None
+        self._writer: can.io.generic.MessageWriter | None = None
         try:
             if path.suffix == ".log":
-                self._record: RecordFile | None = RecordFile(path)
-                self._writer: can.io.generic.MessageWriter = can.CanutilsLogWriter(
-                    cast(TextIO, self._record)  # a text file that writes whole records
-                )
+                self._record = RecordFile(path)
             elif path.suffix == ".asc":
-                self._record = None
                 self._writer = _AscWriter(path, start)
             else:
-                self._record = None
                 self._writer = can.Logger(str(path))  # type: ignore[abstract]
                 if isinstance(self._writer, can.TRCWriter):  # its header names the file, not
                     self._writer.filepath = path.name  # the folder: the same in every folder
@@ -229,147 +262,122 @@ class CanLogger:
         self.sent = 0
         self.received = 0
         self.bits = 0
-        # candump lines are written here directly (`log_all`), as python-can's
-        # CanutilsLogWriter writes them (checked byte for byte in the tests) without building a
-        # message per frame; its channel rule: a bare number n is "can<n>"
+        # the frames logged since the last flush: (time, received, frames) as logged
+        self._pending: list[tuple[float, bool, Sequence[can.Message]]] = []
+        # a candump line's channel, as python-can writes it: a bare number n is "can<n>"
         self._candump_channel = f"can{channel}" if channel.isdigit() else channel
-        self._first_stamp: float | None = None
-        self._idents: dict[tuple[int, bool], str] = {}  # "ID#" as written, by (id, extended)
-        self._stamp = math.nan  # the last stamp written, and its "(seconds) channel " text
-        self._stamp_text = ""
-        module = cformat.load()  # the lines of classic data frames in C
-        self._lines = module.candump_lines if module is not None else None
-        # frames `log` took at one time and direction, written together (`_write_held`) before
-        # anything else is written: the plant receives a period's commands one by one
-        self._held: list[can.Message] = []
-        self._held_at = (0.0, False)  # their (time, received)
-
-    def _stamp_prefix(self, stamp: float) -> str:
-        """The "(seconds) channel " that CanutilsLogWriter writes before a frame stamped `stamp`
-        [s]: as it does, a stamp before the log's first is written as the first. The frames of a
-        SYNC share a stamp, so its text is formatted once (a zero stamp always: -0.0 prints
-        apart)."""
-        if self._first_stamp is None:
-            self._first_stamp = stamp or 0.0
-        elif stamp < self._first_stamp:
-            stamp = self._first_stamp
-        if stamp != self._stamp or stamp == 0.0:
-            self._stamp = stamp
-            self._stamp_text = f"({stamp:f}) {self._candump_channel} "
-        return self._stamp_text
-
-    def _ident(self, message: can.Message) -> str:
-        """ "ID#" as CanutilsLogWriter writes it, remembered by (id, extended)."""
-        key = (message.arbitration_id, message.is_extended_id)
-        ident = self._idents.get(key)
-        if ident is None:
-            can_id = message.arbitration_id
-            ident = f"{can_id:08X}#" if message.is_extended_id else f"{can_id:03X}#"
-            self._idents[key] = ident
-        return ident
+        self._first_stamp: float | None = None  # the first frame's stamp (candump)
+        self._idents = _Idents()
 
     def log_all(self, messages: Sequence[can.Message], time: float, received: bool) -> None:
-        """`log` of each message in turn (frames sent or received together, at one time)."""
-        if self._held:
-            self._write_held()
-        self._log_all(messages, time, received)
-
-    def _log_all(self, messages: Sequence[can.Message], time: float, received: bool) -> None:
-        if self._record is None:
-            for message in messages:
-                self._write(message, time, received)
-            return
-        prefix = self._stamp_prefix(self.start + time)
-        end = _DIRECTION[received]
-        if self._lines is not None:  # in C: classic data frames, the usual case
-            done = self._lines(prefix, messages, end, _FRAME_BITS)
-            if done is not None:
-                self._record.write(done[0])
-                self._count(done[1], len(messages), received)
-                return
-        for message in messages:
-            self._line(prefix, message, end, received)
+        """Frames sent or received together, at one time [s] of simulation."""
+        self._pending.append((time, received, messages))
 
     def log(self, message: can.Message, time: float, received: bool) -> None:
-        """One frame the plant sent (T) or received (R), stamped start + `time`: held with the
-        frames logged before it at the same time and direction, and written with them, in order,
-        before anything else is written (`log_all`, `flush`, `close`, another time)."""
-        if self._held and (
-            (time, received) != self._held_at or self.start + time == 0.0  # -0.0 prints apart
-        ):
-            self._write_held()
-        if not self._held:
-            self._held_at = (time, received)
-        self._held.append(message)
-
-    def _write_held(self) -> None:
-        messages, self._held = self._held, []
-        self._log_all(messages, *self._held_at)
-
-    def _line(self, prefix: str, message: can.Message, end: str, received: bool) -> None:
-        """The candump line of one frame, in Python: a classic data frame's as CanutilsLogWriter
-        writes it, any other (error, remote, FD) by CanutilsLogWriter itself."""
-        if message.is_error_frame or message.is_remote_frame or message.is_fd:
-            self._writer.last_timestamp = self._first_stamp  # type: ignore[attr-defined]
-            self._writer.on_message_received(
-                can.Message(
-                    timestamp=self._stamp,
-                    arbitration_id=message.arbitration_id,
-                    is_extended_id=message.is_extended_id,
-                    is_remote_frame=message.is_remote_frame,
-                    is_error_frame=message.is_error_frame,
-                    is_fd=message.is_fd,
-                    bitrate_switch=message.bitrate_switch,
-                    error_state_indicator=message.error_state_indicator,
-                    dlc=message.dlc,
-                    data=None if message.is_remote_frame else bytes(message.data),
-                    is_rx=received,
-                    channel=self.channel,
-                )
-            )
-        else:
-            data = message.data
-            self._record.write(f"{prefix}{self._ident(message)}{data.hex().upper()}{end}")  # type: ignore[union-attr]
-        self._count(_FRAME_BITS[len(message.data)], 1, received)
-
-    def _count(self, bits: int, frames: int, received: bool) -> None:
-        self.bits += bits
-        if received:
-            self.received += frames
-        else:
-            self.sent += frames
-
-    def _write(self, message: can.Message, time: float, received: bool) -> None:
-        """One frame through python-can's writer for the log's suffix."""
-        stamped = can.Message(
-            timestamp=self.start + time,
-            arbitration_id=message.arbitration_id,
-            is_extended_id=message.is_extended_id,
-            data=bytes(message.data),
-            is_rx=received,
-            channel=self.channel,
-        )
-        try:
-            self._writer.on_message_received(stamped)
-        except OSError as exc:
-            raise WriteError(f"{self.path}: cannot write: {exc.strerror or exc}") from None
-        self._count(_FRAME_BITS[len(message.data)], 1, received)
+        """One frame the plant sent (T) or received (R) at `time` [s] of simulation."""
+        self._pending.append((time, received, (message,)))
 
     def flush(self, force: bool = False) -> None:
-        """Whole records on disk, in blocks (every FLUSH_INTERVAL of wall time, or now with
-        `force`) for the line formats; binary formats (BLF, MF4) are complete when closed."""
-        if self._held:
-            self._write_held()
+        """Write the frames logged since the last flush, whole records on disk: every
+        FLUSH_INTERVAL of wall time, or now with `force`. A .blf or .mf4 is whole once closed."""
         now = time.monotonic()
-        if self._record is not None and (force or now - self._flushed > FLUSH_INTERVAL):
-            self._record.flush()
+        if force or now - self._flushed > FLUSH_INTERVAL:
             self._flushed = now
+            self._write_pending()
+            if self._record is not None:
+                self._record.flush()
 
     def close(self) -> None:
-        """Close the log; a log that already failed closes quietly (the failure was raised)."""
+        """Write what is held and close the log; a log that already failed closes quietly (the
+        failure was raised)."""
         try:
-            if self._held:
-                self._write_held()
-            self._writer.stop()
+            self._write_pending()
+        finally:
+            if self._record is not None:
+                self._record.close()
+        if self._writer is not None:
+            try:
+                self._writer.stop()
+            except OSError as exc:
+                raise WriteError(f"{self.path}: cannot write: {exc.strerror or exc}") from None
+
+    def _write_pending(self) -> None:
+        """Write the frames held, and count them (sent, received, bits on the bus)."""
+        pending, self._pending = self._pending, []
+        if not pending:
+            return
+        if self._record is not None:
+            self._record.write("".join(self._candump_lines(pending)))
+        else:
+            self._write_python_can(pending)
+        frames = list(chain.from_iterable(messages for _, _, messages in pending))
+        received = sum(len(messages) for _, rx, messages in pending if rx)
+        self.received += received
+        self.sent += len(frames) - received
+        self.bits += sum(map(_FRAME_BITS.__getitem__, map(len, map(_DATA, frames))))
+
+    def _candump_lines(self, pending: list[tuple[float, bool, Sequence[can.Message]]]) -> list[str]:
+        """The candump lines of the frames, as python-can's CanutilsLogWriter writes them: a
+        stamp before the log's first written as the first; an error frame with python-can's
+        error id and no direction; a remote frame's data "R"; an FD frame's "#" and flags."""
+        lines: list[str] = []
+        add = lines.append
+        idents = self._idents
+        last = math.nan  # the stamp `prefix` was made for
+        prefix = ""
+        for at, received, messages in pending:
+            stamp = self.start + at
+            if stamp != last or stamp == 0.0:  # a SYNC's frames share a stamp, formatted once
+                last = stamp  # (a zero's sign shows: -0.0 is formatted apart)
+                if self._first_stamp is None:
+                    self._first_stamp = stamp or 0.0
+                elif stamp < self._first_stamp:
+                    stamp = self._first_stamp
+                prefix = f"({stamp:f}) {self._candump_channel} "
+            end = _END[received]
+            for m in messages:
+                if m.is_error_frame or m.is_remote_frame or m.is_fd:
+                    add(prefix + _unusual_line(m, idents, end))
+                else:
+                    ident = idents[m.arbitration_id, m.is_extended_id]
+                    add(f"{prefix}{ident}{m.data.hex().upper()}{end}")
+        return lines
+
+    def _write_python_can(self, pending: list[tuple[float, bool, Sequence[can.Message]]]) -> None:
+        """The frames through python-can's writer for the log's suffix."""
+        assert self._writer is not None
+        try:
+            for at, received, messages in pending:
+                for message in messages:
+                    self._writer.on_message_received(
+                        can.Message(
+                            timestamp=self.start + at,
+                            arbitration_id=message.arbitration_id,
+                            is_extended_id=message.is_extended_id,
+                            is_remote_frame=message.is_remote_frame,
+                            is_error_frame=message.is_error_frame,
+                            is_fd=message.is_fd,
+                            bitrate_switch=message.bitrate_switch,
+                            error_state_indicator=message.error_state_indicator,
+                            dlc=message.dlc,
+                            data=None if message.is_remote_frame else bytes(message.data),
+                            is_rx=received,
+                            channel=self.channel,
+                        )
+                    )
         except OSError as exc:
             raise WriteError(f"{self.path}: cannot write: {exc.strerror or exc}") from None
+
+
+def _unusual_line(message: can.Message, idents: _Idents, end: str) -> str:
+    """A candump line's "ID#DATA end" for an error, remote or FD frame, as python-can writes it."""
+    if message.is_error_frame:
+        ident, end = _ERROR_ID, "\n"
+    else:
+        ident = idents[(message.arbitration_id, message.is_extended_id)]
+    if message.is_remote_frame:
+        return f"{ident}R{end}"
+    flags = ""
+    if message.is_fd:
+        flags = "#" + _FD_FLAGS[message.bitrate_switch | message.error_state_indicator << 1]
+    return f"{ident}{flags}{message.data.hex().upper()}{end}"

@@ -5,6 +5,8 @@ the run; a lock left by a dead process is taken over with a note) and lists ever
 there in a manifest (`.softhil-manifest`, one name a line, written before the file itself), so a
 later `--overwrite` can tell softhil's files from the user's: it replaces only files a manifest
 names, never the input scenario, and refuses a folder whose foreign files a run would replace.
+A folder of blocks a manifest names (`BLOCK_FOLDERS`: the signals' blocks) is removed only when
+it holds nothing but block files.
 An existing non-empty folder is refused without `--overwrite`.
 
 Every byte a run writes goes through `write_bytes` (one place to see, and for tests to fail with
@@ -18,6 +20,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import os
+import re
 import sys
 from collections.abc import Iterable, Iterator
 from pathlib import Path
@@ -36,6 +39,7 @@ RESULT_FILES = (
     "signals.csv",
     "signals.units.csv",
     "signals.mf4",
+    "signals.parquet",  # a folder: the signals' column blocks (hil.blocks)
     "can.log",
     "can.asc",
     "can.blf",
@@ -60,6 +64,9 @@ RESULT_FILES = (
     "fish.gif",
     "fish.mp4",
 )
+# the folders of blocks a run writes (`BLOCK_FILE` names the files in them)
+BLOCK_FOLDERS = ("signals.parquet",)
+BLOCK_FILE = re.compile(r"\.?part-\d{6,}\.parquet(\.partial)?")
 # what `hil estimate RUN` adds to a run's folder (and to its manifest)
 ESTIMATE_FILES = ("estimation.json", "estimation.png")
 
@@ -198,6 +205,34 @@ class RecordFile:
                 os.close(fd)
 
 
+def _foreign_in_blocks(folder: Path) -> str | None:
+    """The name of an entry of a folder of blocks that is not a block file, if any."""
+    if not folder.is_dir() or folder.is_symlink():
+        return None
+    for entry in folder.iterdir():
+        if not (BLOCK_FILE.fullmatch(entry.name) and entry.is_file() and not entry.is_symlink()):
+            return entry.name
+    return None
+
+
+def remove_blocks(folder: Path) -> bool:
+    """Remove a folder of blocks a run wrote (`BLOCK_FOLDERS`): its block files, then the folder
+    if nothing else is in it; whether it was removed (False: it holds other files, kept)."""
+    for entry in folder.iterdir():
+        if BLOCK_FILE.fullmatch(entry.name) and entry.is_file() and not entry.is_symlink():
+            try:
+                entry.unlink()
+            except OSError as exc:
+                raise HilError(f"{entry}: cannot remove: {_cause(exc)}") from None
+    if any(folder.iterdir()):
+        return False
+    try:
+        folder.rmdir()
+    except OSError as exc:
+        raise HilError(f"{folder}: cannot remove: {_cause(exc)}") from None
+    return True
+
+
 def _batch_input(path: Path) -> bool:
     """True for a trial's scenario.toml as `hil batch` and `hil sweep` write it (its header)."""
     try:
@@ -305,44 +340,53 @@ class ResultsFolder:
                 "earlier run wrote there"
             )
         ours = set(self._manifest())
-        self._check_replaceable(ours)
-        for name in sorted(ours):
-            self._remove_earlier(name)
-        self.written = [
-            n
-            for n in self._manifest()
-            if (self.out / n).exists() and not ((self.out / n).is_dir() and n not in self.planned)
-        ]  # a folder kept for a user's files there is no longer softhil's
-
-    def _check_replaceable(self, ours: set[str]) -> None:
-        """Refuse to overwrite a batch with a run, or a file this run writes that the earlier
-        run's manifest (`ours`) does not list."""
         if BATCH_FILE in ours and BATCH_FILE not in self.planned:
             raise HilError(
                 f"results folder {self.out} holds a batch ({BATCH_FILE} and its trials): "
                 "--overwrite replaces an earlier run's files, not a whole batch; choose another "
                 "--out"
             )
+        self._refuse_foreign(ours)
+        for name in sorted(ours):
+            if "/" not in name and name not in (LOCK, MANIFEST) and not self.kept(name):
+                self._remove_ours(self.out / name)
+        self.written = [
+            n
+            for n in self._manifest()
+            if (self.out / n).exists() and not ((self.out / n).is_dir() and n not in self.planned)
+        ]  # a folder kept for a user's files there is no longer softhil's
+
+    def _refuse_foreign(self, ours: set[str]) -> None:
+        """HilError naming a file the run would replace, or one in a folder of blocks it would
+        remove, that no manifest lists (the input scenario excepted)."""
         for name in self.planned:
             if (self.out / name).exists() and name not in ours and not self.kept(name):
                 raise HilError(
                     f"results folder {self.out}: {name} was not written by softhil (not in "
                     f"{MANIFEST}); --overwrite replaces only softhil's own files"
                 )
+        for name in ours.intersection(BLOCK_FOLDERS):
+            foreign = _foreign_in_blocks(self.out / name)
+            if foreign:
+                raise HilError(
+                    f"results folder {self.out}: {name}/{foreign} was not written by softhil; "
+                    "--overwrite replaces only softhil's own files"
+                )
 
-    def _remove_earlier(self, name: str) -> None:
-        """Remove `name`, listed in the earlier run's manifest: a file (never a link, the lock,
-        the manifest or a kept input), or an earlier batch's trial this one does not have."""
-        path = self.out / name
-        if "/" in name or name in (LOCK, MANIFEST) or self.kept(name):
+    def _remove_ours(self, path: Path) -> None:
+        """Remove an entry an earlier run's manifest lists: a file, a folder of its blocks, or
+        an earlier batch's trial this one does not have (a symbolic link stays)."""
+        if path.is_symlink():
             return
-        if path.is_file() and not path.is_symlink():
+        if path.is_file():
             try:
                 path.unlink()
             except OSError as exc:
                 raise HilError(f"{path}: cannot remove: {_cause(exc)}") from None
-        elif path.is_dir() and not path.is_symlink() and name not in self.planned:
-            self._remove_folder(path)  # an earlier batch's trial this one does not have
+        elif path.name in BLOCK_FOLDERS and path.is_dir():
+            remove_blocks(path)  # nothing else in it (`_clear` looked)
+        elif path.is_dir() and path.name not in self.planned:
+            self._remove_folder(path)
 
     def _remove_folder(self, path: Path) -> None:
         """Remove a results folder an earlier run made here (a batch's trial): the files its
@@ -353,7 +397,9 @@ class ResultsFolder:
             names.append("scenario.toml")
         for name in names:
             entry = path / name
-            if name not in (LOCK,) and entry.is_file() and not entry.is_symlink():
+            if name in BLOCK_FOLDERS and entry.is_dir() and not entry.is_symlink():
+                remove_blocks(entry)  # what is left of it (a user's files) keeps the trial
+            elif name not in (LOCK,) and entry.is_file() and not entry.is_symlink():
                 try:
                     entry.unlink()
                 except OSError as exc:

@@ -287,6 +287,7 @@ def _open_recorders(
 ) -> tuple[SignalRecorder, CanLogger]:
     """The recorders of signals.csv and of the CAN log, closed with `stack`."""
     folder.claim("signals.units.csv")
+    folder.claim("signals.parquet")  # the folder of the signals' blocks (hil.blocks)
     signals = SignalRecorder(folder.claim("signals.csv"), rig.signals)
     stack.callback(signals.close)
     can_log = CanLogger(folder.claim(recording.can_log), start=start)

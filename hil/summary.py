@@ -38,7 +38,11 @@ def read_signals(path: Path) -> dict[str, np.ndarray]:
         with path.open(newline="", encoding="utf-8") as f:
             text = f.read()
     except FileNotFoundError:
-        raise HilError(f"{path}: no such file") from None
+        blocks = path.with_suffix(".parquet")
+        hint = (
+            f" (its blocks are in {blocks.name}: hil csv {path.parent})" if blocks.is_dir() else ""
+        )
+        raise HilError(f"{path}: no such file{hint}") from None
     except IsADirectoryError:
         raise HilError(f"{path}: is a folder, not a signals CSV") from None
     except OSError as exc:

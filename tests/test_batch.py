@@ -315,9 +315,9 @@ def _batch_in_its_own_group(tmp_path: Path) -> tuple[subprocess.Popen[str], Path
         text=True,
         start_new_session=True,
     )
-    signals = out / "trial-000" / "signals.csv"
+    blocks = out / "trial-000" / "signals.parquet"  # the first block: written after 0.25 s
     for _ in range(600):
-        if signals.is_file() and signals.stat().st_size > 4096 or run.poll() is not None:
+        if any(blocks.glob("part-*.parquet")) or run.poll() is not None:
             break
         time.sleep(0.1)
     assert run.poll() is None, run.communicate()

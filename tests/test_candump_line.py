@@ -1,5 +1,6 @@
-"""The CAN log's candump lines, written by hil.recording.CanLogger without python-can's writer
-on the hot path, are python-can's CanutilsLogWriter's lines byte for byte."""
+"""The CAN log's candump lines, written by hil.recording.CanLogger (the one candump writer: every
+kind of frame, held as logged and written at each flush), are python-can's CanutilsLogWriter's
+lines byte for byte."""
 
 from __future__ import annotations
 
@@ -9,21 +10,10 @@ from pathlib import Path
 import can
 import pytest
 
-from hil import cformat
 from hil.recording import CanLogger
 from rigbus.protocol import frame_bits
 
 FD_LENGTHS = (12, 16, 20, 24, 32, 48, 64)
-
-
-@pytest.fixture(params=["c", "python"])
-def lines_in(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> str:
-    """The lines written in C (hil.cformat) or in Python: the same bytes either way."""
-    if request.param == "python":
-        monkeypatch.setattr(cformat, "load", lambda: None)
-    elif cformat.load() is None:
-        pytest.skip(f"no C formatter here: {cformat.failure()}")
-    return str(request.param)
 
 
 def _message(rng: random.Random, i: int) -> can.Message:
@@ -46,7 +36,7 @@ def _message(rng: random.Random, i: int) -> can.Message:
     )
 
 
-def test_candump_lines_are_python_cans_byte_for_byte(tmp_path: Path, lines_in: str) -> None:
+def test_candump_lines_are_python_cans_byte_for_byte(tmp_path: Path) -> None:
     rng = random.Random(3)
     start = 1433116800.0
     times = [0.0, *sorted(rng.uniform(0.0, 30.0) for _ in range(200))]
@@ -171,9 +161,9 @@ def test_frames_logged_together_are_the_lines_of_frames_logged_one_by_one(
         assert one.sent > 20 and one.received > 20
 
 
-def test_frames_python_can_writes_keep_the_logs_stamps(tmp_path: Path, lines_in: str) -> None:
-    """A remote frame after a later one: python-can's writer, which writes it, is told the log's
-    first stamp (its own would be the first frame it wrote, and it would move this one to it)."""
+def test_a_remote_frame_after_a_later_one_keeps_its_stamp(tmp_path: Path) -> None:
+    """A frame stamped before the one logged before it keeps its stamp: only a stamp before the
+    log's first is moved (to the first), as python-can's writer does."""
     logger = CanLogger(tmp_path / "x.log", start=0.0)
     data = can.Message(arbitration_id=0x80, is_extended_id=False, data=b"\x07")
     remote = can.Message(arbitration_id=0x81, is_extended_id=False, is_remote_frame=True, dlc=1)
@@ -201,6 +191,8 @@ def test_frames_held_by_log_are_written_in_order_and_on_flush(tmp_path: Path) ->
     logger.log_all(frames[1:3], 0.01, True)  # the same time and direction: after frame 0
     logger.log(frames[3], 0.01, True)
     logger.log(frames[4], 0.01, False)  # another direction
+    logger.flush()  # not FLUSH_INTERVAL since the logger opened: held still
+    assert (tmp_path / "x.log").read_bytes() == b""
     logger.flush(force=True)
     lines = (tmp_path / "x.log").read_text().splitlines()
     assert [line.split()[2][:3] for line in lines] == ["100", "101", "102", "103", "104"]
@@ -210,3 +202,40 @@ def test_frames_held_by_log_are_written_in_order_and_on_flush(tmp_path: Path) ->
     logger.close()
     assert (tmp_path / "x.log").read_text().splitlines()[-1] == "(100.020000) can0 105#05 R"
     assert (logger.sent, logger.received) == (1, 5)
+
+
+@pytest.mark.parametrize("suffix", [".asc", ".blf", ".trc"])
+def test_python_can_formats_read_back_with_stamps_directions_and_frames(
+    tmp_path: Path, suffix: str
+) -> None:
+    """The other suffixes go through python-can's writers at each flush: read back with
+    python-can's readers, every frame is there in order with its stamp, direction and data."""
+    rng = random.Random(6)
+    start = 1433116800.0
+    logged = []
+    logger = CanLogger(tmp_path / f"x{suffix}", start=start)
+    for k in range(40):
+        message = can.Message(
+            arbitration_id=rng.randrange(0x800),
+            is_extended_id=False,
+            data=bytes(rng.randrange(256) for _ in range(rng.randrange(9))),
+        )
+        received = k % 3 == 0
+        if k % 2:
+            logger.log(message, k * 0.01, received)
+        else:
+            logger.log_all([message], k * 0.01, received)
+        logged.append((start + k * 0.01, received, message.arbitration_id, bytes(message.data)))
+        if k % 10 == 9:
+            logger.flush(force=True)
+    logger.close()
+    read = [
+        (m.timestamp, m.is_rx, m.arbitration_id, bytes(m.data))
+        for m in can.LogReader(str(tmp_path / f"x{suffix}"))
+    ]
+    assert [r[1:] for r in read] == [w[1:] for w in logged]
+    # stamps as each reader gives them (absolute, or from the log's start): the same steps
+    assert [r[0] - read[0][0] for r in read] == pytest.approx(
+        [w[0] - start for w in logged], abs=1e-4
+    )
+    assert (logger.sent, logger.received) == (26, 14)

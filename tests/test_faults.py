@@ -29,7 +29,9 @@ import pytest
 
 import hil.results
 from controllers.node import ControllerNode, RealtimeClock
+from hil.blocks import read_blocks
 from hil.cli import main as hil_main
+from hil.errors import HilError
 from hil.run import controller_config
 from hil.scenario import DEFAULT_SCENARIO, load_scenario
 from hil.summary import realtime_failure
@@ -55,7 +57,7 @@ def scenario_file(tmp_path: Path, duration: float, *edits: tuple[str, str]) -> P
 HOLD = ('policy = "strict"', 'policy = "hold"')
 # [s] simulated, for the runs a test stops midway (a signal, a killed or frozen controller, a
 # killed hub): long enough that a run at 20-40x real time is still going when the test acts
-# after its first recorded rows (flushed every 0.25 s); stopped, it costs no more than a short one
+# after its first recorded block (written every 0.25 s); stopped, it costs no more than a short one
 LONG = 100.0
 
 
@@ -162,6 +164,34 @@ def test_rerun_into_its_own_folder_keeps_the_input_scenario(tmp_path: Path, caps
         f"hil: note: {recorded} is this run's input and is kept as it is; the run used seed 7 "
         "(summary.json)"
     ]
+
+
+def test_overwrite_replaces_the_signal_blocks_and_refuses_a_foreign_file_among_them(
+    tmp_path: Path, capsys
+) -> None:
+    """--overwrite removes an earlier run's blocks (a longer run's, more of them: none stays
+    to be read with the new run's); a file softhil did not write among them refuses the
+    rerun before anything is removed."""
+    out = tmp_path / "run"
+    assert (
+        run_cli(capsys, str(scenario_file(tmp_path, 0.3)), "--inprocess", "--out", str(out))[0] == 0
+    )  # noqa: E501
+    blocks = out / "signals.parquet"
+    (blocks / "part-000000.parquet").rename(blocks / "part-000007.parquet")  # as a long run's
+    short = scenario_file(tmp_path, 0.1)
+    assert run_cli(capsys, str(short), "--inprocess", "--out", str(out), "--overwrite")[0] == 0
+    assert [p.name for p in blocks.iterdir()] == ["part-000000.parquet"]
+    text = (out / "signals.csv").read_bytes()
+    assert text.count(b"\n") == 12  # the header and SYNC 0..10
+    (blocks / "mine.txt").write_text("keep me\n")
+    before = sorted(p.name for p in out.iterdir())
+    code, lines = run_cli(capsys, str(short), "--inprocess", "--out", str(out), "--overwrite")
+    assert code == 1 and lines == [
+        f"hil: error: results folder {out}: signals.parquet/mine.txt was not written by "
+        "softhil; --overwrite replaces only softhil's own files"
+    ]
+    assert sorted(p.name for p in out.iterdir()) == before
+    assert (out / "signals.csv").read_bytes() == text and (blocks / "mine.txt").exists()
 
 
 def test_second_run_into_a_locked_folder_is_refused_and_a_stale_lock_taken_over(
@@ -351,6 +381,15 @@ def rows(path: Path) -> int:
         return 0
 
 
+def recorded(out: Path) -> bool:
+    """Whether a run's blocks of signals (written every 0.25 s of wall time; the CSV is written
+    from them when the run ends) hold more than two rows."""
+    try:
+        return sum(data.shape[1] for _, data, _ in read_blocks(out / "signals.parquet")) > 2
+    except HilError:  # a block renamed into place as the folder was listed
+        return False
+
+
 def hil_process(*argv: str) -> subprocess.Popen[str]:
     return subprocess.Popen(
         [sys.executable, "-m", "hil", *argv],
@@ -368,12 +407,12 @@ def test_injected_commands_on_the_hub_from_a_second_client(tmp_path: Path) -> No
     try:
         wait_for(lambda: _listening(port), "the hub")
         run = hil_process(
-            # 20 s: long enough for the intruder to join after the first rows are on disk
+            # 20 s: long enough for the intruder to join after the first block is on disk
             # (the recorders flush in blocks of up to 0.25 s), the run being 15-25x real time
             "run", str(scenario_file(tmp_path, 20.0, HOLD)), "--bus", f"loopback:127.0.0.1:{port}",
             "--out", str(tmp_path / "run"), "--no-progress",
         )  # fmt: skip
-        wait_for(lambda: rows(tmp_path / "run" / "signals.csv") > 2, "progress")
+        wait_for(lambda: recorded(tmp_path / "run"), "progress")
         from rigbus.canbus import BusSpec, open_bus
 
         intruder = Intruder(open_bus(BusSpec.parse(f"loopback:{port}")), foreign_command)
@@ -521,7 +560,7 @@ def scenario_file_static(duration: float) -> Path:
 def test_hil_run_signalled(tmp_path: Path, sig, code: int, line: str, status: str) -> None:
     out = tmp_path / "run"
     run = hil_process("run", str(scenario_file(tmp_path, LONG)), "--out", str(out), "--no-progress")  # noqa: E501
-    wait_for(lambda: rows(out / "signals.csv") > 2, "progress")
+    wait_for(lambda: recorded(out), "progress")
     run.send_signal(sig)
     _, err = run.communicate(timeout=60)
     assert run.returncode == code, err
@@ -540,11 +579,37 @@ def test_hil_run_signalled(tmp_path: Path, sig, code: int, line: str, status: st
     readable(out)
 
 
+def test_hil_run_killed_hard_leaves_blocks_that_hil_csv_writes_the_csv_from(
+    tmp_path: Path, capsys
+) -> None:
+    """SIGKILL of `hil run` itself: no CSV (it is written when a run ends), the blocks written
+    every 0.25 s stay; `hil csv` writes the CSV of their rows (taking the dead run's lock), one
+    row a SYNC from the first, each complete."""
+    out = tmp_path / "run"
+    run = hil_process("run", str(scenario_file(tmp_path, LONG)), "--out", str(out), "--no-progress")  # noqa: E501
+    wait_for(lambda: recorded(out), "progress")
+    run.kill()
+    run.communicate(timeout=60)
+    controller = out / "controller.pid"
+    if controller.exists():  # the controller outlives the plant it served: stop it here
+        with contextlib.suppress(ProcessLookupError, ValueError):
+            os.kill(int(controller.read_text()), signal.SIGKILL)
+    assert not (out / "signals.csv").exists() and (out / hil.results.LOCK).exists()
+    assert hil_main(["csv", str(out)]) == 0
+    printed = capsys.readouterr()
+    assert "took over the stale lock" in printed.err and "rows from" in printed.out
+    with (out / "signals.csv").open() as file:
+        times = [float(row["time"]) for row in csv.DictReader(file)]
+    assert len(times) > 2 and times == [round(0.01 * c, 9) for c in range(len(times))]
+    assert "signals.csv" in hil.results.manifest_names(out)
+    readable(out)
+
+
 @pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGTERM], ids=["KILL", "TERM"])
 def test_controller_killed(tmp_path: Path, sig) -> None:
     out = tmp_path / "run"
     run = hil_process("run", str(scenario_file(tmp_path, LONG)), "--out", str(out), "--no-progress")  # noqa: E501
-    wait_for(lambda: rows(out / "signals.csv") > 2 and rows(out / "controller.pid") > 0, "progress")  # noqa: E501
+    wait_for(lambda: recorded(out) and rows(out / "controller.pid") > 0, "progress")  # noqa: E501
     os.kill(int((out / "controller.pid").read_text()), sig)
     _, err = run.communicate(timeout=60)
     assert run.returncode == 1
@@ -563,7 +628,7 @@ def test_controller_frozen_times_out(tmp_path: Path) -> None:
     run = hil_process(
         "run", str(scenario_file(tmp_path, LONG, short_wait)), "--out", str(out), "--no-progress"
     )  # noqa: E501
-    wait_for(lambda: rows(out / "signals.csv") > 2 and rows(out / "controller.pid") > 0, "progress")  # noqa: E501
+    wait_for(lambda: recorded(out) and rows(out / "controller.pid") > 0, "progress")  # noqa: E501
     pid = int((out / "controller.pid").read_text())
     os.kill(pid, signal.SIGSTOP)
     try:
@@ -588,7 +653,7 @@ def test_hub_killed_under_a_running_plant(tmp_path: Path) -> None:
         "run", str(scenario_file(tmp_path, LONG)), "--bus", f"loopback:127.0.0.1:{port}",
         "--out", str(out), "--no-progress",
     )  # fmt: skip
-    wait_for(lambda: rows(out / "signals.csv") > 2, "progress")
+    wait_for(lambda: recorded(out), "progress")
     hub.kill()
     hub.wait(timeout=10)
     _, err = run.communicate(timeout=60)

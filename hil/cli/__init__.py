@@ -22,6 +22,7 @@ from hil.cli import fmu as fmu_command
 from hil.cli import replay as replay_command
 from hil.cli import run as run_command
 from hil.cli import scenarios as scenarios_command
+from hil.cli import signals_csv as csv_command
 from hil.cli.parsers import HelpFormatter
 from hil.environment import check as check_environment
 from hil.errors import HilError, Terminated
@@ -33,6 +34,7 @@ SUBCOMMANDS = (
     batch_command,
     replay_command,
     estimate_command,
+    csv_command,
     controller_command,
     bus_command,
     fmu_command,
@@ -47,6 +49,7 @@ EXAMPLES = """examples:
   hil batch --trials 20           20 seeds of the default scenario in parallel
   hil sweep --set controller.crossover=0.5,1,2   a parameter grid
   hil bus load                    bus load of the default scenario
+  hil csv runs/default-1          signals.csv from a killed run's blocks
   hil fmu build                   build every FMU into the per-user cache
   hil fmu check DriveCylinder     validate an FMU with fmpy and simulate it briefly
 
