@@ -52,7 +52,7 @@ def two_cores() -> bool:
 def check() -> None:
     """HilError naming the first softhil variable whose value is not one softhil reads."""
     from controllers import cukf
-    from hil import cformat, cvision
+    from hil import cformat
     from rigbus import ccodec
 
     kernel_enabled()
@@ -61,6 +61,5 @@ def check() -> None:
         ccodec.setting()
         cukf.setting()
         cformat.setting()
-        cvision.setting()
     except ValueError as exc:
         raise HilError(str(exc)) from None
