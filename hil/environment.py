@@ -51,7 +51,6 @@ def two_cores() -> bool:
 
 def check() -> None:
     """HilError naming the first softhil variable whose value is not one softhil reads."""
-    from hil import cvision
     from hil.seam import cukf
     from rigbus import ccodec
 
@@ -60,6 +59,5 @@ def check() -> None:
     try:
         ccodec.setting()
         cukf.setting()
-        cvision.setting()
     except ValueError as exc:
         raise HilError(str(exc)) from None

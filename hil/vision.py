@@ -11,12 +11,10 @@ the draws of the others.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
-from hil import cvision
 from rigbus.records import fast_init
 
 SCOPES = ("frame", "marker")
@@ -167,13 +165,6 @@ class Camera:
         ) = rng.spawn(5)
         self._jitter_ticks: dict[int, int] = {}
         self._next_frame = 0
-        # the draws in C (`hil.cvision`): the same functions on the same streams
-        c = cvision.load()
-        self._c_picture: Callable[..., int] | None = None if c is None else c.picture
-        self._bitgens = tuple(
-            g.bit_generator.capsule for g in (self._rng_noise, self._rng_dropout, self._rng_outlier)
-        )
-        self._directions: dict[tuple[int, int], np.ndarray] = {}  # the C draws' buffer, by shape
         # occlusion bursts: (start, end, marker draw in [0, 1)) in time order
         self._bursts: list[tuple[float, float, float]] = []
         self._next_burst = self._draw_gap(0.0)
@@ -241,8 +232,6 @@ class Camera:
         tick = self.exposure_tick(frame_index, nominal_tick)
         self._jitter_ticks.pop(frame_index)
         time = tick * self.macro_step
-        if self._c_picture is not None and markers > 0 and dims > 0:
-            return self._picture_c(self._c_picture, frame_index, tick, time, true_points)
         e = self.effects
         # fixed draw counts per picture: M x dims normals, M uniforms, M uniforms + M x dims normals
         noise = self._rng_noise.normal(0.0, 1.0, (markers, dims)) * e.noise
@@ -263,46 +252,3 @@ class Camera:
         if min(drop_draws.tolist(), default=1.0) < e.dropout or self._bursts:
             points[missing] = np.nan
         return Picture(frame_index, tick, time, points, dropped, occluded, outlier & ~missing)
-
-    def _picture_c(
-        self,
-        c_picture: Callable[..., int],
-        frame_index: int,
-        tick: int,
-        time: float,
-        true_points: np.ndarray,
-    ) -> Picture:
-        """`picture`'s draws and points in C (`c_picture`, `hil.cvision`'s), the same bit for
-        bit: the same draws from the same streams in the same order; the rare outlier is moved
-        along its direction, and occlusions applied, here, as `picture` does."""
-        e = self.effects
-        shape = true_points.shape
-        markers = shape[0]
-        points = np.empty(shape)
-        dropped = np.empty(markers, dtype=bool)
-        outlier = np.empty(markers, dtype=bool)
-        direction = self._directions.get(shape)
-        if direction is None:
-            direction = self._directions[shape] = np.empty(shape)
-        flags = c_picture(
-            *self._bitgens,
-            np.ascontiguousarray(true_points),
-            points,
-            dropped,
-            outlier,
-            direction,
-            e.noise,
-            e.dropout,
-            e.outlier_rate,
-        )
-        occluded = self._occluded(time, markers)
-        if flags & 2:  # an outlier: moved as `picture` moves it
-            direction = direction / np.maximum(
-                np.linalg.norm(direction, axis=1, keepdims=True), 1e-300
-            )
-            points[outlier] += e.outlier_distance * direction[outlier]
-        if flags & 1 or self._bursts:  # a marker missing (otherwise none is)
-            missing = dropped | occluded
-            points[missing] = np.nan
-            outlier &= ~missing
-        return Picture(frame_index, tick, time, points, dropped, occluded, outlier)

@@ -71,7 +71,8 @@ def test_non_editable_install_ships_fmu_sources_and_builds(tmp_path: Path) -> No
         "hil/cosim/kernel/kernel.c",
         "rigbus/_ccodec.c",
         "controllers/_cukf.c",
-        "hil/_cvision.c",
+        "robots/planar_arm/scenarios/default.toml",
+        "robots/fish/scenarios/fish-escape.toml",
     ):
         assert (target / relative).is_file(), relative
     env = {**os.environ, "PYTHONPATH": str(target), "SOFTHIL_CACHE_DIR": str(tmp_path / "cache")}
