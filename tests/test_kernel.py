@@ -333,13 +333,15 @@ def test_every_reader_after_a_period_in_c_sees_the_python_masters_values(
     assert len({str(inputs) for inputs in python[0]}) > 12  # the values moved
 
 
+@pytest.mark.parametrize("thread", [True, False])
 @pytest.mark.parametrize("decimation", [1, 3, 7])
 def test_observers_inside_a_period_on_the_worker_see_the_sampled_ticks(
-    drive_cylinder_fmu: BuiltFmu, fea_segment_fmu: BuiltFmu, decimation: int
+    drive_cylinder_fmu: BuiltFmu, fea_segment_fmu: BuiltFmu, decimation: int, thread: bool
 ) -> None:
-    """An observer of every `decimation`-th tick while the FMUs step whole periods on the
-    kernel's worker thread: it sees, at exactly its ticks, the values the Python path shows at
-    those ticks (the worker samples them), and the periods still start on the thread."""
+    """An observer of every `decimation`-th tick while the FMUs step whole periods, on the
+    kernel's worker thread (`thread`) or in turn (the kernel stopping at the observer's ticks,
+    no Python participant due in between): it sees, at exactly its ticks, the values the Python
+    path shows at those ticks, and the periods still start on the thread."""
 
     class Recorder:
         def __init__(self) -> None:
@@ -355,7 +357,7 @@ def test_observers_inside_a_period_on_the_worker_see_the_sampled_ticks(
     def ahead(master: Algorithm, target: int) -> None:
         if not master.observers:
             master.add_observer(recorders[master.uses_kernel])
-        if master.uses_kernel:
+        if master.uses_kernel and thread:
             started.append(master.start_advance(target, 0.0))
         master.advance_to(target)
 
@@ -365,7 +367,7 @@ def test_observers_inside_a_period_on_the_worker_see_the_sampled_ticks(
     kernel, _, _ = run_syncs(
         drive_cylinder_fmu, fea_segment_fmu, True, 12, ahead, firmware_decimation=SYNC_TICKS
     )
-    assert started == [True] * 12
+    assert started == [True] * 12 * thread
     assert kernel == python
     got, want = recorders[True].calls, recorders[False].calls
     # at the tick it was added (0), then every decimation-th tick up to the last SYNC's 120
