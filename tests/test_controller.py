@@ -10,6 +10,7 @@ from collections import deque
 from collections.abc import Callable
 from dataclasses import replace
 
+import can
 import numpy as np
 import pytest
 
@@ -20,7 +21,17 @@ from controllers.estimation import BendModel, Estimate, MarkerFrame
 from controllers.estimators import RawEstimator
 from controllers.node import CameraAssembler, ControllerError, ControllerNode, RealtimeClock
 from rigbus.canbus import DEFAULT_CHANNEL, DEFAULT_LOOPBACK_PORT, BusSpec
-from rigbus.protocol import CameraFrame, CameraMarker, DriveStatus, Frame, Protocol, Sync
+from rigbus.protocol import (
+    CameraFrame,
+    CameraMarker,
+    DriveCommand,
+    DriveStatus,
+    Emcy,
+    Frame,
+    Heartbeat,
+    Protocol,
+    Sync,
+)
 from robots.planar_arm.controller.config import ControllerConfig
 
 # ---------------------------------------------------------------------------- CameraTiming
@@ -478,3 +489,94 @@ def test_lenient_controller_skips_stale_status_and_uses_the_one_of_its_cycle() -
         assert drives[1].p_a == pytest.approx(100.0 * cycle)
         assert drives[1].p_b == pytest.approx(-100.0 * cycle)
     assert [f.counter for f in bus.sent if isinstance(f, Sync)] == list(range(9))
+
+
+GARBLED = can.Message(arbitration_id=0x181, data=b"\x01", is_extended_id=False)  # 1 byte short
+
+
+class InterferedBus(ScriptedBus):
+    """The scripted rig, and before its replies to each SYNC the frames of `others` (other
+    nodes, or a garbled frame), in that order."""
+
+    def __init__(self, answer: Callable[[Frame], list[Frame]], others: list) -> None:
+        super().__init__(answer)
+        self.others = others
+
+    def send(self, message, timeout=None) -> None:
+        super().send(message, timeout)
+        if isinstance(self.sent[-1], Sync):
+            replies = [self.inbox.pop() for _ in range(len(self.inbox))][::-1]
+            for other in self.others:
+                self.inbox.append(
+                    other if isinstance(other, can.Message) else self.protocol.encode(other)
+                )
+            self.inbox.extend(replies)
+
+
+def test_a_garbled_frame_stops_the_strict_controller_naming_the_sync() -> None:
+    bus = InterferedBus(rig_answer(FAST_CAMERA, stale_status=False), [GARBLED])
+    node = ControllerNode(
+        config("strict", 3, FAST_CAMERA),
+        bus,
+        estimator=RecordingEstimator(),
+        controller=SilentController(),
+    )
+    with pytest.raises(ControllerError, match=r"^at SYNC 0: DriveStatus1 \(0x181\): 1 data bytes"):
+        node.run()
+
+
+def test_under_hold_frames_the_controller_cannot_use_are_counted_not_fatal() -> None:
+    """A garbled frame and an unexpected one count as unknown, an EMCY is recorded with its
+    cycle, a heartbeat is let pass, and a DriveCommand (only this controller sends it) or a
+    second status of the cycle is an intrusion; the cycle's own status is still used."""
+    others = [
+        GARBLED,
+        Emcy(1, 0x5000, 1, 0.0, 0),
+        Heartbeat(1, 5),
+        DriveCommand(1, 0.03, True, 0),
+        CameraMarker(7, 0.0, 0.0, 0, 0.0),  # beyond the markers: ignored by the assembler
+    ]
+    estimator = RecordingEstimator()
+    bus = InterferedBus(rig_answer(FAST_CAMERA, stale_status=False), others)
+    node = ControllerNode(
+        config("hold", 4, FAST_CAMERA), bus, estimator=estimator, controller=SilentController()
+    )
+    report = node.run()
+    assert report.unknown_frames == 5  # one garbled frame per SYNC 0..4
+    assert [e["cycle"] for e in report.emcy] == [0, 1, 2, 3, 4]
+    assert report.emcy[0]["error_code"] == 0x5000
+    assert report.intrusions == 5 and report.first_intrusion.startswith("DriveCommand 0x201")
+    assert report.stale_frames == 0 and report.status_missed == 0
+    for cycle, (_, drives, _) in enumerate(estimator.calls):
+        assert drives[1].piston_position == pytest.approx(piston_at(cycle), abs=1e-6)
+
+
+def test_a_second_status_of_the_cycle_is_an_intrusion_and_strict_stops() -> None:
+    """Another node sending DriveStatus1 too: its copy arrives while the cycle still waits for
+    its camera frames (each SYNC waits for one here)."""
+    timing = replace(FAST_CAMERA, latency_ticks=0)
+
+    def twice(frame: Frame) -> list[Frame]:
+        replies = rig_answer(timing, stale_status=False)(frame)
+        status = [r for r in replies if isinstance(r, DriveStatus)]
+        return status + status + [r for r in replies if not isinstance(r, DriveStatus)]
+
+    node = ControllerNode(
+        config("hold", 2, timing),
+        ScriptedBus(twice),
+        estimator=RecordingEstimator(),
+        controller=SilentController(),
+    )
+    report = node.run()
+    assert report.intrusions == 3 and report.stale_frames == 0
+    assert report.first_intrusion == (
+        "a second DriveStatus1 for SYNC 0: another node sends in the drive's name"
+    )
+    strict = ControllerNode(
+        config("strict", 2, timing),
+        ScriptedBus(twice),
+        estimator=RecordingEstimator(),
+        controller=SilentController(),
+    )
+    with pytest.raises(ControllerError, match=r"^intrusion on the bus: a second DriveStatus1 "):
+        strict.run()

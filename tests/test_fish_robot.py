@@ -475,3 +475,60 @@ def test_a_fish_that_leaves_the_camera_s_view_before_its_hold_is_a_warning(
     nose = np.abs(np.c_[signals["nose_x"], signals["nose_y"]]).max(axis=1)
     k = int(np.argmax(signals["time"] >= left))
     assert nose[k] > 0.55 and nose[:k].max() <= nose[k]  # the first sample out of view
+
+
+def test_after_a_turn_the_strokes_resume_on_the_other_side_from_where_the_head_rests() -> None:
+    """Vented and at rest for `settle_time` after a turn on side a, the hold starts: the beat
+    average starts again at the resting yaw (not the yaw averaged through the turn), and the
+    first stroke is on side b at once, sized by that heading's error."""
+    from rigbus.protocol import Protocol
+    from robots.fish.controller import HOLD, TURN, FishControl, FishEstimate, wrap
+
+    config = controller_config(load_scenario(resolve_scenario("fish-heading")))
+    T = config.control_period
+    vented = {
+        ("ValveStatus", n): GenericFrame("ValveStatus", n, {"state": 0, "fault": 0}) for n in (1, 2)
+    }
+    control = FishControl(config, Protocol())
+    first = 300
+    control.turned, control.mode, control.stroke_side = True, TURN, 0
+    control.pulse_end = [first * T + T, 0.0]  # the turn's pulse on side a ends at the first SYNC
+    control.mean_yaw = config.heading - 0.5  # averaged through the turn
+    rests = config.heading + 0.1
+    estimate = FishEstimate(0.0, 0.0, rests, 0.0, True)
+    for cycle in range(first, first + round(config.settle_max / T)):
+        frames = control.compute(cycle, cycle * T, estimate, vented)
+        opened = [f for f in frames if f.kind == "ValveCommand" and f.signals["open_time"] > 0]
+        if opened:
+            break
+    assert control.mode == HOLD and control.mean_yaw == rests
+    assert cycle * T + T - (first * T + T) == pytest.approx(config.settle_time, abs=1.5 * T)
+    half = 0.5 / config.frequency
+    bias = max(-1.0, min(1.0, config.heading_gain * wrap(config.heading - rests)))
+    assert [f.index for f in opened] == [2]
+    expected = min(config.duty * half * (1.0 - bias), 0.95 * half)
+    assert opened[0].signals["open_time"] == pytest.approx(expected, abs=1e-4)
+
+
+def test_corrective_strokes_are_a_beat_apart_whichever_side_they_turn() -> None:
+    """A correction waits a beat after the last (the beat-averaged heading has seen it before
+    the next is sized), even when the error has changed sign and the next stroke, half a beat
+    later, is on the side that now turns towards the reference."""
+    from rigbus.protocol import Protocol
+    from robots.fish.controller import FishControl
+
+    config = controller_config(load_scenario(resolve_scenario("fish-heading")))
+    half = 0.5 / config.frequency
+    error = math.radians(25.0)
+    control = FishControl(config, Protocol())
+    at = config.start + 0.5
+    control.next_stroke, control.stroke_side = at, 0
+    control._hold_heading(at, half, config.heading - error, {})  # right of it: turn left (a)
+    assert control.corrected_at == at
+    later = control.next_stroke
+    assert later == pytest.approx(at + half) and control.stroke_side == 1
+    control._hold_heading(later, half, config.heading + error, {})  # left of it now: b turns
+    assert control.corrected_at == at
+    bias = max(-1.0, min(1.0, -config.heading_gain * error))
+    plain = min(config.duty * half * (1.0 - bias), 0.95 * half)
+    assert control.pulse_end[1] - later == pytest.approx(plain)

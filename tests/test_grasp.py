@@ -477,7 +477,7 @@ def test_a_drawn_task_leaves_the_controller_room_to_plan(monkeypatch: pytest.Mon
     import robots.planar_arm.controller.grasp as grasp
 
     calls: list[tuple[float, np.ndarray]] = []
-    original = grasp.plan_approach
+    original = grasp.plan_approach  # the planner's, as the draw calls it
 
     def spy(*args, **kwargs):  # type: ignore[no-untyped-def]
         calls.append((kwargs["margin"], np.asarray(args[2], float)))
@@ -487,9 +487,9 @@ def test_a_drawn_task_leaves_the_controller_room_to_plan(monkeypatch: pytest.Mon
     draw(3)
     kept = calls[-3:]  # the draw that was kept: its three approaches, in order
     pattern = np.where(np.arange(START.size) % 2 == 0, 1.0, -1.0) * grasp.START_SHAKE
-    assert kept[0][0] == pytest.approx(grasp.MARGIN + grasp.DRAW_SLACK)
+    assert kept[0][0] == pytest.approx(MARGIN + grasp.DRAW_SLACK)
     assert np.array_equal(kept[0][1], START)
-    assert [m for m, _ in kept[1:]] == [grasp.MARGIN, grasp.MARGIN]
+    assert [m for m, _ in kept[1:]] == [MARGIN, MARGIN]
     assert kept[1][1] == pytest.approx(START + pattern)
     assert kept[2][1] == pytest.approx(START - pattern)
     assert grasp.DRAW_SLACK > 0 and grasp.START_SHAKE > 0

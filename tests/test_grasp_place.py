@@ -164,6 +164,27 @@ def test_an_object_where_the_approach_was_planned_for_is_grasped(config) -> None
     assert control.setpoint == config.gripper.x_closed
 
 
+def test_the_tip_straying_from_the_grasp_pose_restarts_the_settle_time(config) -> None:
+    """The fingers close once the estimated tip has stayed within `tolerance` of the grasp
+    pose for settle_time: a stray beyond it for two cycles starts the wait again."""
+    control, kappa = settled_on_the_grasp_pose(config)
+    stray = kappa + np.eye(config.segments)[0] * 0.5  # the base bent 0.5 1/m further
+    tips = [kinematics.forward(k, control.lengths, control.base)[-1, :2] for k in (kappa, stray)]
+    assert np.linalg.norm(tips[1] - tips[0]) > 2 * config.plan.tolerance
+    rig = Rig(control, config, kappa)
+    seen = control.found + [0.002, 0.0]
+    on_target = int(0.5 * config.plan.settle_time / PERIOD)
+    rig.run(seen, on_target)
+    rig.kappa = stray
+    rig.run(seen, 2)
+    rig.kappa = kappa
+    back = rig.cycle + 1  # the first cycle on target again
+    while control.phase == PHASE["settling"] and rig.cycle < back + 100:
+        rig.run(seen, 1)
+    assert control.phase == PHASE["grasping"]
+    assert (rig.cycle - back) * PERIOD == pytest.approx(config.plan.settle_time, abs=1.5 * PERIOD)
+
+
 def test_an_object_knocked_away_is_approached_again_where_it_is_now(config) -> None:
     """A finger knocked the object 15 mm along the gripper's axis during the approach: the
     controller plans a new approach to where the camera sees it instead of closing on air."""

@@ -368,25 +368,25 @@ class FishControl:
         half = 0.5 / c.frequency
         # the yaw averaged over about one beat: the strokes rock the head about its mean
         alpha = min(1.0, c.control_period / (2.0 * half))
-        mean_yaw = (
+        self.mean_yaw = (
             estimate.yaw
             if self.mean_yaw is None
             else self.mean_yaw + alpha * (estimate.yaw - self.mean_yaw)
         )
-        self.mean_yaw = mean_yaw
         if busy and self.mode == TURN:
             return
         error = wrap(c.heading - estimate.yaw)
-        if self.mode == TURN or self.mode == VENTING:
-            if not self._come_to_rest(at, estimate, readings):
-                return
-            mean_yaw = self.mean_yaw = estimate.yaw  # the average starts again at rest
+        if (self.mode == TURN or self.mode == VENTING) and not self._come_to_rest(
+            at, estimate, readings
+        ):
+            return
         if not self.turned or (
-            abs(wrap(c.heading - mean_yaw)) > c.retune_share * c.tolerance and self.mode != HOLD
+            abs(wrap(c.heading - self.mean_yaw)) > c.retune_share * c.tolerance
+            and self.mode != HOLD
         ):
             self._turn(at, error, readings)
             return
-        self._hold_heading(at, half, mean_yaw, readings)
+        self._hold_heading(at, half, self.mean_yaw, readings)
 
     def _come_to_rest(self, at: float, estimate: FishEstimate, readings: Mapping[Any, Any]) -> bool:
         """After a turn: vent and let the head come to rest before swimming on; True once it
@@ -405,6 +405,7 @@ class FishControl:
             self.rest_since = at
         if at - self.rest_since < c.settle_time and not late:
             return False
+        self.mean_yaw = estimate.yaw  # the beat average starts again where the head rests
         # the strokes go on alternating from the turn: the first is on the other side
         self.stroke_side = 1 - self.stroke_side
         self.next_stroke = at
