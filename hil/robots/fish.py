@@ -103,7 +103,7 @@ class FishSpec:
             0,
             Ref("timing.control_period", 0.25, per=True),
             lo_open=True,
-            why="a half beat of at least two control periods",
+            why="a half beat of at least two control periods: 0.25 / timing.control_period",
         ),
     )
     duty: float = setting(
