@@ -327,6 +327,8 @@ class ControllerSpec:
 
 @dataclass(frozen=True)
 class SineSpec:
+    """A curvature sine a curvature_profile adds to its steps from its start on."""
+
     start: float = setting(unit="s", doc="when the sine starts")
     amplitude: float = setting(unit="1/m", doc="curvature amplitude")
     frequency: float = setting(
