@@ -58,14 +58,17 @@ def reference(kinds: Iterable[str] | None = None) -> str:
 def _sections(cls: type, path: str, doc: str) -> Iterator[tuple[str, type, str]]:
     """(path, class, what it is) of `cls` and of the sections declared within it, depth
     first; an array of sections is at `path[i]`."""
-    said = _doc(cls) or doc
-    yield path, cls, said[:1].upper() + said[1:] + ("" if said.endswith(".") else ".")
+    yield path, cls, _sentence(_doc(cls) or doc)
     for key in keys_of(cls):
         inner = _inner(key.hint)
         if inner is not None:
             sub = _join(path, key.toml_name)
             array = typing.get_origin(key.hint) is tuple
             yield from _sections(inner, f"{sub}[i]" if array else sub, key.doc)
+
+
+def _sentence(text: str) -> str:
+    return text[:1].upper() + text[1:] + ("" if text.endswith(".") else ".")
 
 
 def _inner(hint: Any) -> type | None:
@@ -177,7 +180,7 @@ def _rules(rules: Any) -> list[str]:
 
 
 def _table(table: Table, kind: str) -> str:
-    lines = [f"## {_title(table.path)} (kind {kind})", "", table.doc]
+    lines = [f"## {_title(table.path)} (kind {kind})", "", _sentence(table.doc)]
     if table.keys:
         lines += ["", COLUMNS, *(_row(k, table.path) for k in table.keys)]
     lines += _rules(table.rules)
@@ -198,7 +201,8 @@ def _fmu(table: Table) -> list[str]:
     if table.settable:
         parameters = [v for v in parameters if v.name in table.settable]
     parameters = [v for v in parameters if v.name not in table.refused]
-    lines = [f"Its other keys are {table.fmu} parameters (fmus/{table.fmu}/model.toml):", ""]
+    its = "Its other keys are" if table.keys else "Its keys are"
+    lines = [f"{its} {table.fmu} parameters (fmus/{table.fmu}/model.toml):", ""]
     if table.refused:
         refused = ", ".join(f"`{name}`" for name in table.refused)
         lines = [f"Not here: {refused} ({table.refused_why}).", "", *lines]
@@ -206,16 +210,18 @@ def _fmu(table: Table) -> list[str]:
         "| parameter | unit | range | default | description |",
         "|---|---|---|---|---|",
     ]
-    for v in parameters:
-        lo = "-inf" if v.min is None else number(float(v.min))
-        hi = "inf" if v.max is None else number(float(v.max))
-        start = table.starts.get(v.name, v.start)
-        cells = [
-            f"`{v.name}`",
-            "" if v.unit in (None, "1") else str(v.unit),
-            f"[{lo}, {hi}]",
-            "" if start is None else number(float(start)),
-            " ".join(v.description.split()),
-        ]
-        lines.append("| " + " | ".join(c.replace("|", "\\|") for c in cells) + " |")
-    return lines
+    return lines + [_parameter(v, table.starts.get(v.name, v.start)) for v in parameters]
+
+
+def _parameter(v: Any, start: float | None) -> str:
+    """An FMU parameter's row (`v`: hil.fmu.spec.Variable) with its default `start`."""
+    lo = "-inf" if v.min is None else number(float(v.min))
+    hi = "inf" if v.max is None else number(float(v.max))
+    cells = [
+        f"`{v.name}`",
+        "" if v.unit in (None, "1") else str(v.unit),
+        f"[{lo}, {hi}]",
+        "" if start is None else number(float(start)),
+        " ".join(v.description.split()),
+    ]
+    return "| " + " | ".join(c.replace("|", "\\|") for c in cells) + " |"

@@ -147,7 +147,9 @@ class BusConfig:
         choices=OneOf(BUS_KINDS, summary=", ".join(OUR_KINDS) + " or a python-can interface"),
     )
     channel: str = setting(
-        "softhil", doc="the bus's channel", pattern=Pattern(r"[^\s<>]+", "have no spaces or '<>'")
+        "softhil",
+        doc="the bus's channel",
+        pattern=Pattern(r"[^\s<>]+", "be a name without spaces or '<>', not empty"),
     )
     host: str = setting("127.0.0.1", doc="the hub's host", pattern=HOST)
     port: int = setting(
@@ -324,6 +326,8 @@ class ControllerSpec:
 
 @dataclass(frozen=True)
 class SineSpec:
+    """A curvature sine a curvature_profile adds to its steps from its start on."""
+
     start: float = setting(unit="s", doc="when the sine starts")
     amplitude: float = setting(unit="1/m", doc="curvature amplitude")
     frequency: float = setting(

@@ -152,7 +152,10 @@ def test_every_key_is_in_the_reference() -> None:
             '[camera]\nocclusion_scope = "half"\n',
             "camera.occlusion_scope: must be one of frame, marker, got 'half'",
         ),
-        ('[bus]\nchannel = "my bus"\n', "bus.channel: must have no spaces or '<>', got 'my bus'"),
+        (
+            '[bus]\nchannel = "my bus"\n',
+            "bus.channel: must be a name without spaces or '<>', not empty, got 'my bus'",
+        ),
         # rules between keys: when, unless, and the multiple
         (
             "[camera]\nocclusion_interval = 1.0\n",

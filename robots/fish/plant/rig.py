@@ -70,7 +70,8 @@ VALVE_TABLE = Table(
 
 @dataclass(frozen=True)
 class FishSpec:
-    """The `[robot]` section of the soft fish (module docstring)."""
+    """The `[robot]` section of the soft fish: its start pose, its FMUs' parameter tables and
+    the keys of its tasks (escape, swim, heading: see hil/robots/fish.py)."""
 
     kind: str = setting("fish", doc="the robot kind")
     base: tuple[float, float, float] = setting(
@@ -103,7 +104,7 @@ class FishSpec:
             0,
             Ref("timing.control_period", 0.25, per=True),
             lo_open=True,
-            why="a half beat of at least two control periods",
+            why="a half beat of at least two control periods: 0.25 / timing.control_period",
         ),
     )
     duty: float = setting(
@@ -123,14 +124,20 @@ class FishSpec:
         Needs("timing.step", Range(hi=1e-3), why="the fish's valves", unit="s"),
     )
     TABLES: ClassVar[tuple[Table, ...]] = (
-        Table("robot.source", (), fmu="GasSource", checked=False, doc="the canister's"),
+        Table(
+            "robot.source",
+            (),
+            fmu="GasSource",
+            checked=False,
+            doc="the canister's GasSource parameters",
+        ),
         VALVE_TABLE,
         Table(
             "robot.body",
             (),
             fmu="FishBody",
             checked=False,
-            doc="the body's",
+            doc="the body's FishBody parameters",
             refused=START_POSE,
             refused_why=START_WHY,
         ),

@@ -84,7 +84,8 @@ OBJECT = Table(
         Key("height", float, 0.05, "m", "its height (it tips over beyond its base)"),
     ),
     checked=False,
-    doc="one disk of robot.environment.objects",
+    doc="one disk of robot.environment.objects; each value within the Environment FMU's range "
+    "of its parameter (x: object_x0_N, yaw: object_yaw0_N, radius: object_radius_N, ...)",
 )
 OBJECT_KEYS = {key.name: key.default for key in OBJECT.keys}
 
