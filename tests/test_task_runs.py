@@ -85,6 +85,28 @@ def test_point_to_point_is_scored_on_the_true_tip(point_run) -> None:
     assert len({tuple(e["target"]) for e in summary["per_target"]}) == 2
 
 
+def test_time_to_settle_is_when_the_true_tip_enters_the_band_for_good(point_run) -> None:
+    """Per target, counted from the first cycle the controller pursued it: the true tip is
+    within the task's band from the summary's time to settle on, and outside it just before."""
+    summary, out = point_run
+    signals = read_signals(out / "signals.csv")
+    band = load_scenario(out / "scenario.toml").task.band
+    lengths = [0.06] * 6
+    base = (0.0, 0.0, np.pi / 2)
+    pursued = (PHASE["moving"], PHASE["settling"], PHASE["settled"])
+    for k, entry in enumerate(summary["per_target"]):
+        rows = np.nonzero((signals["target_index"] == k) & np.isin(signals["phase"], pursued))[0]
+        t = signals["time"][rows]
+        kappas = np.column_stack([signals[f"kappa_{n}"][rows] for n in range(1, 7)])
+        tips = np.array([kinematics.forward(kappa, lengths, base)[-1, :2] for kappa in kappas])
+        error = np.linalg.norm(tips - np.array(entry["target"]), axis=1)
+        assert entry["start"] == pytest.approx(t[0])
+        settled = int(np.argmin(np.abs(t - t[0] - entry["time_to_settle"])))
+        assert t[settled] - t[0] == pytest.approx(entry["time_to_settle"])
+        assert np.all(error[settled:] <= band)
+        assert settled == 0 or error[settled - 1] > band
+
+
 def test_path_task_tracks_the_line_within_the_acceptance(tmp_path: Path) -> None:
     path = variant(
         tmp_path,
