@@ -41,7 +41,7 @@ import can
 
 import hil.recording
 from hil.recording import CanLogger, SignalRecorder
-from hil.robots import SignalSpec
+from hil.rig import SignalSpec
 
 
 class _Wall:

@@ -71,7 +71,7 @@ VALVE_TABLE = Table(
 @dataclass(frozen=True)
 class FishSpec:
     """The `[robot]` section of the soft fish: its start pose, its FMUs' parameter tables and
-    the keys of its tasks (escape, swim, heading: see hil/robots/fish.py)."""
+    the keys of its tasks (escape, swim, heading: see robots/fish/plant/rig.py)."""
 
     kind: str = setting("fish", doc="the robot kind")
     base: tuple[float, float, float] = setting(
