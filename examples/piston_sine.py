@@ -1,7 +1,7 @@
 """A controller of your own: python-can, cantools and the DBC, nothing from softhil.
 
 It drives every drive cylinder's piston through a sine about mid-stroke, open loop, in the
-lockstep protocol of the DBC (../shared/ARCHITECTURE.md): send SYNC(c), collect each drive's
+lockstep protocol of the DBC (docs/sync-cycle.md): send SYNC(c), collect each drive's
 DriveStatus echoing c (the drives answer last, after the camera's frames), send a DriveCommand
 to each drive, and SYNC again; after the final SYNC nothing acts. It reads the run's
 controller.json only for the number of cycles, the control period and the stroke.
