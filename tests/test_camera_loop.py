@@ -524,7 +524,10 @@ def _not_a_number(signals: Path) -> None:
 @pytest.mark.parametrize(
     ("damage", "expected"),
     [
-        (lambda s: s.unlink(), "{signals}: no such file"),
+        (
+            lambda s: s.unlink(),
+            "{signals}: no such file (its blocks are in signals.parquet: hil csv {folder})",
+        ),
         (
             _cut_mid_line,
             "{signals}: line 50: 3 cells where the header names 12 (a file cut short?)",
