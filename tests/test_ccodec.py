@@ -149,6 +149,22 @@ def test_plain_floats_and_counters_are_encoded_in_c() -> None:
     assert codec.encode(wrapped)[7] == 300 % 256
 
 
+@needs_c
+def test_a_raw_value_its_field_does_not_hold_is_never_packed() -> None:
+    """The C encoder packs a raw value only within its field's bits (the codec's quick range
+    keeps to them; a plan that did not would be refused value by value, not wrapped)."""
+    assert module is not None
+    # an 8-bit field of scale 1 whose quick range claims -1000..1000
+    for signed, bounds in ((True, (-128, 127)), (False, (0, 255))):
+        low, high = ccodec._raw_range(8, signed)
+        assert (low, high) == bounds
+        encoder = module.compile_encoder(1, ((0, 0xFF, True, 1, True, 0, -1e3, 1e3, low, high),))
+        assert module.pack(encoder, (high,)) == bytes([high & 0xFF])
+        assert module.pack(encoder, (low,)) == bytes([low & 0xFF])
+        assert module.pack(encoder, (high + 1,)) is None, signed
+        assert module.pack(encoder, (low - 1,)) is None, signed
+
+
 def _payloads(rng: np.random.Generator, length: int) -> list[bytes]:
     edges = [bytes(length), bytes([0xFF] * length), bytes([0x80] * length), bytes([0x7F] * length)]
     return edges + [bytes(rng.integers(0, 256, length).tolist()) for _ in range(150)]

@@ -40,7 +40,9 @@ EXAMPLES = settings(
 )
 
 # byte-aligned signals with integer and fractional offsets, signed and unsigned, an int scale
-# with an int offset, a negative scale and a 1-bit flag: every one a struct holds
+# with an int offset, a negative scale (with and without offsets: cantools adds an offset of 0,
+# which makes raw 0 times a negative scale 0.0, not -0.0) and a 1-bit flag: every one a struct
+# holds
 ALIGNED_DBC = """VERSION ""
 NS_ :
 BS_:
@@ -55,6 +57,8 @@ BO_ 256 Offsets: 8 Rig
 BO_ 257 Wrapping: 2 Rig
  SG_ counter : 0|8@1- (1,0) [-128|127] "" Rig
  SG_ frame_index : 8|8@1+ (1,0) [0|255] "" Rig
+BO_ 258 Reversed: 2 Rig
+ SG_ angle : 0|16@1- (-0.01,0) [-300|300] "deg" Rig
 """
 
 # layouts a struct cannot hold: across bytes, big-endian, a float, no range, a range wider
@@ -92,6 +96,13 @@ KINDS = list({m.name.rstrip("0123456789"): m for m in reversed(MESSAGES)}.values
 @functools.cache
 def codec_of(message: Message, compiled: bool = True) -> MessageCodec:
     return MessageCodec(message, compiled)
+
+
+def same(have: dict[str, Any], want: dict[str, Any]) -> bool:
+    """The same values by name, in the same order, bit for bit: types, -0.0 and all."""
+    return [(k, type(v), repr(v)) for k, v in have.items()] == [
+        (k, type(v), repr(v)) for k, v in want.items()
+    ]
 
 
 def cantools_outcome(message: Message, values: dict[str, Any]) -> bytes | str:
@@ -142,8 +153,7 @@ def test_values_in_range_encode_as_cantools_encodes(message: Message, data: st.D
     # and the payload decodes to cantools' values, types included
     want = message.decode(expected, decode_choices=False)
     have = codec.as_mapping(codec.decode(bytearray(expected)))
-    assert have == want and [type(v) for v in have.values()] == [type(v) for v in want.values()]
-    assert list(have) == list(want)  # in the DBC's order
+    assert same(have, want)
 
 
 @pytest.mark.parametrize("message", KINDS + UNALIGNED, ids=lambda m: m.name)
@@ -154,7 +164,7 @@ def test_every_payload_decodes_as_cantools_decodes(message: Message, data: st.Da
     codec = codec_of(message)
     want = message.decode(payload, decode_choices=False)
     have = codec.as_mapping(codec.decode(payload))
-    assert have == want and [type(v) for v in have.values()] == [type(v) for v in want.values()]
+    assert same(have, want)
 
 
 def edges(signal: Any) -> list[float]:
@@ -169,7 +179,7 @@ def edges(signal: Any) -> list[float]:
     )
     values = [low, high, 0.0, -0.0, -low, -high, (low + high) / 2]
     for end in (low, high):
-        for factor in (0.5e-6, 0.99e-6, 1.01e-6, 2e-6, 0.5, 1.0):
+        for factor in (0.5e-6, 0.99e-6, 1e-6, 1.01e-6, 2e-6, 0.5, 1.0):
             values += [end - abs(scale) * factor, end + abs(scale) * factor]
     for k in (-3, -2, -1, 0, 1, 2, 3, 1234, -1234, 6150, 22800):
         half = (k + 0.5) * scale + offset
@@ -306,9 +316,9 @@ def test_a_signed_sequence_number_wraps_into_its_range_and_a_flag_keeps_its_bit(
     both paths; a 1-bit flag leaves its byte's other bits 0, and ignores them when decoding."""
     wrapping, offsets = ALIGNED[1], ALIGNED[0]
     for codec in (MessageCodec(wrapping), MessageCodec(wrapping, compiled=False)):
-        assert codec.encode(codec.values_of({"counter": -1, "frame_index": 300})) == bytes(
-            [127, 44]
-        )
+        for frame_index in (300, 44):  # the other value wrapped or not
+            values = {"counter": -1, "frame_index": frame_index}
+            assert codec.encode(codec.values_of(values)) == bytes([127, 44])
     codec = MessageCodec(offsets)
     payload = bytearray(8)
     payload[6] = 0xFF
