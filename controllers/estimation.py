@@ -24,11 +24,8 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from rigbus.records import fast_init
 
-
-@fast_init
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class DriveReading:
     """One drive's status as sampled at a SYNC (the DriveStatus frame), SI units."""
 
@@ -38,8 +35,7 @@ class DriveReading:
     fault: int = 0
 
 
-@fast_init
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class MarkerFrame:
     """One camera picture: marker positions at `exposure_time`.
 
@@ -56,8 +52,7 @@ class MarkerFrame:
         return ~np.isnan(self.points).any(axis=1)
 
 
-@fast_init
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class Estimate:
     """The configuration at a SYNC time: per-segment curvature [1/m], its rate [1/(m s)] and the
     standard deviation of the curvature estimate [1/m] (NaN where an estimator has none)."""

@@ -38,7 +38,6 @@ from rigbus.protocol import (
     Heartbeat,
 )
 from rigbus.protocol import Protocol as CanProtocol
-from rigbus.records import fast_init
 
 # send phases: the documented order of a SYNC's answer
 EMERGENCY, HEARTBEAT, MEASUREMENT, STATUS = 0, 1, 2, 3
@@ -50,8 +49,7 @@ FAULT_OVER_PRESSURE = 16  # plant-side fault bits, above the DriveCylinder's own
 FAULT_COMMAND_TIMEOUT = 32
 
 
-@fast_init
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class SyncContext:
     """One SYNC as the devices see it: cycle c, its wire counter, its tick and time."""
 

@@ -291,8 +291,11 @@ class Plant:
         for node in route.nodes:
             node.receive(frame)
         if route.recorded:
-            signals = frame.signals if isinstance(frame, GenericFrame) else frame.__dict__
-            self.signals.set_cells([(column, signals[name]) for name, column in route.recorded])
+            if isinstance(frame, GenericFrame):
+                cells = [(column, frame.signals[name]) for name, column in route.recorded]
+            else:  # a typed frame: its signals are its fields
+                cells = [(column, getattr(frame, name)) for name, column in route.recorded]
+            self.signals.set_cells(cells)
         if route.nodes or route.recorded:
             return
         if self.scenario.controller.policy == "strict":

@@ -15,8 +15,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rigbus.records import fast_init
-
 SCOPES = ("frame", "marker")
 
 
@@ -97,8 +95,7 @@ def check_effects(
         raise fail("jitter", f"must be below the frame period {period} s, got {effects.jitter}")
 
 
-@fast_init
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class Picture:
     """One picture: measured points (NaN rows for missing markers), shape (M, dims) [m], the
     per-marker flags, shape (M,), and when it was taken.

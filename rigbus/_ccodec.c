@@ -1,46 +1,49 @@
-/* softhil's DBC codec in C: the common case of `rigbus.protocol._Codec`, one call a frame.
+/* softhil's DBC codec in C: the plain case of `rigbus.codec.MessageCodec`, one call a frame.
 
-   A plan (built in Python from the DBC, `rigbus.ccodec`) is compiled once per message into
-   a capsule; `pack(capsule, values)` and `unpack(capsule, data)` then encode a frame's values
-   and decode a payload into its typed frame with the same arithmetic as the generated Python
-   codec, in the same order, so the bytes and the values are the same bit for bit.
+   A plan (built in Python from a message's codec, `rigbus.ccodec`) is compiled once per message
+   into a capsule; `pack(capsule, values)` encodes a frame's values (a tuple in the order of the
+   codec's `names`) and `unpack(capsule, data)` decodes a payload into its typed frame with the
+   same arithmetic as the codec's Python path, so the bytes and the values are the same bit for
+   bit.
 
-   Invariant: either function returns None for anything but the plain case (a missing value, a
-   value that is not a float, int or bool, a value out of range or not finite, an index that does
-   not match), and the caller then takes the Python path, which encodes it or raises the error it
-   always raised. So this file never decides what is an error, only how fast the plain case is.
+   Invariant: either function returns None for anything but the plain case (a value that is not
+   a float, or an int for a signal without scale and offset; a value outside the codec's quick
+   range, which also leaves out every sequence number its modulo would change; an index that
+   does not match), and the caller then takes the Python path, which encodes it or raises the
+   error it always raises. So this file never decides what is an error, only how fast the plain
+   case is.
 
-   Exactness, against the Python codec (checked value by value in tests/test_ccodec.py):
-   - cantools' `numeric_scaled_to_raw` rounds `quotient` if `divmod(shifted, scale)` leaves no
-     remainder, else `shifted / scale`. A zero remainder means shifted is an exact multiple of
-     the scale, so the correctly rounded division gives the same double as the quotient (and
-     CPython's float divmod computes its quotient as that same division): one division here.
-   - Python's round(float) is round-half-even, written out as CPython writes it.
-   - Decoding follows Python's types: an int scale and offset keep the product an exact integer;
-     a float scale makes it a double, to which the offset is added as a double. */
+   Exactness, against the Python path (checked value by value in tests/test_ccodec.py):
+   - the Python path's raw value is round((value - offset) / scale): a subtraction and a
+     correctly rounded division of doubles (Python's int / int too, for ints below 2^52), then
+     Python's round(float), round-half-even, written out as CPython writes it;
+   - decoding follows Python's types: an int scale and offset keep the product an exact integer;
+     a float scale makes it a double, to which the offset is added as a double; then the
+     field's converter (float(v), int(v) truncating, bool(int(v))). */
 
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
 #include <math.h>
 #include <stdint.h>
 #include <string.h>
+#include <structmember.h>
 
 #define ENCODER_NAME "softhil.codec.encoder"
 #define DECODER_NAME "softhil.codec.decoder"
 #define LIMIT 4503599627370496.0 /* 2^52: every integer below it is exact in a double */
+#define MAX_FIELDS 64
 
 enum { KIND_FLOAT = 0, KIND_INT = 1, KIND_BOOL = 2 };
 
 typedef struct {
-    PyObject *name;  /* the signal's name (a str, owned) */
     int start;
     uint64_t mask;
-    int identity;    /* scale 1 (an int) and offset 0: the raw value is the value */
+    int identity;    /* scale 1 and offset 0 (ints): the raw value is the value */
     double scale;
-    int skip_offset; /* an int offset of 0 is not subtracted (value - 0 keeps -0.0) */
+    int skip_offset; /* an offset the Python path does not subtract (value - 0 is value) */
     double offset;
-    double lo, hi;   /* the tolerant range cantools enforces */
-    long long modulus; /* of a wrapping counter, or 0 */
+    double lo, hi;   /* the codec's quick range */
+    double raw_lo, raw_hi; /* the raw values the field holds */
 } EncodeSignal;
 
 typedef struct {
@@ -66,7 +69,8 @@ typedef struct {
 typedef struct {
     Py_ssize_t length;
     PyObject *cls;        /* the frame dataclass (owned) */
-    PyObject *fields;     /* tuple of field names in dataclass order (owned) */
+    Py_ssize_t n_fields;
+    Py_ssize_t slot[MAX_FIELDS]; /* each field's place in an instance (its slot's offset) */
     PyObject *index;      /* the message's index (an int) or None (owned) */
     Py_ssize_t index_field;  /* field position of the index, or -1 */
     Py_ssize_t index_signal; /* signal position of the index field, or -1 */
@@ -83,26 +87,22 @@ static double round_half_even(double x) {
     return rounded;
 }
 
-/* ------------------------------------------------------------------------------ encoder */
-
-static void encoder_free(PyObject *capsule) {
-    Encoder *e = PyCapsule_GetPointer(capsule, ENCODER_NAME);
-    if (e == NULL) {
-        return;
-    }
-    for (Py_ssize_t k = 0; k < e->count; k++) {
-        Py_XDECREF(e->signals[k].name);
-    }
-    PyMem_Free(e);
-}
-
 static int as_double(PyObject *o, double *out) {
     *out = PyFloat_AsDouble(o);
     return !(*out == -1.0 && PyErr_Occurred());
 }
 
-/* compile_encoder(length, ((name, start, mask, identity, scale, skip_offset, offset, lo, hi,
-   modulus), ...)) -> capsule */
+/* ------------------------------------------------------------------------------ encoder */
+
+static void encoder_free(PyObject *capsule) {
+    Encoder *e = PyCapsule_GetPointer(capsule, ENCODER_NAME);
+    if (e != NULL) {
+        PyMem_Free(e);
+    }
+}
+
+/* compile_encoder(length, ((start, mask, identity, scale, skip_offset, offset, lo, hi, raw_lo,
+   raw_hi), ...)) -> capsule, the signals in the order of the codec's values */
 static PyObject *compile_encoder(PyObject *self, PyObject *args) {
     Py_ssize_t length;
     PyObject *signals;
@@ -127,36 +127,67 @@ static PyObject *compile_encoder(PyObject *self, PyObject *args) {
     }
     for (Py_ssize_t k = 0; k < count; k++) {
         EncodeSignal *s = &e->signals[k];
-        PyObject *name, *scale, *offset, *lo, *hi;
+        PyObject *scale, *offset, *lo, *hi;
         unsigned long long mask;
-        int identity, skip;
-        if (!PyArg_ParseTuple(PyTuple_GET_ITEM(signals, k), "UiKpOpOOOL", &name, &s->start,
-                              &mask, &identity, &scale, &skip, &offset, &lo, &hi,
-                              &s->modulus)) {
+        long long raw_lo, raw_hi;
+        if (!PyArg_ParseTuple(PyTuple_GET_ITEM(signals, k), "iKpOpOOOLL", &s->start, &mask,
+                              &s->identity, &scale, &s->skip_offset, &offset, &lo, &hi,
+                              &raw_lo, &raw_hi)) {
             Py_DECREF(capsule);
             return NULL;
         }
-        if (s->start < 0 || s->start > 63 || s->modulus < 0) {
+        if (s->start < 0 || s->start > 63) {
             PyErr_SetString(PyExc_ValueError, "the C codec handles signals in 64 bits");
             Py_DECREF(capsule);
             return NULL;
         }
         s->mask = mask;
-        s->identity = identity;
-        s->skip_offset = skip;
+        s->raw_lo = (double)raw_lo;
+        s->raw_hi = (double)raw_hi;
         if (!as_double(scale, &s->scale) || !as_double(offset, &s->offset) ||
             !as_double(lo, &s->lo) || !as_double(hi, &s->hi)) {
             Py_DECREF(capsule);
             return NULL;
         }
-        Py_INCREF(name);
-        s->name = name;
         e->count = k + 1;
     }
     return capsule;
 }
 
-/* pack(encoder, values: dict) -> bytes, or None: not the plain case (the Python path decides) */
+/* the raw value of `v` for signal `s`, or 0 with *plain = 0: not the plain case */
+static double raw_value(const EncodeSignal *s, PyObject *v, int *plain) {
+    if (PyFloat_Check(v)) {
+        /* a float (or a subclass such as numpy.float64): within the quick range, or None */
+        double x = PyFloat_AS_DOUBLE(v);
+        if (!(s->lo <= x && x <= s->hi)) {
+            *plain = 0;
+            return 0.0;
+        }
+        if (s->identity) {
+            return round_half_even(x);
+        }
+        return round_half_even((s->skip_offset ? x : x - s->offset) / s->scale);
+    }
+    if (PyLong_Check(v) && s->identity) {
+        /* an int or a bool for a signal without scale or offset: the raw value itself */
+        int overflow = 0;
+        long long i = PyLong_AsLongLongAndOverflow(v, &overflow);
+        if (overflow || (i == -1 && PyErr_Occurred()) || i >= LIMIT || i <= -LIMIT) {
+            PyErr_Clear();
+            *plain = 0;
+            return 0.0;
+        }
+        double raw = (double)i;
+        if (!(s->lo <= raw && raw <= s->hi)) {
+            *plain = 0;
+        }
+        return raw;
+    }
+    *plain = 0;
+    return 0.0;
+}
+
+/* pack(encoder, values: tuple) -> bytes, or None: not the plain case (the Python path decides) */
 static PyObject *pack(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
     (void)self;
     if (nargs != 2) {
@@ -168,60 +199,16 @@ static PyObject *pack(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
         return NULL;
     }
     PyObject *values = args[1];
-    if (!PyDict_CheckExact(values)) {
+    if (!PyTuple_CheckExact(values) || PyTuple_GET_SIZE(values) != e->count) {
         Py_RETURN_NONE;
     }
     uint64_t bits = 0;
     for (Py_ssize_t k = 0; k < e->count; k++) {
         const EncodeSignal *s = &e->signals[k];
-        PyObject *v = PyDict_GetItemWithError(values, s->name);
-        if (v == NULL) {
-            if (PyErr_Occurred()) {
-                return NULL;
-            }
-            Py_RETURN_NONE; /* missing */
-        }
-        double raw;
-        if (PyFloat_Check(v)) {
-            /* a float (or a subclass such as numpy.float64): in range and finite, or None */
-            double x = PyFloat_AS_DOUBLE(v);
-            if (!(s->lo <= x && x <= s->hi)) {
-                Py_RETURN_NONE;
-            }
-            if (s->identity) {
-                raw = round_half_even(x);
-            } else {
-                double shifted = s->skip_offset ? x : x - s->offset;
-                raw = round_half_even(shifted / s->scale);
-            }
-        } else if (PyLong_Check(v)) {
-            /* bool -> int; an int counter wraps at its modulus; only identity signals */
-            if (!s->identity) {
-                Py_RETURN_NONE;
-            }
-            int overflow = 0;
-            long long i = PyLong_AsLongLongAndOverflow(v, &overflow);
-            if (overflow || (i == -1 && PyErr_Occurred())) {
-                PyErr_Clear();
-                Py_RETURN_NONE;
-            }
-            if (!PyBool_Check(v) && s->modulus > 0) {
-                i %= s->modulus;
-                if (i < 0) {
-                    i += s->modulus; /* Python's modulus takes the divisor's sign */
-                }
-            }
-            if (i >= LIMIT || i <= -LIMIT) {
-                Py_RETURN_NONE;
-            }
-            raw = (double)i;
-            if (!(s->lo <= raw && raw <= s->hi)) {
-                Py_RETURN_NONE;
-            }
-        } else {
-            Py_RETURN_NONE;
-        }
-        if (!(raw < LIMIT && raw > -LIMIT)) {
+        int plain = 1;
+        double raw = raw_value(s, PyTuple_GET_ITEM(values, k), &plain);
+        /* a raw value its field does not hold: never in the quick range (the codec checks) */
+        if (!plain || !(s->raw_lo <= raw && raw <= s->raw_hi)) {
             Py_RETURN_NONE;
         }
         bits |= ((uint64_t)(int64_t)raw & s->mask) << s->start;
@@ -241,14 +228,33 @@ static void decoder_free(PyObject *capsule) {
         return;
     }
     Py_XDECREF(d->cls);
-    Py_XDECREF(d->fields);
     Py_XDECREF(d->index);
     PyMem_Free(d);
 }
 
+/* the offset of slot `name` in instances of `cls`, or -1: not a plain writable slot */
+static Py_ssize_t slot_offset(PyObject *cls, PyObject *name) {
+    PyObject *descr = PyObject_GetAttr(cls, name);
+    if (descr == NULL) {
+        PyErr_Clear();
+        return -1;
+    }
+    Py_ssize_t offset = -1;
+    if (Py_TYPE(descr) == &PyMemberDescr_Type &&
+        ((PyMemberDescrObject *)descr)->d_common.d_type == (PyTypeObject *)cls) {
+        PyMemberDef *member = ((PyMemberDescrObject *)descr)->d_member;
+        if (member->type == T_OBJECT_EX && !(member->flags & READONLY)) {
+            offset = member->offset;
+        }
+    }
+    Py_DECREF(descr);
+    return offset;
+}
+
 /* compile_decoder(length, cls, fields, index, index_field, ((start, mask, length, signed,
-   identity, scale, offset, kind, field), ...)) -> capsule; scale and offset as Python gives
-   them (int or float) */
+   identity, scale, offset, kind, field), ...)) -> capsule; `fields` the names of the class's
+   fields in order, each a plain slot of its own (ValueError otherwise: the Python path builds
+   the frames); scale and offset as Python gives them (int or float) */
 static PyObject *compile_decoder(PyObject *self, PyObject *args) {
     Py_ssize_t length, index_field;
     PyObject *cls, *fields, *index, *signals;
@@ -257,8 +263,13 @@ static PyObject *compile_decoder(PyObject *self, PyObject *args) {
                           &fields, &index, &index_field, &PyTuple_Type, &signals)) {
         return NULL;
     }
-    if (length < 0 || length > 8) {
-        PyErr_SetString(PyExc_ValueError, "the C codec handles 0..8 data bytes");
+    Py_ssize_t n_fields = PyTuple_GET_SIZE(fields);
+    if (length < 0 || length > 8 || n_fields > MAX_FIELDS) {
+        PyErr_SetString(PyExc_ValueError, "the C codec handles 0..8 data bytes, 64 fields");
+        return NULL;
+    }
+    if (index_field >= n_fields || (index_field >= 0 && index == Py_None)) {
+        PyErr_SetString(PyExc_ValueError, "index field out of the fields");
         return NULL;
     }
     Py_ssize_t count = PyTuple_GET_SIZE(signals);
@@ -267,10 +278,9 @@ static PyObject *compile_decoder(PyObject *self, PyObject *args) {
         return PyErr_NoMemory();
     }
     d->length = length;
+    d->n_fields = n_fields;
     Py_INCREF(cls);
     d->cls = cls;
-    Py_INCREF(fields);
-    d->fields = fields;
     Py_INCREF(index);
     d->index = index;
     d->index_field = index_field;
@@ -278,16 +288,17 @@ static PyObject *compile_decoder(PyObject *self, PyObject *args) {
     PyObject *capsule = PyCapsule_New(d, DECODER_NAME, decoder_free);
     if (capsule == NULL) {
         Py_DECREF(cls);
-        Py_DECREF(fields);
         Py_DECREF(index);
         PyMem_Free(d);
         return NULL;
     }
-    Py_ssize_t n_fields = PyTuple_GET_SIZE(fields);
-    if (index_field >= n_fields || (index_field >= 0 && index == Py_None)) {
-        PyErr_SetString(PyExc_ValueError, "index field out of the fields");
-        Py_DECREF(capsule);
-        return NULL;
+    for (Py_ssize_t f = 0; f < n_fields; f++) {
+        d->slot[f] = slot_offset(cls, PyTuple_GET_ITEM(fields, f));
+        if (d->slot[f] < 0) {
+            PyErr_SetString(PyExc_ValueError, "a field that is not a plain slot of the class");
+            Py_DECREF(capsule);
+            return NULL;
+        }
     }
     for (Py_ssize_t k = 0; k < count; k++) {
         DecodeSignal *s = &d->signals[k];
@@ -423,11 +434,8 @@ static PyObject *unpack(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
     }
     PyBuffer_Release(&view);
 
-    Py_ssize_t n_fields = PyTuple_GET_SIZE(d->fields);
-    PyObject *values[64];
-    if (n_fields > 64) {
-        Py_RETURN_NONE;
-    }
+    Py_ssize_t n_fields = d->n_fields;
+    PyObject *values[MAX_FIELDS];
     memset(values, 0, sizeof(values));
     PyObject *result = NULL;
     int plain = 1;
@@ -469,28 +477,15 @@ static PyObject *unpack(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
         }
     }
     PyTypeObject *type = (PyTypeObject *)d->cls;
-    PyObject *empty = PyTuple_New(0);
-    if (empty == NULL) {
-        goto done;
-    }
-    PyObject *frame = type->tp_new(type, empty, NULL); /* cls.__new__(cls), as __init__ gets */
-    Py_DECREF(empty);
+    PyObject *frame = type->tp_alloc(type, 0); /* what __init__ fills: each field's slot */
     if (frame == NULL) {
         goto done;
     }
-    PyObject *dict = PyObject_GenericGetDict(frame, NULL);
-    if (dict == NULL) {
-        Py_DECREF(frame);
-        goto done;
+    for (Py_ssize_t f = 0; f < d->n_fields; f++) {
+        PyObject **slot = (PyObject **)((char *)frame + d->slot[f]);
+        Py_XSETREF(*slot, values[f]); /* the reference moves into the frame */
+        values[f] = NULL;
     }
-    for (Py_ssize_t f = 0; f < n_fields; f++) {
-        if (PyDict_SetItem(dict, PyTuple_GET_ITEM(d->fields, f), values[f]) < 0) {
-            Py_DECREF(dict);
-            Py_DECREF(frame);
-            goto done;
-        }
-    }
-    Py_DECREF(dict);
     result = frame;
 done:
     for (Py_ssize_t f = 0; f < n_fields; f++) {
@@ -510,8 +505,6 @@ done:
    the object once (its member descriptor's offset) and the message is filled in place. It binds
    only a class whose twelve fields are plain writable slots of its own; otherwise it returns
    False and Python makes the messages. */
-
-#include <structmember.h>
 
 enum {
     F_TIMESTAMP, F_ID, F_EXTENDED, F_REMOTE, F_ERROR, F_CHANNEL, F_DLC, F_DATA, F_FD, F_RX,
