@@ -38,7 +38,6 @@ import json
 import numbers
 import re
 from collections.abc import Sequence
-from itertools import chain
 from pathlib import Path
 
 import numpy as np
@@ -74,21 +73,23 @@ def units_metadata(units: dict[str, str]) -> str:
 
 
 def encode_block(
-    columns: Sequence[str], rows: Sequence[Sequence[float]], first_row: int, units: str
+    columns: Sequence[str], cells: Sequence[float], first_row: int, units: str
 ) -> bytes:
-    """The Parquet file of `rows` (each a value per column): float64 columns, with the cells
-    that were integers or booleans named in its metadata. HilError naming the column for a
-    cell that is not a number, or an integer a float64 does not hold exactly."""
+    """The Parquet file of the rows whose `cells` follow each other (a value per column, row
+    after row): float64 columns, with the cells that were integers or booleans named in its
+    metadata. HilError naming the column for a cell that is not a number, or an integer a
+    float64 does not hold exactly."""
     width = len(columns)
-    types = list(map(type, chain.from_iterable(rows)))
+    rows = len(cells) // width
+    types = list(map(type, cells))
     integers: dict[str, list[int] | None] = {}
     booleans: dict[str, list[int] | None] = {}
     if types.count(float) != len(types):  # the rare block: look at the other columns' cells
         for c in range(width):
             kinds = types[c::width]
             if kinds.count(float) != len(kinds):
-                _odd_cells(columns[c], [row[c] for row in rows], first_row, integers, booleans)
-    data = np.array(rows, dtype=np.float64).reshape(len(rows), width).T
+                _odd_cells(columns[c], list(cells[c::width]), first_row, integers, booleans)
+    data = np.array(cells, dtype=np.float64).reshape(rows, width).T
     for found in (integers, booleans):
         for name, cells in found.items():  # null: every cell that is not empty
             if cells is not None and len(cells) == np.count_nonzero(

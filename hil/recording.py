@@ -26,7 +26,7 @@ import math
 import operator
 import time
 from collections.abc import Callable, Iterable, Sequence
-from itertools import chain
+from itertools import repeat
 from pathlib import Path
 
 import can
@@ -80,7 +80,8 @@ class SignalRecorder:
         self._flushed = time.monotonic()
         self._row: tuple[float, Sequence[float]] | None = None  # (time, sourced values)
         self._cells: dict[str, float] = {}
-        self._pending: list[list[float]] = []  # the rows of the next block
+        # the cells of the next block, row after row (a flat list: see CanLogger._frames)
+        self._pending: list[float] = []
         self._written = 0  # blocks written
         self._failed = False  # a block could not be written: the next ones are not tried
         self._closed = False
@@ -115,12 +116,8 @@ class SignalRecorder:
             return
         time_, sourced = self._row
         cells = self._cells
-        self._pending.append(
-            list(  # NaN where nobody wrote
-                self._in_order(
-                    [time_, *sourced, *map(cells.get, self._cell_columns, self._no_cells)]
-                )
-            )
+        self._pending += self._in_order(  # NaN where nobody wrote
+            [time_, *sourced, *map(cells.get, self._cell_columns, self._no_cells)]
         )
         if cells:
             cells.clear()
@@ -134,11 +131,12 @@ class SignalRecorder:
     def _write_block(self) -> None:
         """The pending rows as the next block file (none if there is no row, or a block
         failed before: the blocks on disk stay a run's first rows without a gap)."""
-        rows, self._pending = self._pending, []
-        if not rows or self._failed:
+        cells, self._pending = self._pending, []
+        if not cells or self._failed:
             return
         self._failed = True  # until the block is on disk
-        data = blocks.encode_block(self.columns, rows, self.rows - len(rows), self._units)
+        first_row = self.rows - len(cells) // len(self.columns)
+        data = blocks.encode_block(self.columns, cells, first_row, self._units)
         if not self._written:
             try:
                 self.blocks.mkdir()
@@ -262,8 +260,12 @@ class CanLogger:
         self.sent = 0
         self.received = 0
         self.bits = 0
-        # the frames logged since the last flush: (time, received, frames) as logged
-        self._pending: list[tuple[float, bool, Sequence[can.Message]]] = []
+        # the frames logged since the last flush, each with its time and direction, in flat lists:
+        # no container made a frame, so holding them costs the garbage collector nothing (a
+        # tuple a frame, held for a flush, made its collections scan them: 3-10x the appends)
+        self._frames: list[can.Message] = []
+        self._times: list[float] = []
+        self._received: list[bool] = []
         # a candump line's channel, as python-can writes it: a bare number n is "can<n>"
         self._candump_channel = f"can{channel}" if channel.isdigit() else channel
         self._first_stamp: float | None = None  # the first frame's stamp (candump)
@@ -271,11 +273,15 @@ class CanLogger:
 
     def log_all(self, messages: Sequence[can.Message], time: float, received: bool) -> None:
         """Frames sent or received together, at one time [s] of simulation."""
-        self._pending.append((time, received, messages))
+        self._frames += messages
+        self._times += repeat(time, len(messages))
+        self._received += repeat(received, len(messages))
 
     def log(self, message: can.Message, time: float, received: bool) -> None:
         """One frame the plant sent (T) or received (R) at `time` [s] of simulation."""
-        self._pending.append((time, received, (message,)))
+        self._frames.append(message)
+        self._times.append(time)
+        self._received.append(received)
 
     def flush(self, force: bool = False) -> None:
         """Write the frames logged since the last flush, whole records on disk: every
@@ -303,20 +309,22 @@ class CanLogger:
 
     def _write_pending(self) -> None:
         """Write the frames held, and count them (sent, received, bits on the bus)."""
-        pending, self._pending = self._pending, []
-        if not pending:
+        frames, times, received = self._frames, self._times, self._received
+        if not frames:
             return
+        self._frames, self._times, self._received = [], [], []
         if self._record is not None:
-            self._record.write("".join(self._candump_lines(pending)))
+            self._record.write("".join(self._candump_lines(frames, times, received)))
         else:
-            self._write_python_can(pending)
-        frames = list(chain.from_iterable(messages for _, _, messages in pending))
-        received = sum(len(messages) for _, rx, messages in pending if rx)
-        self.received += received
-        self.sent += len(frames) - received
+            self._write_python_can(frames, times, received)
+        count = sum(received)
+        self.received += count
+        self.sent += len(frames) - count
         self.bits += sum(map(_FRAME_BITS.__getitem__, map(len, map(_DATA, frames))))
 
-    def _candump_lines(self, pending: list[tuple[float, bool, Sequence[can.Message]]]) -> list[str]:
+    def _candump_lines(
+        self, frames: list[can.Message], times: list[float], received: list[bool]
+    ) -> list[str]:
         """The candump lines of the frames, as python-can's CanutilsLogWriter writes them: a
         stamp before the log's first written as the first; an error frame with python-can's
         error id and no direction; a remote frame's data "R"; an FD frame's "#" and flags."""
@@ -325,7 +333,7 @@ class CanLogger:
         idents = self._idents
         last = math.nan  # the stamp `prefix` was made for
         prefix = ""
-        for at, received, messages in pending:
+        for m, at, rx in zip(frames, times, received, strict=True):
             stamp = self.start + at
             if stamp != last or stamp == 0.0:  # a SYNC's frames share a stamp, formatted once
                 last = stamp  # (a zero's sign shows: -0.0 is formatted apart)
@@ -334,37 +342,36 @@ class CanLogger:
                 elif stamp < self._first_stamp:
                     stamp = self._first_stamp
                 prefix = f"({stamp:f}) {self._candump_channel} "
-            end = _END[received]
-            for m in messages:
-                if m.is_error_frame or m.is_remote_frame or m.is_fd:
-                    add(prefix + _unusual_line(m, idents, end))
-                else:
-                    ident = idents[m.arbitration_id, m.is_extended_id]
-                    add(f"{prefix}{ident}{m.data.hex().upper()}{end}")
+            if m.is_error_frame or m.is_remote_frame or m.is_fd:
+                add(prefix + _unusual_line(m, idents, _END[rx]))
+            else:
+                ident = idents[m.arbitration_id, m.is_extended_id]
+                add(f"{prefix}{ident}{m.data.hex().upper()}{_END[rx]}")
         return lines
 
-    def _write_python_can(self, pending: list[tuple[float, bool, Sequence[can.Message]]]) -> None:
+    def _write_python_can(
+        self, frames: list[can.Message], times: list[float], received: list[bool]
+    ) -> None:
         """The frames through python-can's writer for the log's suffix."""
         assert self._writer is not None
         try:
-            for at, received, messages in pending:
-                for message in messages:
-                    self._writer.on_message_received(
-                        can.Message(
-                            timestamp=self.start + at,
-                            arbitration_id=message.arbitration_id,
-                            is_extended_id=message.is_extended_id,
-                            is_remote_frame=message.is_remote_frame,
-                            is_error_frame=message.is_error_frame,
-                            is_fd=message.is_fd,
-                            bitrate_switch=message.bitrate_switch,
-                            error_state_indicator=message.error_state_indicator,
-                            dlc=message.dlc,
-                            data=None if message.is_remote_frame else bytes(message.data),
-                            is_rx=received,
-                            channel=self.channel,
-                        )
+            for message, at, rx in zip(frames, times, received, strict=True):
+                self._writer.on_message_received(
+                    can.Message(
+                        timestamp=self.start + at,
+                        arbitration_id=message.arbitration_id,
+                        is_extended_id=message.is_extended_id,
+                        is_remote_frame=message.is_remote_frame,
+                        is_error_frame=message.is_error_frame,
+                        is_fd=message.is_fd,
+                        bitrate_switch=message.bitrate_switch,
+                        error_state_indicator=message.error_state_indicator,
+                        dlc=message.dlc,
+                        data=None if message.is_remote_frame else bytes(message.data),
+                        is_rx=rx,
+                        channel=self.channel,
                     )
+                )
         except OSError as exc:
             raise WriteError(f"{self.path}: cannot write: {exc.strerror or exc}") from None
 
