@@ -501,6 +501,12 @@ class InterferedBus(ScriptedBus):
     def __init__(self, answer: Callable[[Frame], list[Frame]], others: list) -> None:
         super().__init__(answer)
         self.others = others
+        self.delivered = 0  # messages handed to the node
+
+    def recv(self, timeout=None):
+        message = super().recv(timeout)
+        self.delivered += message is not None
+        return message
 
     def send(self, message, timeout=None) -> None:
         super().send(message, timeout)
@@ -547,6 +553,7 @@ def test_under_hold_frames_the_controller_cannot_use_are_counted_not_fatal() -> 
     assert report.emcy[0]["error_code"] == 0x5000
     assert report.intrusions == 5 and report.first_intrusion.startswith("DriveCommand 0x201")
     assert report.stale_frames == 0 and report.status_missed == 0
+    assert report.frames_received == bus.delivered
     for cycle, (_, drives, _) in enumerate(estimator.calls):
         assert drives[1].piston_position == pytest.approx(piston_at(cycle), abs=1e-6)
 
@@ -580,3 +587,28 @@ def test_a_second_status_of_the_cycle_is_an_intrusion_and_strict_stops() -> None
     )
     with pytest.raises(ControllerError, match=r"^intrusion on the bus: a second DriveStatus1 "):
         strict.run()
+
+
+def test_under_hold_every_status_a_cycle_misses_is_counted() -> None:
+    """The fish's cycle needs three status frames (both valves', the canister's); a rig that
+    answers none leaves each cycle's wait to run out (a hundredth of a second here): three
+    misses per SYNC, 0 to 2."""
+    from hil.run import controller_config
+    from hil.scenario import load_scenario, resolve_scenario
+
+    fish = replace(
+        controller_config(load_scenario(resolve_scenario("fish-escape"))),
+        policy="hold",
+        cycles=2,
+        timeout=0.01,
+        camera_timing=CameraTiming(
+            period_ticks=5, latency_ticks=10**6, control_ticks=10, markers=3
+        ),
+    )
+    estimator = RecordingEstimator()
+    node = ControllerNode(
+        fish, ScriptedBus(lambda frame: []), estimator=estimator, controller=SilentController()
+    )
+    report = node.run()
+    assert report.status_missed == 9 and report.frames_received == 0
+    assert [dict(drives) for _, drives, _ in estimator.calls] == [{}, {}]
