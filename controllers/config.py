@@ -35,6 +35,7 @@ class CameraTiming:
     control_ticks: int
     markers: int
     delay_ticks: int = 0  # the latest an exposure falls after its nominal tick (jitter)
+    dims: int = 2  # 2: planar markers (CameraMarker frames), 3: spatial (CameraMarker3D)
 
     def __post_init__(self) -> None:
         """ValueError naming the key for timing no camera has (every robot's config)."""

@@ -37,6 +37,7 @@ from rigbus.protocol import (
     COUNTER_MODULO,
     CameraFrame,
     CameraMarker,
+    CameraMarker3D,
     ControllerState,
     DriveCommand,
     Emcy,
@@ -44,6 +45,7 @@ from rigbus.protocol import (
     GenericFrame,
     Heartbeat,
     Protocol,
+    SpatialTaskState,
     Sync,
     TaskState,
     frame_key,
@@ -55,6 +57,7 @@ OWN_FRAMES = (
     DriveCommand,
     ControllerState,
     TaskState,
+    SpatialTaskState,
 )  # the frames only the controller sends
 OWN_KINDS = ("ValveCommand", "FishState")  # and those of kinds with no registered type
 
@@ -129,24 +132,30 @@ class RealtimeClock:
         return max(0.0, now - deadline)
 
 
-_UNSEEN_MARKER = (math.nan, math.nan)  # a marker a picture does not hold
-
-
 class CameraAssembler:
     """Collects each camera picture: its CameraFrame header says which markers it holds; the
     picture is complete when all of them have arrived, in whatever order."""
 
-    def __init__(self, markers: int) -> None:
+    def __init__(self, markers: int, dims: int = 2) -> None:
         self.markers = markers
+        self.dims = dims  # 2: CameraMarker frames (x, y); 3: CameraMarker3D (x, y, z)
+        self._unseen = (math.nan,) * dims
         self._all_markers = (1 << markers) - 1  # the mask bits of markers 0 .. markers - 1
         self._headers: dict[int, CameraFrame] = {}
-        self._pending: dict[int, dict[int, CameraMarker]] = {}
+        # each picture's markers by id, as (x, y) or (x, y, z) rows
+        self._pending: dict[int, dict[int, tuple[float, ...]]] = {}
 
-    def add(self, frame: CameraFrame | CameraMarker) -> None:
+    def add(self, frame: CameraFrame | CameraMarker | CameraMarker3D) -> None:
         if isinstance(frame, CameraFrame):
             self._headers[frame.frame_index] = frame
         elif 0 <= frame.marker_id < self.markers:
-            self._pending.setdefault(frame.frame_index, {})[frame.marker_id] = frame
+            row = (
+                (frame.x, frame.y)
+                if isinstance(frame, CameraMarker)
+                else (frame.x, frame.y, frame.z)
+            )
+            if len(row) == self.dims:  # a marker of the other kind is not this camera's
+                self._pending.setdefault(frame.frame_index, {})[frame.marker_id] = row
 
     def complete(self, index: int) -> bool:
         header = self._headers.get(index % COUNTER_MODULO)
@@ -167,10 +176,10 @@ class CameraAssembler:
         header = self._headers.pop(key)
         frame = self._pending.pop(key, {})
         # the rows as floats, one array made of them (not a row assignment per marker)
-        rows = [_UNSEEN_MARKER] * self.markers
-        for m, marker in frame.items():
+        rows: list[tuple[float, ...]] = [self._unseen] * self.markers
+        for m, row in frame.items():
             if header.marker_mask >> m & 1:
-                rows[m] = (marker.x, marker.y)
+                rows[m] = row
         points = np.array(rows, dtype=float)
         return MarkerFrame(exposure_time=sync_time - header.exposure_offset, points=points)
 
@@ -205,7 +214,7 @@ class ControllerNode:
         self.clock = clock or LockstepClock()
         self.protocol = protocol or Protocol()
         self.report = ControllerReport(realtime=self.clock.realtime)
-        self.camera = CameraAssembler(config.camera_timing.markers)
+        self.camera = CameraAssembler(config.camera_timing.markers, config.camera_timing.dims)
         self.estimator = estimator or module.make_estimator(config)
         self.controller = controller or module.make_controller(config, self.protocol)
         self.expected: set[tuple[str, int | None]] = module.expected(config)
@@ -290,7 +299,7 @@ class ControllerNode:
         key = frame_key(frame)
         if key[0] in self._status_kinds:
             return _STATUS, key
-        if isinstance(frame, CameraMarker | CameraFrame):
+        if isinstance(frame, CameraMarker | CameraMarker3D | CameraFrame):
             return _CAMERA, key
         if isinstance(frame, Emcy):
             return _EMCY, key

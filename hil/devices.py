@@ -31,6 +31,7 @@ from rigbus.protocol import (
     NMT_OPERATIONAL,
     CameraFrame,
     CameraMarker,
+    CameraMarker3D,
     DriveCommand,
     DriveStatus,
     Emcy,
@@ -246,16 +247,21 @@ class CameraNode:
         marker_model: MarkerModel,
         latency_ticks: int,
         camera: Camera,
-        field: tuple[tuple[float, float], tuple[float, float]] | None = None,
+        field: Sequence[tuple[float, float]] | None = None,
+        dims: int = 2,
     ) -> None:
         self._inputs = list(inputs)
-        # the field of view ((x min, x max), (y min, y max)) [m], by default what the DBC's
-        # marker frames carry: a marker outside it is not seen, as a real camera loses what
-        # leaves its image
+        # the field of view ((x min, x max), (y min, y max)[, (z min, z max)]) [m], by default
+        # what the DBC's marker frames carry: a marker outside it is not seen, as a real camera
+        # loses what leaves its image
         if field is None:
             range_of = CanProtocol().signal_range
-            field = (range_of("CameraMarker0", "x"), range_of("CameraMarker0", "y"))
-        self.field = field
+            message = "CameraMarker0" if dims == 2 else "CameraMarker3D0"
+            field = tuple(range_of(message, axis) for axis in "xyz"[:dims])
+        if len(field) != dims:
+            raise ValueError(f"camera field of view: {len(field)} ranges for {dims} dimensions")
+        self.field = tuple(field)
+        self.dims = dims  # 2: CameraMarker frames, 3: CameraMarker3D frames
         self.marker_model = marker_model
         self.camera = camera
         self.period_ticks = camera.period_ticks
@@ -300,14 +306,12 @@ class CameraNode:
     def _in_view(self, points: list[list[float]]) -> list[int]:
         """The markers seen: inside the field of view and present (no NaN coordinate); on the
         picture's points as floats (a handful of markers: cheaper than array operations)."""
-        (x_lo, x_hi), (y_lo, y_hi) = self.field
+        field = self.field
         return [
             m
             for m, point in enumerate(points)
-            if x_lo <= point[0] <= x_hi
-            and y_lo <= point[1] <= y_hi
-            and not any(map(math.isnan, point))
-        ]
+            if all(lo <= value <= hi for value, (lo, hi) in zip(point, field, strict=True))
+        ]  # a NaN coordinate compares false: not seen
 
     def accepts(self, frame: Frame) -> bool:
         return False
@@ -327,6 +331,12 @@ class CameraNode:
             seen = self._in_view(rows)
             mask = sum(1 << m for m in seen)
             frames.append((MEASUREMENT, CameraFrame(index, offset, mask, len(seen))))
-            for m in seen:
-                frames.append((MEASUREMENT, CameraMarker(m, rows[m][0], rows[m][1], index, offset)))
+            if self.dims == 2:
+                for m in seen:
+                    marker = CameraMarker(m, rows[m][0], rows[m][1], index, offset)
+                    frames.append((MEASUREMENT, marker))
+            else:
+                for m in seen:
+                    x, y, z = rows[m]
+                    frames.append((MEASUREMENT, CameraMarker3D(m, index, x, y, z)))
         return frames

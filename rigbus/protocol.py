@@ -158,6 +158,18 @@ class TaskState:
     counter: int
 
 
+@frame_type("SpatialTaskState")
+@dataclass(frozen=True, slots=True)
+class SpatialTaskState:
+    """The spatial arm controller's task state (recorded by the plant, used to score the task)."""
+
+    target_index: int  # goal pursued, 0 first (modulo 256)
+    phase: int  # TASK_PHASES
+    target_x: float  # [m] the task-space reference point now (world frame)
+    target_y: float  # [m]
+    target_z: float  # [m]
+
+
 TASK_PHASES = (  # the DBC's values
     "idle",
     "moving",

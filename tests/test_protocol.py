@@ -40,6 +40,7 @@ from rigbus.protocol import (
     GenericFrame,
     Heartbeat,
     Protocol,
+    SpatialTaskState,
     Sync,
     TaskState,
     bus_load,
@@ -48,7 +49,7 @@ from rigbus.protocol import (
     frame_signals,
 )
 
-NODES = range(1, 9)
+NODES = range(1, 17)  # drive nodes: the spatial arm's 4 segments take 8, 8 segments 16
 MARKERS = range(16)
 # scaling steps of the DBC signals
 PISTON_RES = 2e-6  # [m]
@@ -196,7 +197,7 @@ def test_ids_follow_canopen_ranges(protocol: Protocol) -> None:
         assert protocol.frame_id(frame) == expected, frame
         assert protocol.encode(frame).arbitration_id == expected, frame
     ids = [expected for _, expected in IDS]
-    assert len(set(ids)) == len(ids) == 1 + 5 * 8 + 16
+    assert len(set(ids)) == len(ids) == 1 + 5 * 16 + 16
 
 
 def test_dbc_names_and_ids_agree(protocol: Protocol) -> None:
@@ -218,9 +219,10 @@ def test_dbc_names_and_ids_agree(protocol: Protocol) -> None:
         "CanisterStatus": 0x1A0,
         "TaskState": 0x3F0,
         "FishState": 0x3F1,
+        "SpatialTaskState": 0x3F2,
     }
     database = protocol.database
-    assert len(database.messages) == 5 * 8 + 2 * 16 + 2 * 4 + len(singles)
+    assert len(database.messages) == 5 * 16 + 2 * 16 + 2 * 4 + len(singles)
     ids = [m.frame_id for m in database.messages]
     assert len(ids) == len(set(ids))
     for message in database.messages:
@@ -347,9 +349,9 @@ def test_a_frame_without_one_of_its_signals_is_rejected_naming_it(protocol: Prot
     ("frame", "message"),
     [
         (DriveStatus(0, 0.0, 0.0, 0.0, 0, 0), "DriveStatus0: no such frame"),
-        (DriveCommand(9, 0.0, True, 0), "DriveCommand9: no such frame"),
+        (DriveCommand(17, 0.0, True, 0), "DriveCommand17: no such frame"),
         (Emcy(0, 0, 0, 0.0, 0), "EMCY0: no such frame"),  # 0x080 is SYNC, not an EMCY
-        (Heartbeat(9, 5), "Heartbeat9: no such frame"),
+        (Heartbeat(17, 5), "Heartbeat17: no such frame"),
         (CameraMarker(16, 0.0, 0.0, 0, 0.0), "CameraMarker16: no such frame"),
         (CameraMarker(-1, 0.0, 0.0, 0, 0.0), "CameraMarker-1: no such frame"),
     ],
@@ -361,7 +363,7 @@ def test_node_or_marker_out_of_range(protocol: Protocol, frame: Frame, message: 
 
 @pytest.mark.parametrize(
     ("frame_id", "text"),
-    [(0x123, "0x123"), (0x180, "0x180"), (0x2A0, "0x2A0"), (0x709, "0x709"), (0x7FF, "0x7FF")],
+    [(0x123, "0x123"), (0x180, "0x180"), (0x2A0, "0x2A0"), (0x711, "0x711"), (0x7FF, "0x7FF")],
 )
 def test_decoding_an_unknown_id(protocol: Protocol, frame_id: int, text: str) -> None:
     message = can.Message(arbitration_id=frame_id, data=bytes(8), is_extended_id=False)
@@ -654,6 +656,9 @@ GOLDEN: list[tuple[Frame, int, str]] = [
     # counter 0x9C, target 0x0102 (little endian), phase 5 (tracking), x 0.1234 m = 6170
     # (0x181A), y -0.0567 m = -2835 (0xF4ED)
     (TaskState(0x0102, 5, 0.1234, -0.0567, 0x9C), 0x3F0, "9C0201051A18EDF4"),
+    # spatial task state: goal 7, phase 3 (settled), x 0.1234 m = 6170 (0x181A), y -0.0567 m
+    # = -2835 (0xF4ED), z 0.3 m = 15000 (0x3A98)
+    (SpatialTaskState(7, 3, 0.1234, -0.0567, 0.3), 0x3F2, "07031A18EDF4983A"),
     # fish state: mode 4 (hold), manoeuvre 0x12, heading_ref 1.0472 rad = 10472 (0x28E8),
     # heading_est -0.5 rad = -5000 (0xEC78), 200 manoeuvres left (0xC8), counter 0x9D
     (
@@ -732,8 +737,8 @@ def test_a_frame_finds_its_message_the_same_way_the_second_time() -> None:
                 outcomes.append((type(exc).__name__, str(exc)))
         assert outcomes[0] == outcomes[1], index
     assert warm.encode(DriveStatus(3.0, **values)).arbitration_id == 0x183  # type: ignore[arg-type]
-    with pytest.raises(FrameError, match=r"DriveStatus9: no such frame"):
-        warm.encode(DriveStatus(9, **values))
+    with pytest.raises(FrameError, match=r"DriveStatus17: no such frame"):
+        warm.encode(DriveStatus(17, **values))
 
 
 @pytest.mark.parametrize("maker", ["python", "c"])

@@ -95,7 +95,8 @@ def test_every_key_is_in_the_reference() -> None:
         ("[robot]\nsegments = 8\nsegment = { length = 0.05 }\n", None),
         (
             "[robot]\nsegments = 9\n",
-            "robot.segments: must be 1..8 (DriveStatus frames in the DBC = 8), got 9",
+            "robot.segments: must be 1..8 (a marker each and the gripper's drive after them), "
+            "got 9",
         ),
         (
             "[robot]\nsegment_decimation = 0\n",

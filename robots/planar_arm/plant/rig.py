@@ -29,7 +29,7 @@ from controllers.loop_design import effective_delay, estimator_delay, outer_loop
 from hil.cosim import Connection, FmuParticipant, Participant
 from hil.devices import HEARTBEAT_PERIOD, CameraNode, DriveNode
 from hil.rig import PlotSpec, Rig, SignalSpec, fmu_ref, scenario_camera
-from hil.schema import Dbc, Range, Rule, Table, setting
+from hil.schema import Range, Rule, Table, setting
 from hil.vision import exposure_delay_bound
 from rigbus.protocol import Protocol
 from robots.planar_arm.controller.config import ControllerConfig, GripperConfig
@@ -122,7 +122,10 @@ class PlanarArmSpec:
 
     kind: str = setting("planar_arm", doc="the robot kind")
     segments: int = setting(
-        1, "", "segments, each with its drive cylinder and drive", Range(1, Dbc("DriveStatus"))
+        1,
+        "",
+        "segments, each with its drive cylinder and drive",
+        Range(1, 8, why="a marker each and the gripper's drive after them"),
     )
     base: tuple[float, float, float] = setting(
         (0.0, 0.0, math.pi / 2), "m, m, rad", "the base: x, y, heading"
