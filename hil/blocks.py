@@ -91,8 +91,8 @@ def encode_block(
                 _odd_cells(columns[c], list(cells[c::width]), first_row, integers, booleans)
     data = np.array(cells, dtype=np.float64).reshape(rows, width).T
     for found in (integers, booleans):
-        for name, cells in found.items():  # null: every cell that is not empty
-            if cells is not None and len(cells) == np.count_nonzero(
+        for name, rows_of in found.items():  # null: every cell that is not empty
+            if rows_of is not None and len(rows_of) == np.count_nonzero(
                 ~np.isnan(data[columns.index(name)])
             ):
                 found[name] = None
