@@ -185,25 +185,76 @@ def iter_log(path: Path | str, warn: Callable[[str], None] = warn_stderr) -> Ite
     (nothing there says it was cut); a malformed line anywhere else is an error at that line.
     """
     path = Path(path)
+    reading = _Reading(path, _readable(path))
+    failure = ""
+    try:
+        yield from reading.frames()
+        reading.finish(warn)
+    except Exception as exc:  # python-can's readers raise anything on bad input
+        if reading.cut_in_last_line():
+            # the last line, malformed and without its line end: the writer stopped in it
+            warn(
+                f"{path}: line {reading.line} cut short (no line end, malformed): read the "
+                f"{reading.count} frames before it; whatever was logged after them is lost"
+            )
+            return
+        failure = reading.failure(exc)
+        if reading.suffix != ".mf4":
+            raise LogError(failure) from exc
+        exc.__traceback__ = None  # asammdf objects in it complain when collected
+    finally:
+        reading.close()
+    if failure:
+        _collect_quietly()
+        raise LogError(failure)
+    if reading.count == 0:
+        raise LogError(f"{path}: empty log (no CAN frames)")
+
+
+def _readable(path: Path) -> str:
+    """The suffix of a log `iter_log` can start reading: LogError for an unknown suffix, a
+    missing file, a format whose optional package is missing, or an empty file."""
     suffix = suffix_of(path)
     if not path.is_file():
         raise LogError(f"{path}: no such log file")
     check_format_available(path, "reading")
     if path.stat().st_size == 0:  # in every format (a binary reader would want its header)
         raise LogError(f"{path}: empty log (no CAN frames)")
-    count = 0
-    lines: _NumberedLines | None = None
-    reader: can.io.generic.MessageReader | None = None
-    cut: str | None = None
-    failure = ""
-    try:
-        if suffix in TEXT_SUFFIXES:
-            text = path.open(encoding="utf-8", errors="strict", newline=None)
-            lines = _NumberedLines(text, _CHECKS.get(suffix))
+    return suffix
+
+
+class _Reading:
+    """One pass of `iter_log` over a log: python-can's reader for its format (a text one fed
+    the counted lines), the frames yielded so far, and how a .blf was cut (else None)."""
+
+    def __init__(self, path: Path, suffix: str) -> None:
+        self.path = path
+        self.suffix = suffix
+        self.count = 0
+        self.lines: _NumberedLines | None = None
+        self.reader: can.io.generic.MessageReader | None = None
+        self.cut: str | None = None
+
+    @property
+    def line(self) -> int:
+        """The line the text reader has taken last (0 before the first, or for a binary log)."""
+        return self.lines.line if self.lines is not None else 0
+
+    def open(self) -> can.io.generic.MessageReader:
+        """python-can's reader of the log's format."""
+        if self.suffix in TEXT_SUFFIXES:
+            text = self.path.open(encoding="utf-8", errors="strict", newline=None)
+            self.lines = _NumberedLines(text, _CHECKS.get(self.suffix))
             # python-can's text readers take an open file; ours counts its lines
-            reader = can.io.player.MESSAGE_READERS[suffix](lines)  # type: ignore[arg-type]
+            readers = can.io.player.MESSAGE_READERS
+            self.reader = readers[self.suffix](self.lines)  # type: ignore[arg-type]
         else:
-            reader, cut = _binary_reader(path, suffix)
+            self.reader, self.cut = _binary_reader(self.path, self.suffix)
+        return self.reader
+
+    def frames(self) -> Iterator[can.Message]:
+        """The log's frames, each checked, up to its end or to where a .blf was cut."""
+        reader = self.open()
         with reader:
             frames = iter(reader)
             while True:
@@ -215,48 +266,44 @@ def iter_log(path: Path | str, warn: Callable[[str], None] = warn_stderr) -> Ite
                     # python-can stops on an object header the cut split; anything else than
                     # the end of the file is corruption, an error as ever
                     cut_reached = isinstance(reader, can.BLFReader) and (
-                        reader.file.tell() >= path.stat().st_size
+                        reader.file.tell() >= self.path.stat().st_size
                     )
-                    if cut is None or not cut_reached:
+                    if self.cut is None or not cut_reached:
                         raise
                     break
                 _check_message(msg)
-                count += 1
+                self.count += 1
                 yield msg
-        if cut is not None and count:
-            expected = getattr(reader, "object_count", 0)
-            counted = f" (the header counts {expected} objects)" if expected > count else ""
+
+    def finish(self, warn: Callable[[str], None]) -> None:
+        """After the last frame: `warn` of a .blf cut after some frames; an error if none."""
+        if self.cut is not None and self.count:
+            expected = getattr(self.reader, "object_count", 0)
+            counted = f" (the header counts {expected} objects)" if expected > self.count else ""
             warn(
-                f"{path}: truncated or never closed ({cut}): read the {count} frames before "
-                f"the end{counted}; whatever was logged after them is lost"
+                f"{self.path}: truncated or never closed ({self.cut}): read the {self.count} "
+                f"frames before the end{counted}; whatever was logged after them is lost"
             )
-        elif cut is not None:
-            raise ValueError(f"truncated: {cut}, no complete frame before the cut")
-    except Exception as exc:  # python-can's readers raise anything on bad input
-        if lines is not None and lines.unterminated and count:
-            # the last line, malformed and without its line end: the writer stopped in it
-            warn(
-                f"{path}: line {lines.line} cut short (no line end, malformed): read the "
-                f"{count} frames before it; whatever was logged after them is lost"
-            )
-            return
-        if lines is not None:
-            where = f"line {lines.line}"
+        elif self.cut is not None:
+            raise ValueError(f"truncated: {self.cut}, no complete frame before the cut")
+
+    def cut_in_last_line(self) -> bool:
+        """Whether a text log failed in its last line, one without a line end, after frames."""
+        return self.lines is not None and self.lines.unterminated and self.count > 0
+
+    def failure(self, exc: Exception) -> str:
+        """The LogError text of `exc`: the file, where (line, record or header) and why."""
+        if self.lines is not None:
+            where = f"line {self.lines.line}"
         else:
-            where = f"record {count + 1}" if reader is not None else "file header"
+            where = f"record {self.count + 1}" if self.reader is not None else "file header"
         reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        failure = f"{path}: {where}: malformed {suffix} log ({reason})"
-        if suffix != ".mf4":
-            raise LogError(failure) from exc
-        exc.__traceback__ = None  # asammdf objects in it complain when collected
-    finally:
-        if lines is not None and not lines.closed:
-            lines.close()
-    if failure:
-        _collect_quietly()
-        raise LogError(failure)
-    if count == 0:
-        raise LogError(f"{path}: empty log (no CAN frames)")
+        return f"{self.path}: {where}: malformed {self.suffix} log ({reason})"
+
+    def close(self) -> None:
+        """Close the counted lines of a text log (python-can's reader leaves them open)."""
+        if self.lines is not None and not self.lines.closed:
+            self.lines.close()
 
 
 def _collect_quietly() -> None:

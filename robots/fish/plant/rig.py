@@ -200,7 +200,7 @@ class Fish:
 
     def _given(self, scenario: Scenario, table: str, index: int) -> dict[str, tuple[float, str]]:
         from hil.scenario import fail
-        from robots.planar_arm.plant.rig import _number
+        from robots.planar_arm.plant.parameters import _number
 
         raw: dict[str, Any] = getattr(scenario.robot, table)
         out: dict[str, tuple[float, str]] = {}
