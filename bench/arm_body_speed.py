@@ -1,6 +1,6 @@
 """Benchmark: one 1 ms macro step of the multibody ArmBody FMU against the decoupled FeaSegments.
 
-The planar arm of PHYSICS.md section 6 (six segments on a table, the FeaSegment defaults, no
+The thesis's planar arm (six segments on a table, the FeaSegment defaults, no
 gravity in the bending plane) stepped two ways in this one process, both through fmpy:
   arm body     one ArmBody FMU (planar, six segments)
   fea segments six FeaSegment FMUs, one substep of 1 ms each (their bending mode is integrated

@@ -2,7 +2,8 @@
 controllers.arm_ukf) share: each segment's bend model discretised with its noise, the pressure
 inputs, and the history that fuses each picture at its exposure time (`LatencyFilter`).
 
-Models (PHYSICS.md sections 2, 3, 5), nothing tuned by hand:
+Models (fmus/FeaSegment/model.c, controllers/kinematics.py, hil/vision.py), nothing tuned by
+hand:
 
 - Process: each segment bends as `I theta'' + d theta' + k theta = G_a (p_a - p_b) + w`, state
   (theta, omega), driven by the pressures of each cycle's DriveReading held constant until the
@@ -50,7 +51,7 @@ GATE_PROBABILITY = 0.999  # chi-square quantile of the outlier gate
 REACQUIRE = 5
 PRESSURE_QUANTUM = 10.0  # [Pa] DriveStatus p_a, p_b scale (softhil.dbc)
 MARKER_QUANTUM = 2e-5  # [m] CameraMarker x, y scale (softhil.dbc)
-TABLE_FRICTION = 0.3  # Coulomb coefficient of an elastomer on the table (PHYSICS.md section 2)
+TABLE_FRICTION = 0.3  # Coulomb, an elastomer on the table [estimate, fmus/Environment/model.c]
 GRAVITY = 9.81  # [m/s^2]
 
 

@@ -1,4 +1,4 @@
-"""Outer curvature loop (PHYSICS.md section 4): one PI per segment from curvature error to the
+"""Outer curvature loop: one PI per segment from curvature error to the
 piston position setpoint, with its design from the segment's linearised physics.
 
 Linearised at sealing (both sides at p_atm, mid-stroke, unbent), a segment's curvature answers

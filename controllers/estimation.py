@@ -67,7 +67,7 @@ class Estimate:
 
 @dataclass(frozen=True)
 class BendModel:
-    """What the controller knows of one segment's bending (PHYSICS.md section 2):
+    """What the controller knows of one segment's bending (fmus/FeaSegment/model.c):
     `inertia theta'' + d_bend theta' + k_bend theta = G_a (h(p_a) - h(p_b))`, theta = kappa *
     length, where h(g) = g under pressure and, under vacuum, the collapsing channel's
     h(g) = beta g + (1 - beta) p_c (exp(g / p_c) - 1) (beta = vacuum_factor, p_c = p_collapse):

@@ -1,4 +1,4 @@
-"""Planar piecewise-constant-curvature (PCC) kinematics (PHYSICS.md section 3).
+"""Planar piecewise-constant-curvature (PCC) kinematics.
 
 Shared truth between the plant (the camera computes marker positions from the true curvatures)
 and the controller (which inverts markers back to curvatures). A planar segment of arc length L

@@ -9,7 +9,8 @@ control period of computation (the command computed at SYNC c acts from SYNC c +
 of the estimate (`estimator_delay`). Its phase margin is 90 deg - wc D, so the crossover for a
 phase margin target is wc = (pi/2 - PM) / D, capped at `max_crossover_hz`. Margins are computed
 on L with D as a Pade approximant. The drive's inner position servo (>= 10 Hz closed-loop
-bandwidth, PHYSICS.md section 1) is left out: its lag adds to D at the crossovers used here.
+bandwidth, controllers.servo_design.ServoSpec) is left out: its lag adds to D at the crossovers
+used here.
 
 The gains are closed-form (`outer_loop_gains`, what every run needs); python-control, which takes
 1-2 s to import, is imported only where margins are measured (`design_outer_loop`, `hil tune`).

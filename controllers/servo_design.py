@@ -1,4 +1,5 @@
-"""Design of the drive cylinder's embedded position servo (PHYSICS.md section 1), python-control.
+"""Design of the drive cylinder's embedded position servo (fmus/DriveCylinder/model.c) with
+python-control.
 
 The plant is the DriveCylinder linearised while moving: armature circuit, rotor with the piston's
 viscous seal friction reflected through the lead screw, and the screw as an integrator,
@@ -68,7 +69,7 @@ class ServoGains:
 
 @dataclass(frozen=True)
 class ServoSpec:
-    """Requirements for the servo (PHYSICS.md section 1 and the step the tests apply)."""
+    """Requirements for the servo (the drive's, and the step the tests apply)."""
 
     phase_margin_deg: float = 45.0
     bandwidth_hz: float = 10.0

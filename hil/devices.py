@@ -1,4 +1,5 @@
-"""Device nodes: everything on the bus that is not the controller (ARCHITECTURE.md, "Robots").
+"""Device nodes: everything on the bus that is not the controller (README, "Robots, devices,
+protocol").
 
 A device node is a master participant (its outputs drive FMU inputs through connections, its
 inputs are FMU outputs) and a bus node. Between SYNCs it only holds its outputs (or, like the

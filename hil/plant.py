@@ -1,4 +1,4 @@
-"""The plant node: the simulated rig answering the controller's SYNC (ARCHITECTURE.md).
+"""The plant node: the simulated rig answering the controller's SYNC (docs/sync-cycle.md).
 
 On SYNC(c) the plant
   1. advances the physics to t_c = c T with the commands that were active,

@@ -1,5 +1,5 @@
 """Robot kinds as plug-ins, chosen by the scenario's `[robot] kind` the way python-can chooses an
-interface by name (ARCHITECTURE.md, "Robots").
+interface by name (rigbus/robots.py; README, "Robots, devices, protocol").
 
 A robot kind owns, for the plant side: the schema and checks of its `[robot]` section (per
 actuator parameters), its FMUs and device nodes and their connections (`build` -> `Rig`), the

@@ -179,7 +179,7 @@ class BusConfig:
 
 @dataclass(frozen=True)
 class CameraSpec:
-    """The camera (PHYSICS.md section 5): SI units, 0 switches an effect off. The defaults are a
+    """The camera (hil/vision.py): SI units, 0 switches an effect off. The defaults are a
     realistic commercial motion-capture system, not an ideal camera."""
 
     rate: float = setting(100.0, "Hz", "frames per second", positive())

@@ -1,4 +1,4 @@
-"""The camera's imperfections (PHYSICS.md section 5): noise, dropouts, occlusion bursts, outliers
+"""The camera's imperfections: noise, dropouts, occlusion bursts, outliers
 and exposure-time jitter, applied to the true marker positions.
 
 Invariant: a `Camera` is deterministic from the numpy Generator it is given, and its random

@@ -62,7 +62,7 @@ def checkout_status() -> list[str] | None:
 
 @pytest.fixture(scope="session", autouse=True)
 def checkout_stays_clean() -> Iterator[None]:
-    """Tests never write into the checkout (CONVENTIONS.md): its status is the same after the
+    """Tests never write into the checkout: its status is the same after the
     session as before it."""
     before = checkout_status()
     yield

@@ -296,6 +296,67 @@ def test_truncated_blf_yields_the_frames_before_the_cut_and_warns_once(
     assert len(read_log(cut, lambda _: None)) < len(original)  # the cut lost frames
 
 
+def frames(count: int) -> list[can.Message]:
+    """`count` classic 8-byte frames, 1 ms apart, on 50 standard ids."""
+    return [
+        can.Message(
+            timestamp=i * 1e-3,
+            arbitration_id=0x100 + i % 50,
+            is_extended_id=False,
+            data=bytes([i * 7 % 256, i % 256, 3, 4, 5, 6, 7, 8]),
+        )
+        for i in range(count)
+    ]
+
+
+def test_a_binary_log_names_the_record_a_bad_frame_or_object_is(tmp_path: Path) -> None:
+    """A frame python-can reads but softhil refuses is an error at its record (from 1); so is a
+    corrupt object before the cut of a truncated .blf (the cut tolerates only the end)."""
+    sent = frames(50)
+    sent[3] = can.Message(arbitration_id=0x800, is_extended_id=False, data=b"\x01")
+    path = tmp_path / "bad-id.blf"
+    write_log(path, sent)
+    with pytest.raises(LogError) as caught:
+        read_log(path)
+    assert str(caught.value) == f"{path}: record 4: malformed .blf log (CAN id 0x800 out of range)"
+    big = tmp_path / "big.blf"
+    write_log(big, frames(20000))  # containers of 2730 frames (128 kB uncompressed)
+    data = bytearray(big.read_bytes())
+    second = data.index(b"LOBJ", data.index(b"LOBJ") + 4)
+    data[second : second + 4] = b"XXXX"  # the second container's signature
+    corrupt = tmp_path / "corrupt.blf"
+    corrupt.write_bytes(bytes(data[: len(data) * 2 // 3]))
+    with pytest.raises(LogError, match=r"^\S+corrupt\.blf: record 2731: malformed \.blf log"):
+        read_log(corrupt, lambda w: pytest.fail(w))
+
+
+def test_a_blf_with_bytes_after_its_last_object_warns_without_a_count_it_reached(
+    tmp_path: Path,
+) -> None:
+    """The header's object count is named only when frames are missing from it."""
+    path = tmp_path / "tail.blf"
+    write_log(path, frames(50))
+    size = path.stat().st_size
+    path.write_bytes(path.read_bytes() + bytes(4))
+    warnings: list[str] = []
+    assert len(read_log(path, warnings.append)) == 50
+    assert warnings == [
+        f"{path}: truncated or never closed (the header says {size} bytes, the file has "
+        f"{size + 4}): read the 50 frames before the end; whatever was logged after them is lost"
+    ]
+
+
+@pytest.mark.parametrize("suffix", [".log", ".asc", ".csv"])
+def test_a_text_log_without_a_frame_is_empty(tmp_path: Path, suffix: str) -> None:
+    path = tmp_path / f"blank{suffix}"
+    path.write_text(
+        "\n\n" if suffix != ".csv" else "timestamp,arbitration_id,extended,remote,error,dlc,data\n"
+    )
+    with pytest.raises(LogError) as caught:
+        read_log(path)
+    assert str(caught.value) == f"{path}: empty log (no CAN frames)"
+
+
 @pytest.mark.parametrize("suffix", [".log", ".asc"])
 def test_a_text_log_cut_inside_its_last_line_yields_the_lines_before_and_warns(
     run_log: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], suffix: str

@@ -1,4 +1,4 @@
-"""DriveCylinder physics and servo (PHYSICS.md section 1), simulated through fmpy."""
+"""DriveCylinder physics and servo (fmus/DriveCylinder/model.c), simulated through fmpy."""
 
 from __future__ import annotations
 

@@ -1,4 +1,5 @@
-"""FeaSegment physics (PHYSICS.md section 2): gas laws, pressures, bending equilibrium, limits."""
+"""FeaSegment physics (fmus/FeaSegment/model.c): gas laws, pressures, bending equilibrium and
+limits."""
 
 from __future__ import annotations
 
@@ -75,9 +76,9 @@ def test_compliance_adds_volume_in_proportion_to_pressure(fea_segment_fmu) -> No
 
 @pytest.mark.parametrize("x_piston", [0.0, 0.05])
 def test_full_stroke_pressure_sits_inside_the_calibrated_band(fea_segment_fmu, x_piston) -> None:
-    # PHYSICS.md section 2: "3 to 8 psi" [thesis]; at full stroke with the segment free to bend
-    # the pressurised channel is calibrated to about 5-7 psi (35-48 kPa gauge), clearly below the
-    # scenario's 60 kPa safety limit
+    # the thesis's 3-8 psi band [thesis] (fmus/ArmBody/README.md); at full stroke with the segment
+    # free to bend the pressurised channel is calibrated to about 5-7 psi (35-48 kPa gauge), clearly
+    # below the scenario's 60 kPa safety limit
     r = simulate(fea_segment_fmu, 3.0, OUTPUTS, None, lambda t: {"x_piston": x_piston})
     pressurised = r["p_a"][-1] if x_piston > 0.025 else r["p_b"][-1]
     assert 35e3 <= pressurised <= 48e3

@@ -1,4 +1,4 @@
-"""The soft fish's FMUs (PHYSICS.md section 7, issue 13): nozzle flow against its closed forms,
+"""The soft fish's FMUs (issue 13): nozzle flow against its closed forms,
 gas mass conserved from canister to channels to vents, the work split, the exact large-bend
 kinematics, the escape calibration against the biological ranges (stage 1 of a C-start, as
 FishBody/model.c defines it), coming to rest in yaw, a drained canister and forward swimming
@@ -29,7 +29,8 @@ LENGTHS = (0.08, 0.08, 0.08)  # FishBody's default tail pieces [m]
 
 
 def nozzle_closed_form(cda: float, p_u: float, p_d: float, t_u: float = T0) -> float:
-    """Mass flow [kg/s] of an ideal gas through a nozzle, choked or subsonic (PHYSICS.md 7)."""
+    """Mass flow [kg/s] of an ideal gas through a nozzle, choked or subsonic, as
+    fmus/FishBody/model.c states it."""
     r = p_d / p_u
     r_c = (2 / (GAMMA + 1)) ** (GAMMA / (GAMMA - 1))
     if r <= r_c:
@@ -285,7 +286,7 @@ def test_escape_accelerations_turn_times_and_yaw_rates_are_biological(calibratio
     for values in calibration.values():
         assert 16.0 <= values["accel"] <= 151.0
         assert 0.030 <= values["turn_time"] <= 0.210
-    # turning rates of fast starts reach 434-1023 deg/s (PHYSICS.md 7)
+    # turning rates of biological fast starts reach 434-1023 deg/s
     assert 434.0 <= calibration[OPEN_TIMES[-1]]["yaw_rate"] <= 1023.0
 
 

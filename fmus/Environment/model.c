@@ -96,15 +96,15 @@
  * Tipping (object_upright, object_tilt): a monitor of whether the pushes would tip an upright
  * cylinder over, not fed back into the planar motion (see tip_over()).
  *
- * Table friction [estimate]: PHYSICS.md's mu ~ 0.3 gives a Coulomb torque mu m g L / 2 per
+ * Table friction [estimate]: an elastomer's mu ~ 0.3 gives a Coulomb torque mu m g L / 2 per
  * segment for its own mass only. Acting on every backbone point, friction of the segments beyond
  * also resists a bend: the torque on segment i is mu g sum_p m_p |dp/dtheta_i|, 0.27 mu N m on
  * the base of a straight six-segment arm (0.03 kg, 0.06 m per segment), 0.080 N m at mu = 0.3:
  * about three times the segment's full-stroke torque (G_a 40 kPa ~ 0.03 N m), so such an arm could
  * not bend its base. The default mu_table = 0.02 (a low-friction support) gives 5.4e-3 N m on the
- * base and 6e-5 N m on the tip (m g L / 6 mu), the order of PHYSICS.md's per-segment dead band.
+ * base and 6e-5 N m on the tip (m g L / 6 mu), the order of a segment's friction dead band.
  *
- * What the arm neglects (PHYSICS.md-style note): each FeaSegment integrates its own bend angle
+ * What the arm neglects: each FeaSegment integrates its own bend angle
  * with its own inertia m L^2 / 20 about its base, so the inertia of the segments beyond it (the
  * full PCC mass matrix M_ij = sum_p m_p dp/dtheta_i . dp/dtheta_j) is absent, and so is the
  * inertial coupling between segments. Size, for a straight six-segment arm (computed in

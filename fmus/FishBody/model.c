@@ -1,4 +1,4 @@
-/* FishBody physics: the soft robotic fish of PHYSICS.md section 7, a rigid head free in the plane
+/* FishBody physics: the thesis's soft robotic fish, a rigid head free in the plane
  * and a tapered bidirectional tail of three constant-curvature (PCC) pieces driven by two gas
  * channels a and b, as a planar multibody chain valid at any bend. Each channel is fed by its
  * valve's supply nozzle and drained by its vent; the valves publish the nozzles' effective areas
@@ -17,9 +17,10 @@
  * the head) and channel a's volume grows with it:
  *   V_a = V_0 + sum G_j theta_j,   V_b = V_0 - sum G_j theta_j,
  * so pressurising a bends the tail left and, by recoil, turns the head left (yaw up).
- * Positions are the exact PCC chain (PHYSICS.md section 3) in complex form: a point at local arc
- * sigma on piece j sits at r = X + i Y + sum_m l_m sinc(a_m / 2) exp(i (psi + pi - B_{m-1} -
- * a_m / 2)) over the pieces m <= j, a_m = theta_m for a whole piece (l_m = L_m) and theta_j
+ * Positions are the exact PCC chain (as controllers/kinematics.py) in complex form: a point at
+ * local arc sigma on piece j sits at
+ *   r = X + i Y + sum_m l_m sinc(a_m / 2) exp(i (psi + pi - B_{m-1} - a_m / 2))
+ * over the pieces m <= j, a_m = theta_m for a whole piece (l_m = L_m) and theta_j
  * sigma / L_j for the partial one (l_j = sigma). Its Jacobian J = dr/dq and the velocity-product
  * acceleration J' q' follow in closed form from each term (see `chain_term`), exact at every bend
  * (series of sinc and its derivatives near zero).
@@ -65,7 +66,7 @@
  * from the bend); the bending torque on piece j is G_j (p_a - p_b) (virtual work of the gas).
  *
  * Nozzle flow of an ideal gas from upstream (p_u, T_u) to downstream p_d, r = p_d / p_u, effective
- * area CdA (isentropic flow to the throat, Saint-Venant-Wantzel; PHYSICS.md 7) [derived]:
+ * area CdA (isentropic flow to the throat, Saint-Venant-Wantzel) [derived]:
  *   choked,   r <= r_c: mdot = CdA p_u sqrt(gamma / (R T_u)) (2 / (gamma + 1))^((gamma+1)/(2(gamma-1)))
  *   subsonic, r >  r_c: mdot = CdA p_u sqrt(2 gamma / ((gamma - 1) R T_u) (r^(2/gamma) - r^((gamma+1)/gamma)))
  * with r_c = (2 / (gamma + 1))^(gamma / (gamma - 1)) = 0.5475 for CO2; the two branches meet with

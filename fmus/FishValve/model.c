@@ -1,5 +1,5 @@
-/* FishValve physics: the 3/2 solenoid valve of one tail channel of the soft fish (PHYSICS.md
- * section 7). The spool connects the channel to the supply (open) or to the vent (closed).
+/* FishValve physics: the 3/2 solenoid valve of one tail channel of the soft fish (README, "The
+ * soft fish"). The spool connects the channel to the supply (open) or to the vent (closed).
  *
  * Why the valve publishes areas, not flows: the flow through a nozzle is an algebraic function of
  * the pressures on both sides, and the channel's pressure is the fastest state of the fish: near

@@ -1,7 +1,8 @@
-/* GasSource physics: the soft fish's on-board CO2 canister and its pressure regulator (PHYSICS.md
- * section 7). See FishValve/model.c for why the fish is three FMUs coupled by mass flow: this one
- * integrates its mass from the valves' published draws over each step (zero-order hold), so the
- * canister's loss equals what the channels gain plus what the vents release, to rounding.
+/* GasSource physics: the soft fish's on-board CO2 canister and its pressure regulator (README,
+ * "The soft fish"). See FishValve/model.c for why the fish is three FMUs coupled by mass flow:
+ * this one integrates its mass from the valves' published draws over each step (zero-order
+ * hold), so the canister's loss equals what the channels gain plus what the vents release, to
+ * rounding.
  *
  * Canister [estimate]: held at T_canister by the surrounding water (a draw of a few mg per
  * manoeuvre from 16 g cools it little). While the mass m exceeds m_sat = rho_vapour V the canister

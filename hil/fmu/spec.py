@@ -115,7 +115,7 @@ _UNITS: dict[str, dict[str, float]] = {
     "Ohm": {"kg": 1, "m": 2, "s": -3, "A": -2},
     "H": {"kg": 1, "m": 2, "s": -2, "A": -2},
 }
-# Human-facing display units (CONVENTIONS: mm and kPa only in human-facing text).
+# Human-facing display units (mm and kPa only in human-facing text).
 _DISPLAY_UNITS: dict[str, list[tuple[str, float]]] = {
     "m": [("mm", 1e-3)],
     "Pa": [("kPa", 1e3)],

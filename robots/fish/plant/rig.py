@@ -1,4 +1,4 @@
-"""The soft fish (PHYSICS.md section 7, issue 13) as a robot kind: a GasSource FMU (the CO2
+"""The soft fish (README, "The soft fish"; issue 13) as a robot kind: a GasSource FMU (the CO2
 canister and its regulator), two FishValve FMUs (one per tail channel) and a FishBody FMU (head
 free in the plane, tapered three-piece tail), a valve driver per valve and the canister's monitor
 on the bus, and the overhead camera seeing the nose, the head-tail joint and the tail tip.

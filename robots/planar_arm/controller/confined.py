@@ -1,4 +1,4 @@
-"""The confined spaces of the planar arm (issue 12; PHYSICS.md section 6): a planar `Channel`
+"""The confined spaces of the planar arm (issue 12): a planar `Channel`
 (walls, the centreline the tip follows, the signed clearance of any point) and the four shipped
 pipe sections (`PIPES`) of the thesis's confined-space experiments, for its six-segment
 "cylindrical actuator" arm. Planning the whole arm through a channel is

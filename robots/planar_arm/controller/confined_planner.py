@@ -1,4 +1,4 @@
-"""Whole-arm planning of the planar arm in confined spaces (issue 12; PHYSICS.md sections 3, 6).
+"""Whole-arm planning of the planar arm in confined spaces (issue 12).
 
 The thesis advances its six-segment "cylindrical actuator" arm through pipe-like sections by "a
 sequence of constrained nonlinear optimisations over the arm's configuration that keep its

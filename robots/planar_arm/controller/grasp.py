@@ -1,4 +1,4 @@
-"""Grasp-and-place tasks of the planar arm with its soft gripper (issue 12; PHYSICS.md sec. 3).
+"""Grasp-and-place tasks of the planar arm with its soft gripper (issue 12).
 
 The thesis's planar grasping manipulator approaches a randomly placed object along "concentric
 approach circles" that shrink onto it, grasps it, carries it to a place location and releases

@@ -1,6 +1,6 @@
 """Carrying the held object to its place: the planar arm's grasp point (where the held object's
 centre sits) moved along a straight line to the place location, the heading changing linearly if
-it must (issue 12; PHYSICS.md sec. 3). The place heading is the reachable one nearest the grasp
+it must (issue 12). The place heading is the reachable one nearest the grasp
 heading from which, given the object's radius, the open gripper can also back off
 (robots.planar_arm.controller.grasp_planner.plan_retreat).
 

@@ -1,7 +1,6 @@
 """How far an object on the table is from the planar arm and its open soft gripper, in one
-configuration and along the straight curvature interpolation between two (issue 12; PHYSICS.md
-sec. 3): what keeps grasp-and-place planning (robots.planar_arm.controller.grasp_planner) from
-touching the object.
+configuration and along the straight curvature interpolation between two (issue 12): what keeps
+grasp-and-place planning (robots.planar_arm.controller.grasp_planner) from touching the object.
 
 The arm's backbone is a chain of capsules (radius width / 2) and each finger a capsule (radius
 finger_width / 2) along its arc. The clearance is a guaranteed bound, not a sampled hope: arcs

@@ -1,4 +1,5 @@
-"""Task-space inverse kinematics of the planar PCC arm on its curvatures (PHYSICS.md section 3).
+"""Task-space inverse kinematics of the planar PCC arm (controllers/kinematics.py) on its
+curvatures.
 
 Invariant: every curvature this module returns lies inside the given per-segment bounds [lower,
 upper] (in practice `SegmentModel.reachable_curvature()`, the segment physics at full stroke).

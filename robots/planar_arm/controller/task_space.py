@@ -1,4 +1,4 @@
-"""Task-space control of the planar arm (PHYSICS.md sections 3-4): the main loop above the
+"""Task-space control of the planar arm: the main loop above the
 per-segment curvature controllers.
 
 Each cycle it reads the estimated curvatures, computes the estimated tip position by the forward

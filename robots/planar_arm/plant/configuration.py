@@ -281,9 +281,9 @@ def gripper_config(scenario: Scenario) -> GripperConfig | None:
 
 def curvature_limits(scenario: Scenario) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Each segment's reachable curvature range at full stroke (from its static equilibrium
-    with the sealed gas circuits, PHYSICS.md section 2) and the curvature rate the drive can
-    follow: its no-load speed u_max / Ke * lead / (2 pi), derated by DRIVE_SPEED_SHARE for the
-    load, times the segment's curvature per piston travel (1/m per m)."""
+    with the sealed gas circuits: SegmentModel.reachable_curvature) and the curvature rate the
+    drive can follow: its no-load speed u_max / Ke * lead / (2 pi), derated by DRIVE_SPEED_SHARE
+    for the load, times the segment's curvature per piston travel (1/m per m)."""
     lower, upper, rates = [], [], []
     for model, cylinder in zip(
         segment_models(scenario), parameters(scenario, "cylinder"), strict=True

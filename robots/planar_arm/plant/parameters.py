@@ -23,7 +23,7 @@ if TYPE_CHECKING:
 
 NAME = "planar_arm"  # the robot kind
 
-# The thesis's two planar arms [thesis, PHYSICS.md section 6]: free space uses bidirectional
+# The thesis's two planar arms [thesis]: free space uses bidirectional
 # "rectangular" FEAs (the FeaSegment defaults), confined spaces bidirectional "cylindrical" FEAs.
 # [estimate] The cylindrical actuator is rounder and slimmer (16 mm against 20 mm wide): lighter,
 # a little stiffer in bending, with less channel volume change per bend angle and a lower

@@ -1,4 +1,4 @@
-"""The planar arm (PHYSICS.md sections 1-3, 6): per segment a DriveCylinder FMU, a FeaSegment FMU
+"""The planar arm: per segment a DriveCylinder FMU, a FeaSegment FMU
 and a drive-firmware node; one camera seeing a marker at the base and at every segment end.
 
 PlanarArm is the robot kind the rest of softhil calls (rigbus.robots): it builds the rig and
