@@ -22,6 +22,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import numpy.typing as npt
 
 from robots.spatial_arm.controller.model import ArmModel
 
@@ -97,11 +98,13 @@ class PairTorque:
     p_b: np.ndarray
 
 
-def torque(model: ArmModel, G_a: np.ndarray, theta: np.ndarray, x: np.ndarray) -> PairTorque:
+def torque(
+    model: ArmModel, G_a: npt.ArrayLike, theta: npt.ArrayLike, x: npt.ArrayLike
+) -> PairTorque:
     """Torque H(g_a) - H(g_b) of the pair at bend theta and piston x, with its slopes: g moves
     with theta and x along F = 0, dg = -(dF/dtheta dtheta + dF/dx dx) / dF/dg, dF/dtheta = p sign
     G(g), dF/dx = p dV0/dx (-A for a, +A for b), and dH/dg = G."""
-    G_a, theta, x = np.broadcast_arrays(*(np.asarray(z, dtype=float) for z in (G_a, theta, x)))
+    G_a, theta, x = np.broadcast_arrays(*(np.asarray(a, dtype=float) for a in (G_a, theta, x)))
     a = side_state(model, G_a, theta, x, 0)
     b = side_state(model, G_a, theta, x, 1)
     p_a, p_b = model.p_atm + a.g, model.p_atm + b.g
@@ -118,11 +121,13 @@ def torque(model: ArmModel, G_a: np.ndarray, theta: np.ndarray, x: np.ndarray) -
     )
 
 
-def energy(model: ArmModel, G_a: np.ndarray, theta: np.ndarray, x: np.ndarray) -> np.ndarray:
+def energy(
+    model: ArmModel, G_a: npt.ArrayLike, theta: npt.ArrayLike, x: npt.ArrayLike
+) -> np.ndarray:
     """The pair's stored energy [J]: the gas's isothermal free energy relative to its sealed
     state, p_atm V_s r - m R T ln(1 + r) with r = V / V_s - 1, plus the channel walls' C_a g^2 /
     2 + sign theta (g G - H), ArmBody's E_gas. At a fixed x its slope in theta is -tau."""
-    G_a, theta, x = np.broadcast_arrays(*(np.asarray(z, dtype=float) for z in (G_a, theta, x)))
+    G_a, theta, x = np.broadcast_arrays(*(np.asarray(a, dtype=float) for a in (G_a, theta, x)))
     total = np.zeros(theta.shape)
     for side in (0, 1):
         s = side_state(model, G_a, theta, x, side)
