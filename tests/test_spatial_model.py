@@ -237,6 +237,12 @@ def test_noisy_markers_give_bounded_bends() -> None:
     # the fit is the least-squares one: no smaller marker residual than at its bends
     residual = np.sum((kinematics.markers(ARM, fit) - seen) ** 2)
     assert residual < np.sum((kinematics.markers(ARM, walk) - seen) ** 2)
+    # a segment on its limit, seen through noise, is fitted within the limit
+    limit = q[:50].copy()
+    limit[:, 6:] *= ARM.theta_max / ARM.bend_angles(limit)[:, 3:]
+    noisy = kinematics.markers(ARM, limit) + rng.normal(0.0, 1e-3, (50, 5, 3))
+    fitted = ARM.bend_angles(marker_ik.fit_markers(ARM, noisy))[:, 3]
+    assert np.all(fitted <= ARM.theta_max + 1e-15) and np.sum(fitted > ARM.theta_max - 1e-9) > 10
     # a lost marker leaves its segment and those after it unknown
     seen[0, 3] = np.nan
     lost = marker_ik.bends_from_markers(ARM, seen[0])
@@ -246,18 +252,24 @@ def test_noisy_markers_give_bounded_bends() -> None:
 # ------------------------------------------------------------------ the gas and gravity
 
 
-def test_gas_pressures_and_energy_are_arm_bodys(arm_body_fmu) -> None:
+# sealed off mid-stroke (the sides differ), a softer channel wall and a deeper collapse
+SKEWED = ArmModel(x_seal=0.03, C_a=3e-10, vacuum_factor=0.3, p_collapse=4e4)
+
+
+@pytest.mark.parametrize("model", [ARM, SKEWED], ids=["default", "skewed"])
+def test_gas_pressures_and_energy_are_arm_bodys(arm_body_fmu, model: ArmModel) -> None:
     rng = np.random.default_rng(17)
     names = [f"p_{s}_{a}_{i + 1}" for i in range(4) for a in "xy" for s in "ab"] + ["E_gas"]
     for q, x in zip(random_bends(rng, 4), rng.uniform(0.0, 0.1, (4, 8)), strict=True):
-        params = {**per_pair(ARM, "theta_{}_start", q), **per_pair(ARM, "x_piston_{}", x)}
-        values = fmu_values(arm_body_fmu, params, names)
-        pair = statics.gas_torque(ARM, q, x)
+        params = {**model.to_fmu_parameters(), **per_pair(model, "theta_{}_start", q)}
+        values = fmu_values(arm_body_fmu, {**params, **per_pair(model, "x_piston_{}", x)}, names)
+        pair = statics.gas_torque(model, q, x)
+        assert np.min(pair.p_b) < -5e3 and np.max(pair.p_a) > 5e3  # both regimes
         # ArmBody's vacuum Newton stops within 1e-10 Pa of the root; ours runs on
         assert np.max(np.abs(values[:-1:2] - pair.p_a)) < 1e-8
         assert np.max(np.abs(values[1:-1:2] - pair.p_b)) < 1e-8
-        G_a = np.repeat(ARM.G_a, 2)
-        assert abs(values[-1] - np.sum(gas.energy(ARM, G_a, q, x))) < 1e-12
+        G_a = np.repeat(model.G_a, 2)
+        assert abs(values[-1] - np.sum(gas.energy(model, G_a, q, x))) < 1e-12
     # the torque is the energy's slope, its slopes the implicit derivatives
     # (off the sealed state, where G(g)'s slope jumps and central differences lose an order)
     theta, x, h = np.linspace(-1.5, 1.5, 8), np.linspace(0.0, 0.1, 8), 1e-6
@@ -344,6 +356,8 @@ def test_an_equilibrium_resting_on_the_bend_limit(arm_body_fmu) -> None:
     assert abs(ARM.bend_angles(rest.q)[3] - ARM.theta_max) < 1e-15
     assert abs(rest.reaction[3] - 0.04055) < 1e-5  # [N m] the limit holds it
     assert rest.residual < 1e-13
+    # Newton in the reduced coordinates (gamma on the limit) converges quadratically: 8 steps
+    assert rest.iterations <= 10
     assert np.max(np.abs(settle(arm_body_fmu, ARM, pistons, 2.5e-4) - rest.q)) < 1e-6
 
 
@@ -371,6 +385,7 @@ def test_pistons_for_inverts_the_equilibrium() -> None:
     rest = static_equilibrium(ARM, pistons)
     free = ~np.any(rest.on_limit, axis=-1)
     assert 150 < np.sum(free) < 200  # some rest on the limit, whose pistons push beyond
+    assert np.all(ARM.bend_angles(rest.q) <= ARM.theta_max + 1e-15)
     held = statics.pistons_for(ARM, rest.q[free])
     assert np.all(held.inside) and np.max(np.abs(held.x - pistons[free])) < 1e-12
     # bending the base up by a radian needs more than a full stroke: NaN, outside
@@ -401,6 +416,18 @@ def test_ik_reaches_a_reachable_goal_on_a_held_rest() -> None:
         assert np.linalg.norm(result.q) < np.linalg.norm(known) - 0.05
         near = ik.solve_ik(ARM, goal, prefer=known)
         assert near.success and np.max(np.abs(near.q - known)) < 1e-6
+
+
+def test_ik_reaches_a_rest_on_the_bend_limit() -> None:
+    # the tip segment curled onto its limit (as in the equilibrium test): a reachable goal whose
+    # preferred bends use the whole bend range
+    pistons = np.array([0.08, 0.05, 0.05, 0.05, 0.05, 0.05, 0.1, 0.1])
+    known = static_equilibrium(ARM, pistons).q
+    result = ik.solve_ik(ARM, kinematics.tip(ARM, known), prefer=known, start=known)
+    assert result.success and np.max(np.abs(result.q - known)) < 1e-6
+    assert abs(ARM.bend_angles(result.q)[3] - ARM.theta_max) < 1e-9
+    # held without the limit's help: the tip pairs pull less than the ends of their stroke
+    assert np.all(result.pistons[6:] < 0.098)
 
 
 def test_ik_refuses_unreachable_goals() -> None:
