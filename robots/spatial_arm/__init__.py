@@ -1,0 +1,1 @@
+"""The spatial soft arm (four PCC segments, two bending coordinates each, under gravity)."""

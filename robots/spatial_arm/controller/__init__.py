@@ -1,0 +1,1 @@
+"""The spatial arm's controller side: its model (kinematics, statics, inverse kinematics)."""
