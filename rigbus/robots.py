@@ -54,6 +54,9 @@ BUILT_IN = {
     for entry in (
         RobotEntry("planar_arm", "robots.planar_arm.plant:ROBOT", "robots.planar_arm.controller"),
         RobotEntry("fish", "robots.fish.plant:ROBOT", "robots.fish.controller"),
+        RobotEntry(
+            "spatial_arm", "robots.spatial_arm.plant:ROBOT", "robots.spatial_arm.controller"
+        ),
     )
 }
 

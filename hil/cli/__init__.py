@@ -17,6 +17,7 @@ from collections.abc import Callable, Sequence
 from hil.cli import batch as batch_command
 from hil.cli import bus as bus_command
 from hil.cli import controller as controller_command
+from hil.cli import envelope as envelope_command
 from hil.cli import estimate as estimate_command
 from hil.cli import fmu as fmu_command
 from hil.cli import replay as replay_command
@@ -34,6 +35,7 @@ SUBCOMMANDS = (
     batch_command,
     replay_command,
     estimate_command,
+    envelope_command,
     csv_command,
     controller_command,
     bus_command,
@@ -50,6 +52,7 @@ EXAMPLES = """examples:
   hil sweep --set controller.crossover=0.5,1,2   a parameter grid
   hil bus load                    bus load of the default scenario
   hil csv runs/default-1          signals.csv from a killed run's blocks
+  hil envelope spatial-point      the spatial arm's statically reachable envelope
   hil fmu build                   build every FMU into the per-user cache
   hil fmu check DriveCylinder     validate an FMU with fmpy and simulate it briefly
 

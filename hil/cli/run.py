@@ -179,6 +179,19 @@ def task_line(s: dict[str, object]) -> str:
             f"{_shown(s['tip_error_max'], 1e3, '.2f', ' mm')}; settled {s['targets_settled']} of "
             f"{s['targets']} targets, time to settle {_shown(s['time_to_settle'], 1, '.2f', ' s')}"
         )
+    if "shape_error_mean" in s:  # the spatial arm's shape fitting
+        return (
+            f"shape error mean {_shown(s['shape_error_mean'], 1e3, '.2f', ' mm')}, max "
+            f"{_shown(s['shape_error_max'], 1e3, '.2f', ' mm')} over {s['curve_points']} "
+            f"points of the curve; tip {_shown(s['tip_error_final'], 1e3, '.2f', ' mm')} "
+            "from its end"
+        )
+    if "bend_error_mean" in s:  # the spatial arm's configuration control
+        return (
+            f"bend error mean {_shown(s['bend_error_mean'], 1, '.4f', ' rad')}, max "
+            f"{_shown(s['bend_error_max'], 1, '.4f', ' rad')} over {s['steps_pursued']} of "
+            f"{s['steps']} steps"
+        )
     if "place_error" in s:  # grasp-and-place
         return (
             f"{'success' if s['success'] else 'failure'}: object "
