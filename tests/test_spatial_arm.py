@@ -66,9 +66,9 @@ def point_runs(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, di
 
 def test_point_goals_are_reached_within_the_camera_noise(point_runs: tuple) -> None:
     """Both goals settle with the true tip within 2 mm (the realistic camera's markers carry
-    0.3 mm of noise; the estimate fuses five markers a picture); the droop is gravity's."""
+    0.5 mm of noise; the estimate fuses five markers a picture); the droop is gravity's."""
     _, _, s = point_runs
-    assert s["targets"] == 2 and s["targets_settled"] == 2
+    assert s["targets"] == 2 and s["targets_settled"] == 2 and s["success"] is True
     assert s["tip_error_max"] < 2e-3
     assert s["time_to_settle"] < 4.0
     assert s["droop"] == pytest.approx(0.2794, abs=1e-4)  # as ArmBody's calibration

@@ -40,8 +40,8 @@ from robots.spatial_arm.controller.markers import Markers
 from robots.spatial_arm.controller.model import ArmModel
 
 PROCESS_ACCELERATION = 2.0  # [rad/s^2 per square-root hertz] what the linearisation misses
-RELINEARISE = 0.5  # [s] between linearisations of the equilibrium the pistons hold
-DRIFT = 0.005  # [m] of piston travel beyond which it is linearised again sooner
+RELINEARISE = 1.0  # [s] between linearisations of the equilibrium the pistons hold
+DRIFT = 0.01  # [m] of piston travel beyond which it is linearised again sooner
 GATE_CHI2 = 30.0  # Mahalanobis gate of a marker's innovation (3 dof: p < 1e-6)
 
 
