@@ -48,6 +48,9 @@ FINISH_TIMEOUT = 30.0  # [s] softhil's controller has after the final SYNC to ex
 # [s] the connection that sent the SYNCs may stay closed before the controller is taken for
 # gone: a program's exit shows first (with its code), a controller that reconnects resumes
 CLOSED_GRACE = 1.0
+# [s] the same for a program this run started: its exit code is due, and names what happened
+# (a loaded host can take seconds to reap a program that ends on a signal)
+PROCESS_CLOSED_GRACE = 15.0
 MAX_REPORT_BYTES = 1 << 20  # a user program's report in summary.json: at most 1 MiB
 MAX_REPORT_DEPTH = 32  # and at most this deep (json and the summary's writer recurse)
 # the controller report's entries that the summary counts with, as ControllerReport has them
@@ -98,7 +101,8 @@ class ControllerPeer:
         now = time.monotonic()
         if self._closed_since is None:
             self._closed_since = now
-        if now - self._closed_since < CLOSED_GRACE:
+        grace = PROCESS_CLOSED_GRACE if self.process is not None else CLOSED_GRACE
+        if now - self._closed_since < grace:
             return None  # a program that exits is named by its exit code; one may reconnect
         return (
             f"the controller's connection to the run's hub ({where}, which sent the SYNCs) closed"

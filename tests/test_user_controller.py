@@ -244,6 +244,38 @@ def test_a_closed_sync_connection_is_taken_for_gone_only_after_the_grace(monkeyp
     assert 0.5 <= peers.CLOSED_GRACE <= 2.0
 
 
+def test_a_started_program_is_given_time_to_show_its_exit_code(monkeypatch) -> None:
+    """A program this run started, whose SYNC connection has closed, is waited for up to
+    PROCESS_CLOSED_GRACE: its exit code (a signal's, on a loaded host seconds later) names what
+    happened, not the closed connection."""
+    from hil import controller_peer as peers
+
+    now = [100.0]
+    monkeypatch.setattr(peers.time, "monotonic", lambda: now[0])
+
+    class Hub:
+        def sender_gone(self) -> str | None:
+            return "127.0.0.1:7"
+
+    class Process:
+        code: int | None = None
+
+        def poll(self) -> int | None:
+            return self.code
+
+    peer = peers.ControllerPeer()
+    peer.hub = Hub()  # type: ignore[assignment]
+    peer.process = Process()  # type: ignore[assignment]
+    assert peer.gone() is None
+    now[0] += peers.CLOSED_GRACE * 5  # well past a hand-started controller's grace
+    assert peer.gone() is None
+    peer.process.code = -15  # type: ignore[attr-defined]
+    assert peer.gone() == "the controller exited with code -15"
+    peer.process.code = None  # type: ignore[attr-defined]
+    now[0] += peers.PROCESS_CLOSED_GRACE
+    assert peer.gone() is not None and "closed" in str(peer.gone())
+
+
 def _ending_after(tmp_path: Path, cycles: int) -> str:
     """The example controller as a command given a copy of the config with `cycles` cycles:
     it sends SYNC 0..cycles and exits with code 0."""
