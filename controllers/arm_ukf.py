@@ -16,7 +16,12 @@ from filterpy.kalman import MerweScaledSigmaPoints
 from scipy.stats import chi2
 
 from controllers import cukf
-from controllers.bend_filter import GATE_PROBABILITY, LatencyFilter
+from controllers.bend_filter import (
+    GATE_PROBABILITY,
+    CoupledBends,
+    LatencyFilter,
+    unmodelled_torque_std,
+)
 from controllers.estimation import BendModel, CameraNoise
 from controllers.fast_linalg import einsum, inverse, robust_sqrt
 
@@ -44,9 +49,23 @@ class ArmUnscentedEstimator(LatencyFilter):
         control_period: float,
         latency_compensation: bool = True,
         torque_std: float | None = None,
+        mass_matrix: Sequence[Sequence[float]] | None = None,
     ) -> None:
         super().__init__(bends, base, camera, control_period, latency_compensation, torque_std)
         n = self.segments
+        self.coupled = (
+            None
+            if mass_matrix is None
+            else CoupledBends(
+                self.bends,
+                np.array(mass_matrix, dtype=float),
+                [
+                    (unmodelled_torque_std(b) if torque_std is None else torque_std) ** 2
+                    * control_period
+                    for b in self.bends
+                ],
+            )
+        )
         self.points_fn = MerweScaledSigmaPoints(
             2 * n, alpha=1.0, beta=2.0, kappa=0.0, sqrt_method=robust_sqrt
         )
@@ -68,6 +87,8 @@ class ArmUnscentedEstimator(LatencyFilter):
     def _arm_matrices(self, dt: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """F (2N, 2N), G (2N, N) and Q (2N, 2N) of the whole arm over dt [s], cached by dt."""
         key = round(dt * 1e9)
+        if key not in self._arm_cache and self.coupled is not None:
+            self._arm_cache[key] = self.coupled(dt)
         if key not in self._arm_cache:
             n = self.segments
             F, Q, G = np.zeros((2 * n, 2 * n)), np.zeros((2 * n, 2 * n)), np.zeros((2 * n, n))

@@ -57,9 +57,10 @@ GRAVITY = 9.81  # [m/s^2]
 
 def unmodelled_torque_std(bend: BendModel) -> float:
     """Standard deviation of the torque the bend model leaves out [N m]: pressure quantisation
-    (G_a 10 Pa / sqrt 6) and table friction (mu m g L / 2, m = 20 I / L^2), in quadrature."""
+    (G_a 10 Pa / sqrt 6) and table friction (mu m g L / 2, m the bend's mass, else 20 I / L^2),
+    in quadrature."""
     quantisation = bend.G_a * PRESSURE_QUANTUM / math.sqrt(6.0)
-    mass = 20.0 * bend.inertia / bend.length**2
+    mass = bend.mass or 20.0 * bend.inertia / bend.length**2
     friction = TABLE_FRICTION * mass * GRAVITY * bend.length / 2.0
     return math.hypot(quantisation, friction)
 
@@ -106,6 +107,61 @@ class BendDiscretiser:
             Q = block[2:, 2:].T @ block[:2, 2:]
             self._cache[key] = (F, G, 0.5 * (Q + Q.T))
         return self._cache[key]
+
+
+class CoupledBends:
+    """Exact discretisation of a multibody arm's bends over a step dt, cached by dt: state
+    (theta_1..N, omega_1..N), `M theta'' + D theta' + K theta = G_a u + w` with the arm's mass
+    matrix M (constant: the straight arm's), D, K and G_a diagonal from the bends, u the
+    pressure inputs [Pa] and w each bend's unmodelled torque (white, spectral densities
+    `torque_psd`, independent between the bends). The per-bend `BendDiscretiser` is its
+    diagonal M without the coupling.
+    """
+
+    def __init__(
+        self, bends: Sequence[BendModel], mass_matrix: np.ndarray, torque_psd: Sequence[float]
+    ) -> None:
+        n = len(bends)
+        if mass_matrix.shape != (n, n):
+            raise ValueError(f"mass_matrix: shape {mass_matrix.shape} for {n} bends")
+        inverse = np.linalg.inv(mass_matrix)
+        self.A = np.zeros((2 * n, 2 * n))
+        self.A[:n, n:] = np.eye(n)
+        self.A[n:, :n] = -inverse @ np.diag([b.k_bend for b in bends])
+        self.A[n:, n:] = -inverse @ np.diag([b.d_bend for b in bends])
+        self.B = np.zeros((2 * n, n))
+        self.B[n:, :] = inverse @ np.diag([b.G_a for b in bends])
+        noise_input = np.zeros((2 * n, n))
+        noise_input[n:, :] = inverse
+        self.Qc = noise_input @ np.diag(torque_psd) @ noise_input.T
+        self.n = n
+
+    def __call__(self, dt: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """F (2N, 2N), G (2N, N) [per Pa] and Q (2N, 2N) for a step of dt [s]: Van Loan over a
+        step h = dt / 2^k short against the arm's fastest mode (|A| h <= 1/2; over the whole
+        step its exp(-A dt) would reach e^100 on the six-segment arm and cancel every digit),
+        then doubled k times exactly (F_2h = F_h^2, G_2h = F_h G_h + G_h,
+        Q_2h = F_h Q_h F_h' + Q_h)."""
+        n2 = 2 * self.n
+        step = round(dt * 1e9) * 1e-9
+        reach = float(np.linalg.norm(self.A, 1)) * step  # |A| dt
+        halvings = math.ceil(math.log2(2.0 * reach)) if reach > 0.5 else 0
+        h = step / 2.0**halvings
+        augmented = np.zeros((n2 + self.n, n2 + self.n))
+        augmented[:n2, :n2] = self.A
+        augmented[:n2, n2:] = self.B
+        transition = expm(augmented * h)
+        F, G = transition[:n2, :n2], transition[:n2, n2:]
+        van_loan = np.zeros((2 * n2, 2 * n2))
+        van_loan[:n2, :n2] = -self.A
+        van_loan[:n2, n2:] = self.Qc
+        van_loan[n2:, n2:] = self.A.T
+        block = expm(van_loan * h)
+        Q = block[n2:, n2:].T @ block[:n2, n2:]
+        for _ in range(halvings):
+            F, G, Q = F @ F, F @ G + G, F @ Q @ F.T + Q
+        Q = 0.5 * (Q + Q.T)
+        return tuple(np.ascontiguousarray(a) for a in (F, G, Q))  # type: ignore[return-value]
 
 
 def _pressure_inputs(

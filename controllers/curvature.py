@@ -4,8 +4,8 @@ piston position setpoint, with its design from the segment's linearised physics.
 Linearised at sealing (both sides at p_atm, mid-stroke, unbent), a segment's curvature answers
 the piston position as a first-order lag: the gas law with compliance gives each side a
 stiffness dp/dV = p_atm / (V_seal,i + p_atm C_a), the antagonistic pair a torque G_a (p_a - p_b),
-and the bending equation (inertia negligible against damping, I/d ~ 6 ms) a pole at
-(k + k_gas) / d. Hence
+and the bending equation (inertia negligible against damping, I/d ~ 1 ms for a lone segment;
+not so in a multibody arm: `ArmGains`) a pole at (k + k_gas) / d. Hence
     kappa / x_piston = K / (tau s + 1),  K = S G_a A / (L (k + S G_a^2)),
     tau = d / (k + S G_a^2),  S = sum over both sides of p_atm / (V_seal,i + p_atm C_a).
 The PI zero cancels the lag (Ki = Kp / tau) and Kp sets the crossover: Kp = wc tau / K.
@@ -20,6 +20,7 @@ task-space IK. Sign: the piston towards `stroke` compresses side a and bends pos
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 from scipy.optimize import brentq
@@ -182,6 +183,28 @@ def design_pi(model: SegmentModel, crossover_hz: float = 2.0) -> PiGains:
     return PiGains(Kp=Kp, Ki=Kp / tau)
 
 
+@dataclass(frozen=True)
+class ArmGains:
+    """The curvature loops of a multibody arm as one (`controllers.loop_design.arm_loop_gains`):
+    segment i's piston setpoint takes Kp[i] . e, the integral of Ki[i] . e and -Kd[i] . rate,
+    e the vector of curvature errors and rate the estimated curvature rates, each matrix
+    N x N [m per 1/m, m per (1/m) s, m per (1/m)/s], segment 1 first."""
+
+    Kp: tuple[tuple[float, ...], ...]
+    Ki: tuple[tuple[float, ...], ...]
+    Kd: tuple[tuple[float, ...], ...]
+
+    def terms(
+        self, i: int, error: Sequence[float], rate: Sequence[float]
+    ) -> tuple[float, float, float]:
+        """Segment i's (0-based) proportional, integral-rate and damping terms [m, m/s, m]."""
+        return (
+            math.fsum(g * e for g, e in zip(self.Kp[i], error, strict=True)),
+            math.fsum(g * e for g, e in zip(self.Ki[i], error, strict=True)),
+            math.fsum(g * r for g, r in zip(self.Kd[i], rate, strict=True)),
+        )
+
+
 @dataclass
 class CurvaturePI:
     """Curvature PI for one segment with static feedforward:
@@ -224,6 +247,33 @@ class CurvaturePI:
         unclamped = base + proposed
         setpoint = min(max(unclamped, self.x_min), self.x_max)
         clamped_against = setpoint != unclamped and (unclamped > self.x_max) == (error > 0.0)
+        slewing = (
+            piston is not None
+            and self.previous is not None
+            and abs(self.previous - piston) > self.lag_tolerance
+        )
+        if not clamped_against and not slewing:
+            self.integral = proposed
+        self.previous = setpoint
+        return setpoint
+
+    def update_terms(
+        self,
+        kappa_ref: float,
+        proportional: float,
+        integral_rate: float,
+        damping: float,
+        piston: float | None = None,
+    ) -> float:
+        """`update` with its terms computed outside (`ArmGains.terms`: the segment's share of
+        the whole arm's loop): the piston setpoint [m], the same clamp and anti-windup, the
+        integral's direction that of `integral_rate`."""
+        proposed = self.integral + integral_rate * self.period
+        unclamped = self.x_mid + self.feedforward * kappa_ref + proportional - damping + proposed
+        setpoint = min(max(unclamped, self.x_min), self.x_max)
+        clamped_against = setpoint != unclamped and (unclamped > self.x_max) == (
+            integral_rate > 0.0
+        )
         slewing = (
             piston is not None
             and self.previous is not None

@@ -81,6 +81,9 @@ class BendModel:
     theta_max: float = 1.6  # [rad]
     vacuum_factor: float = 1.0  # share of G_a left under deep vacuum (1: no collapse)
     p_collapse: float = 1e4  # [Pa] vacuum over which the channel collapses
+    # [kg] the segment's own mass (its table friction); 0: the lone segment's, 20 inertia / L^2
+    # (in a multibody arm `inertia` is the whole outer arm's, the diagonal of its mass matrix)
+    mass: float = 0.0
 
     def effective_pressure(self, gauge: float) -> float:
         """h(g) [Pa]: the pressure that, times G_a, is the channel's torque."""

@@ -72,6 +72,7 @@ def make_estimator(
     control_period: float,
     latency_compensation: bool = True,
     torque_std: float | None = None,
+    mass_matrix: Sequence[Sequence[float]] | None = None,
 ) -> Estimator:
     """The estimator called `name` ("raw", "kf" or "ukf").
 
@@ -92,6 +93,10 @@ def make_estimator(
     torque_std
         Unmodelled torque standard deviation [N m]; None derives it per segment
         (`unmodelled_torque_std`).
+    mass_matrix
+        The arm's mass matrix (N, N) [kg m^2] where its bends are one multibody arm: `ukf`
+        predicts them coupled by it, `kf` (one filter per segment) each with its diagonal entry
+        (the bends' `inertia`); None: each bend alone with its own inertia.
     """
     if name == "raw":
         return RawEstimator(bends, base)
@@ -101,7 +106,7 @@ def make_estimator(
         )
     if name == "ukf":
         return ArmUnscentedEstimator(
-            bends, base, camera, control_period, latency_compensation, torque_std
+            bends, base, camera, control_period, latency_compensation, torque_std, mass_matrix
         )
     raise ValueError(f"unknown estimator {name!r}: choose one of {', '.join(NAMES)}")
 

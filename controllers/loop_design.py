@@ -19,13 +19,14 @@ The gains are closed-form (`outer_loop_gains`, what every run needs); python-con
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
-from controllers.curvature import PiGains, SegmentModel
+from controllers.curvature import ArmGains, PiGains, SegmentModel
 
 if TYPE_CHECKING:
     import control
@@ -100,6 +101,52 @@ def outer_loop_gains(
     tau = model.time_constant()
     Kp = wc * tau / model.static_gain()
     return PiGains(Kp=Kp, Ki=Kp / tau)
+
+
+def arm_loop_gains(
+    models: Sequence[SegmentModel],
+    mass_matrix: Sequence[Sequence[float]],
+    delay: float,
+    phase_margin_deg: float = 60.0,
+    max_crossover_hz: float = 2.0,
+) -> ArmGains:
+    """The curvature loops of a multibody arm whose straight mass matrix M [kg m^2] couples
+    its bends: `M theta'' + D theta' + K theta = T x` (D, K the bends' damping and bending plus
+    gas stiffness, T the torque per piston travel, all diagonal). Each bend alone has its pole
+    at k / d and the PI of `outer_loop_gains` cancels it; here the base carries the whole outer
+    arm (M_11 = 6e-3 kg m^2 on the six-segment planar arm, M / d ~ 1 s), the arm's first mode
+    is lightly damped (0.26 Hz, zeta 0.16) and those PIs, one per segment, make it unstable.
+
+    The design, in torque per piston: damping injected through the pistons proportional to
+    the mass matrix, -alpha M theta' (each mode's decay rate grows by alpha / 2 alike, so the
+    fast tip modes are not pushed against the loop's delay), alpha = 2 omega_1 (the first mode
+    of the undamped arm, K v = omega^2 M v, critically damped); then the PI of
+    `outer_loop_gains` with the damping the arm now has, C = D + alpha M, in place of d:
+        T x = K theta_ref + wc C e + wc K integral(e) - alpha M theta'   (e = theta_ref - theta),
+    so that without inertia it is exactly the per-segment PI (Kp = wc tau / K, Ki = Kp / tau)
+    and with it the quasi-static arm follows (C s + K) (s + wc) E = 0: each error decays at
+    wc. Returned in curvatures (theta_j = kappa_j L_j). Measured on the six-segment planar arm
+    (linearised, 10 ms period, 16 ms drive lag, 1 Hz): every closed-loop pole damped at zeta >=
+    0.3 (0.25-0.44 with the plant's M 30 % over or 40 % under the design's), where the
+    per-segment PI leaves a mode growing at 0.7 1/s."""
+    n = len(models)
+    M = np.array(mass_matrix, dtype=float)
+    if M.shape != (n, n):
+        raise ValueError(f"mass_matrix: shape {M.shape} for {n} segments")
+    lengths = np.array([m.length for m in models])
+    stiffness = np.array([m.k_bend + m.gas_stiffness() for m in models])
+    torque = np.array([m.static_gain() for m in models]) * lengths * stiffness  # T [N m / m]
+    omega_1 = math.sqrt(min(np.linalg.eigvals(np.linalg.solve(M, np.diag(stiffness))).real))
+    alpha = 2.0 * omega_1
+    wc_cap = 2.0 * math.pi * max_crossover_hz
+    wc = wc_cap if delay <= 0.0 else min(wc_cap, math.radians(90.0 - phase_margin_deg) / delay)
+    damping = np.diag([m.d_bend for m in models]) + alpha * M
+    per_curvature = lengths[np.newaxis, :] / torque[:, np.newaxis]  # L_j / T_i
+
+    def rows(matrix: np.ndarray) -> tuple[tuple[float, ...], ...]:
+        return tuple(tuple(float(v) for v in row) for row in matrix * per_curvature)
+
+    return ArmGains(Kp=rows(wc * damping), Ki=rows(wc * np.diag(stiffness)), Kd=rows(alpha * M))
 
 
 def design_outer_loop(

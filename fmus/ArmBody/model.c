@@ -43,6 +43,7 @@
 #define N_TERMS 10         /* series terms for W < 1: truncation below 1e-19 relative */
 #define SERIES_BELOW 1.0   /* W = (bend angle)^2 below which a, b, c take their series */
 #define PISTON_TOLERANCE 1e-9
+#define SUBSTEP_AUTO_MAX 1e-3 /* [s] substep = 0 takes the stability limit, at most this */
 #define RK4_RADIUS 2.5     /* RK4 is stable on the left half-disc |h lambda| <= 2.6 */
 
 /* member i (from 0) of a per-segment family: the members' value references are consecutive */
@@ -881,6 +882,7 @@ fmi2Status model_outputs(Instance *inst) {
         SEG(inst, theta_y, i) = v;
         SEG(inst, theta, i) = sqrt(u * u + v * v);
         SEG(inst, kappa, i) = used ? sqrt(u * u + v * v) / s->L[i] : 0.0;
+        SEG(inst, kappa_x, i) = used ? u / s->L[i] : 0.0;
         SEG(inst, theta_dot_x, i) = used ? qd[i * nd] : 0.0;
         SEG(inst, theta_dot_y, i) = used && nd == 2 ? qd[i * nd + 1] : 0.0;
         SEG(inst, tip_x, i) = used ? dyn.tip[i][0] : 0.0;
@@ -1089,7 +1091,7 @@ static GasCircuit circuit_of_segment(const Instance *inst, int i) {
 
 fmi2Status model_initialize(Instance *inst, OdeSystem *ode) {
     State *s = (State *)inst->state;
-    double weight[MAX_NODES], q_start[MAX_Q], limit;
+    double weight[MAX_NODES], q_start[MAX_Q], limit, substep;
     int i, j, k;
     memset(s, 0, sizeof *s);
     s->n_seg = (int)V(inst, n_segments);
@@ -1169,11 +1171,13 @@ fmi2Status model_initialize(Instance *inst, OdeSystem *ode) {
                                      "without mass, or every mass beyond it zero)");
         return fmi2Error;
     }
-    if (V(inst, substep) > limit) {
+    substep = V(inst, substep);
+    if (substep == 0.0) substep = limit < SUBSTEP_AUTO_MAX ? limit : SUBSTEP_AUTO_MAX; /* automatic */
+    if (substep > limit) {
         log_message(inst, fmi2Error,
                     "invalid parameter substep = %g: beyond the stability limit %g s of the arm's "
                     "fastest mode (inertia, damping, bending, gas and gravity stiffness)",
-                    V(inst, substep), limit);
+                    substep, limit);
         return fmi2Error;
     }
     for (j = 0; j < s->n_q; j++) s->y[j] = q_start[j];
@@ -1188,6 +1192,6 @@ fmi2Status model_initialize(Instance *inst, OdeSystem *ode) {
     ode->y = s->y;
     ode->nb = 0;
     ode->stability_limit = limit;
-    ode->max_substep = V(inst, substep);
+    ode->max_substep = substep;
     return model_outputs(inst);
 }

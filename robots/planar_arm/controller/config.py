@@ -9,7 +9,7 @@ import json
 from dataclasses import asdict, dataclass
 
 from controllers.config import ESTIMATORS, CameraTiming, config_from_json
-from controllers.curvature import PiGains
+from controllers.curvature import ArmGains, PiGains
 from controllers.estimation import BendModel, CameraNoise
 from controllers.trajectories import CurvatureProfile, Sine
 from robots.planar_arm.controller.gripper import GripperGeometry
@@ -56,6 +56,12 @@ class ControllerConfig:
     plan: TaskPlan | None = None  # task-space task (point-to-point, path); None: the profile
     objects: int = 0  # object markers the camera reports after the arm's (ids segments + 1 ...)
     gripper: GripperConfig | None = None  # the finger pair at the tip and its drive
+    # the arm's mass matrix (straight, [kg m^2], row by row) where the segments are one
+    # multibody arm: the estimators predict the bends coupled by it; None: each bend alone
+    mass_matrix: tuple[tuple[float, ...], ...] | None = None
+    # the curvature loops coupled through the arm's inertia (in place of `gains`); None: each
+    # segment's own PI (`gains`)
+    arm_gains: ArmGains | None = None
 
     @property
     def segments(self) -> int:

@@ -1,5 +1,6 @@
 """The planar arm's curvature control: one curvature PI per segment (the outer loop of the
-cascade; the drive's position servo is the inner one), answering each cycle with a DriveCommand
+cascade; the drive's position servo is the inner one; on a multibody arm the PIs coupled by
+its inertia, `controllers.curvature.ArmGains`), answering each cycle with a DriveCommand
 and a ControllerState frame per segment (the reference it tracks and the estimate it used).
 """
 
@@ -53,13 +54,19 @@ class CurvatureControl:
         ControllerState frame per segment."""
         frames: list[Any] = []
         lo, hi = self.shown_range
+        arm = self.config.arm_gains  # the loops of a multibody arm: coupled through its inertia
+        errors = [float(r) - float(k) for r, k in zip(references, estimate.kappa, strict=True)]
+        rates = [float(r) for r in estimate.kappa_rate]
         for i, pi in enumerate(self.pis):
             node = i + 1
             kappa_ref = float(references[i])
             reading = drives.get(node)
             piston = reading.piston_position if reading is not None else None
             kappa_est = float(estimate.kappa[i])
-            setpoint = pi.update(kappa_ref, kappa_est, piston)
+            if arm is None:
+                setpoint = pi.update(kappa_ref, kappa_est, piston)
+            else:
+                setpoint = pi.update_terms(kappa_ref, *arm.terms(i, errors, rates), piston)
             frames.append(DriveCommand(node, setpoint, True, cycle))
             frames.append(ControllerState(node, kappa_ref, min(max(kappa_est, lo), hi), cycle))
         return frames

@@ -18,7 +18,7 @@ from controllers import kinematics
 from hil.schema import Given, Is, MinItems, Needs, OneOf
 from rigbus.protocol import Protocol
 from robots.planar_arm.controller.tasks import TASK_KINDS
-from robots.planar_arm.plant import environment, gripper
+from robots.planar_arm.plant import body, environment, gripper
 
 IK_RANGE_SHARE = 0.9  # of each segment's reachable curvature range that IK may use: the rest is
 # left for the curvature loop to correct in
@@ -136,6 +136,9 @@ def _fmu_parameters(arm: PlanarArm, s: Scenario) -> None:
                 if table == "segment" and name in SEGMENT_GEOMETRY:
                     raise _fail(s, key, GEOMETRY_WHY)
                 check_parameter(s.source, key, interface, name, value)
+    if body.present(s):
+        segments, cylinders = arm.parameters(s, "segment"), arm.parameters(s, "cylinder")
+        body.check(s, arm._given(s, "segment"), segments, cylinders)
 
 
 def _cylinders(arm: PlanarArm, s: Scenario, protocol: Protocol) -> None:

@@ -13,11 +13,16 @@ import numpy as np
 from controllers.config import CameraTiming
 from controllers.curvature import PiGains, SegmentModel
 from controllers.estimation import BendModel, CameraNoise
-from controllers.loop_design import effective_delay, estimator_delay, outer_loop_gains
+from controllers.loop_design import (
+    arm_loop_gains,
+    effective_delay,
+    estimator_delay,
+    outer_loop_gains,
+)
 from hil.vision import exposure_delay_bound
 from robots.planar_arm.controller.config import ControllerConfig, GripperConfig
 from robots.planar_arm.controller.tasks import TASK_KINDS, TaskPlan, draw_paths, draw_targets
-from robots.planar_arm.plant import environment, gripper
+from robots.planar_arm.plant import body, environment, gripper
 from robots.planar_arm.plant.checks import IK_RANGE_SHARE
 from robots.planar_arm.plant.parameters import (
     ACTUATOR_WIDTH,
@@ -174,12 +179,12 @@ def reach(scenario: Scenario) -> float:
 
 
 def segment_models(scenario: Scenario) -> list[SegmentModel]:
-    models = []
-    for segment, cylinder in zip(
-        parameters(scenario, "segment"), parameters(scenario, "cylinder"), strict=True
-    ):
-        models.append(_segment_model(segment, cylinder))
-    return models
+    return [
+        _segment_model(segment, cylinder)
+        for segment, cylinder in zip(
+            parameters(scenario, "segment"), parameters(scenario, "cylinder"), strict=True
+        )
+    ]
 
 
 def controller_config(scenario: Scenario) -> ControllerConfig:
@@ -187,6 +192,8 @@ def controller_config(scenario: Scenario) -> ControllerConfig:
     c = scenario.controller
     models = segment_models(scenario)
     segments = parameters(scenario, "segment")
+    on_body = body.present(scenario)
+    mass_matrix = _mass_matrix(scenario, segments)
     gains = []
     delay = effective_delay(
         estimator_delay(c.estimator, scenario.timing.control_period, c.latency_compensation),
@@ -220,7 +227,9 @@ def controller_config(scenario: Scenario) -> ControllerConfig:
         bends=tuple(
             BendModel(
                 length=p["length"],
-                inertia=p["mass"] * p["length"] ** 2 / 20.0,
+                # on the body the inertia the bend carries in the straight arm, with its own mass
+                inertia=inertia,
+                mass=p["mass"] if on_body else 0.0,
                 k_bend=p["k_bend"],
                 d_bend=p["d_bend"],
                 G_a=p["G_a"],
@@ -228,7 +237,7 @@ def controller_config(scenario: Scenario) -> ControllerConfig:
                 vacuum_factor=p.get("vacuum_factor", 1.0),
                 p_collapse=p.get("p_collapse", 1e4),
             )
-            for p in segments
+            for p, inertia in zip(segments, _inertias(scenario, segments), strict=True)
         ),
         camera=CameraNoise(
             noise=scenario.camera.noise,
@@ -252,7 +261,31 @@ def controller_config(scenario: Scenario) -> ControllerConfig:
         ),
         objects=markers(scenario) - scenario.robot.segments - 1,
         gripper=gripper_config(scenario),
+        mass_matrix=mass_matrix,
+        arm_gains=(
+            arm_loop_gains(models, mass_matrix, delay, max_crossover_hz=c.crossover)
+            if mass_matrix is not None and c.kp is None and c.ki is None
+            else None
+        ),
     )
+
+
+def _inertias(scenario: Scenario, segments: list[dict[str, float]]) -> list[float]:
+    """The inertia each bend carries: on the body (robot.model = "body") the straight arm's
+    (the diagonal of its mass matrix), else the lone segment's m L^2 / 20."""
+    if body.present(scenario):
+        return body.bend_inertias([p["length"] for p in segments], [p["mass"] for p in segments])
+    return [p["mass"] * p["length"] ** 2 / 20.0 for p in segments]
+
+
+def _mass_matrix(
+    scenario: Scenario, segments: list[dict[str, float]]
+) -> tuple[tuple[float, ...], ...] | None:
+    """The straight arm's mass matrix on the body (robot.model = "body"), else None."""
+    if not body.present(scenario):
+        return None
+    M = body.mass_matrix([p["length"] for p in segments], [p["mass"] for p in segments])
+    return tuple(tuple(row) for row in M)
 
 
 def markers(scenario: Scenario) -> int:

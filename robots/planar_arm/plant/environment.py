@@ -237,14 +237,15 @@ def _object_parameter(name: str, o: int) -> str:
     return f"{stem}_{o}"
 
 
-def connections(segments: int) -> list[tuple[str, str]]:
-    """Segment n's curvature and bend rate in, its external torque out."""
+def connections(ports: Sequence[Mapping[str, str]]) -> list[tuple[str, str]]:
+    """Each segment's signed curvature and bend rate in, its external torque out; `ports[n - 1]`
+    names segment n's (kappa, theta_dot, tau_ext: on its FeaSegment or on the arm body)."""
     pairs = []
-    for n in range(1, segments + 1):
+    for n, port in enumerate(ports, start=1):
         pairs += [
-            (f"segment{n}.kappa", f"environment.kappa_{n}"),
-            (f"segment{n}.theta_dot", f"environment.theta_dot_{n}"),
-            (f"environment.tau_ext_{n}", f"segment{n}.tau_ext"),
+            (port["kappa"], f"environment.kappa_{n}"),
+            (port["theta_dot"], f"environment.theta_dot_{n}"),
+            (f"environment.tau_ext_{n}", port["tau_ext"]),
         ]
     return pairs
 

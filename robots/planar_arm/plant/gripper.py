@@ -143,18 +143,19 @@ def environment_parameters(scenario: Scenario) -> dict[str, float]:
     }
 
 
-def drive_connections(n: int, body: str) -> list[tuple[str, str]]:
+def drive_connections(n: int, ports: Mapping[str, str]) -> list[tuple[str, str]]:
     """(source, target) wiring of drive node `n`: its device, its DriveCylinder `cylinder{n}`
-    and the FeaSegment `body` the cylinder's gas drives (a segment, or the finger pair)."""
+    and the gas circuit the cylinder drives, whose `ports` (x_piston, p_a, p_b: full names) are
+    a FeaSegment's (a segment, or the finger pair) or a segment's on the arm body."""
     return [
-        (f"cylinder{n}.x", f"{body}.x_piston"),
-        (f"{body}.p_a", f"cylinder{n}.p_a"),
-        (f"{body}.p_b", f"cylinder{n}.p_b"),
+        (f"cylinder{n}.x", ports["x_piston"]),
+        (ports["p_a"], f"cylinder{n}.p_a"),
+        (ports["p_b"], f"cylinder{n}.p_b"),
         (f"drive{n}.x_ref", f"cylinder{n}.x_ref"),
         (f"drive{n}.enable", f"cylinder{n}.enable"),
         (f"cylinder{n}.x", f"drive{n}.x"),
-        (f"{body}.p_a", f"drive{n}.p_a"),
-        (f"{body}.p_b", f"drive{n}.p_b"),
+        (ports["p_a"], f"drive{n}.p_a"),
+        (ports["p_b"], f"drive{n}.p_b"),
         (f"cylinder{n}.fault", f"drive{n}.servo_fault"),
     ]
 
@@ -162,7 +163,9 @@ def drive_connections(n: int, body: str) -> list[tuple[str, str]]:
 def connections(scenario: Scenario) -> list[tuple[str, str]]:
     """The gripper's drive, cylinder and finger pair, and the fingers in the world's contact."""
     return [
-        *drive_connections(node(scenario), "gripper"),
+        *drive_connections(
+            node(scenario), {name: f"gripper.{name}" for name in ("x_piston", "p_a", "p_b")}
+        ),
         ("gripper.theta", "environment.gripper_theta"),
         ("gripper.theta_dot", "environment.gripper_theta_dot"),
         ("environment.gripper_tau_ext", "gripper.tau_ext"),

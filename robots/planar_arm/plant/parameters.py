@@ -96,8 +96,18 @@ class PlanarArmSpec:
     base: tuple[float, float, float] = setting(
         (0.0, 0.0, math.pi / 2), "m, m, rad", "the base: x, y, heading"
     )
+    model: str = setting(
+        "segments",
+        doc="the arm's model: segments, one FeaSegment FMU (or robot.segment_fmu) per segment, "
+        "each with its own inertia only; body, one multibody ArmBody FMU for every segment (the "
+        "inertia between segments: robots/planar_arm/plant/body.py; the six-segment tasks do "
+        "not settle on it yet, README)",
+        choices=("body", "segments"),
+    )
     segment_fmu: str = setting(
-        "FeaSegment", doc="a segment's FMU: a softhil model, or an .fmu (relative to the file)"
+        "FeaSegment",
+        doc="a segment's FMU: a softhil model, or an .fmu (relative to the file); "
+        'another than FeaSegment needs robot.model = "segments"',
     )
     cylinder_fmu: str = setting("DriveCylinder", doc="a drive cylinder's FMU, as segment_fmu")
     segment: dict[str, Any] = setting(
@@ -204,7 +214,11 @@ def _segment_model(segment: Mapping[str, float], cylinder: Mapping[str, float]) 
     sealed where the piston starts."""
     values = {**segment, "bore": cylinder["bore"], "stroke": cylinder["stroke"]}
     return SegmentModel(
-        **{k: values[k] for k in SegmentModel.__dataclass_fields__ if k != "x_seal"},
+        **{
+            k: values[k]
+            for k in SegmentModel.__dataclass_fields__
+            if k not in ("x_seal", "inertia")
+        },
         x_seal=cylinder["x_start"],
     )
 

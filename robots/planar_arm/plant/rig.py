@@ -24,7 +24,7 @@ from hil.rig import PlotSpec, Rig, SignalSpec, fmu_ref, scenario_camera
 from rigbus.protocol import Protocol
 from robots.planar_arm.controller.config import ControllerConfig, GripperConfig
 from robots.planar_arm.controller.tasks import TASK_KINDS, TaskPlan
-from robots.planar_arm.plant import checks, configuration, environment, gripper
+from robots.planar_arm.plant import body, checks, configuration, environment, gripper
 from robots.planar_arm.plant import parameters as arm_parameters
 from robots.planar_arm.plant import signals as arm_signals
 from robots.planar_arm.plant.parameters import (
@@ -77,28 +77,23 @@ class PlanarArm:
         ports: dict[str, tuple[set[str], set[str]]] = {
             "camera": (set(), set(self.camera_inputs(scenario)))
         }
+        if body.present(scenario):
+            interface = fmu_interface(scenario.source, "robot.model", body.FMU)
+            ports[body.NAME] = (*_split(interface),)
+            del interfaces["segment"]
         for i in range(1, r.segments + 1):
             for kind, interface in interfaces.items():
-                ports[f"{kind}{i}"] = (
-                    {n for n, v in interface.items() if v.causality == "output"},
-                    {n for n, v in interface.items() if v.causality == "input"},
-                )
+                ports[f"{kind}{i}"] = (*_split(interface),)
             ports[f"drive{i}"] = ({"x_ref", "enable", "fault"}, {"x", "p_a", "p_b", "servo_fault"})
         if gripper.present(scenario):
             g = gripper.node(scenario)
             for kind, fmu in (("gripper", gripper.SEGMENT_FMU), (f"cylinder{g}", "DriveCylinder")):
                 interface = fmu_interface(scenario.source, "robot.gripper", fmu)
-                ports[kind] = (
-                    {n for n, v in interface.items() if v.causality == "output"},
-                    {n for n, v in interface.items() if v.causality == "input"},
-                )
+                ports[kind] = (*_split(interface),)
             ports[f"drive{g}"] = ({"x_ref", "enable", "fault"}, {"x", "p_a", "p_b", "servo_fault"})
         if environment.present(scenario):
             interface = fmu_interface(scenario.source, "robot.environment", environment.FMU)
-            ports["environment"] = (
-                {n for n, v in interface.items() if v.causality == "output"},
-                {n for n, v in interface.items() if v.causality == "input"},
-            )
+            ports["environment"] = (*_split(interface),)
         return ports
 
     def start_pistons(self, scenario: Scenario) -> list[float]:
@@ -133,13 +128,7 @@ class PlanarArm:
 
         r: PlanarArmSpec = scenario.robot
         protocol = Protocol()
-        segments_given = self.given(scenario, "segment")
-        cylinders_given = self.given(scenario, "cylinder")
         segments = self.parameters(scenario, "segment")
-        cylinders = self.parameters(scenario, "cylinder")
-        segment_names = {
-            n for n, p in _interface(scenario, "segment").items() if p.causality == "parameter"
-        }
         timeout_ticks = round(scenario.safety.command_timeout / scenario.timing.step)
         pistons = self.start_pistons(scenario)
         drives = [
@@ -194,44 +183,7 @@ class PlanarArm:
         connections: dict[str, Connection] = {}
         parameters: dict[str, Mapping[str, float]] = {}
         try:
-            for n in range(1, r.segments + 1):
-                cylinder_values = dict(cylinders_given[n - 1])
-                if pistons[n - 1] != cylinders[n - 1]["x_start"]:
-                    cylinder_values["x_start"] = pistons[n - 1]  # a segment that starts bent
-                # every FMU stays in initialisation mode until the master has passed the
-                # connected start values along (Algorithm._initialise)
-                cylinder = FmuSlave(
-                    fmu_ref(scenario.source, r.cylinder_fmu),
-                    f"cylinder{n}",
-                    cylinder_values,
-                    exit_initialization=False,
-                )
-                fmus.append(FmuParticipant(cylinder, r.cylinder_decimation))
-                # the segment's gas circuit includes the cylinder: same bore and stroke, sealed
-                # where the piston starts
-                geometry = {
-                    "bore": cylinders[n - 1]["bore"],
-                    "stroke": cylinders[n - 1]["stroke"],
-                    "x_seal": cylinders[n - 1]["x_start"],
-                }
-                segment_values = {
-                    **{k: v for k, v in geometry.items() if k in segment_names},
-                    **segments_given[n - 1],
-                }
-                segment = FmuSlave(
-                    fmu_ref(scenario.source, r.segment_fmu),
-                    f"segment{n}",
-                    segment_values,
-                    exit_initialization=False,
-                )
-                fmus.append(FmuParticipant(segment, r.segment_decimation))
-                parameters[f"cylinder{n}"] = cylinders[n - 1]
-                parameters[f"segment{n}"] = {**segments[n - 1], **segment_values}
-                for source, target in (
-                    *gripper.drive_connections(n, f"segment{n}"),
-                    (f"segment{n}.kappa", f"camera.kappa_{n}"),
-                ):
-                    connections[target] = Connection(source, target)
+            self._arm(scenario, pistons, fmus, connections, parameters)
             if gripper.present(scenario):
                 g = gripper.node(scenario)
                 cylinder_values = gripper.table(scenario, "cylinder")
@@ -261,7 +213,8 @@ class PlanarArm:
                 )
                 fmus.append(FmuParticipant(world, 1))
                 parameters["environment"] = world_values
-                for source, target in environment.connections(r.segments):
+                ports = [body.arm_ports(scenario, n) for n in range(1, r.segments + 1)]
+                for source, target in environment.connections(ports):
                     connections[target] = Connection(source, target)
                 for name in self.camera_inputs(scenario)[r.segments :]:
                     # object_x_1 ...: the camera sees each object's marker
@@ -296,6 +249,75 @@ class PlanarArm:
             figures,
             animation=("arm", animate),
         )
+
+    def _arm(
+        self,
+        scenario: Scenario,
+        pistons: Sequence[float],
+        fmus: list[FmuParticipant],
+        connections: dict[str, Connection],
+        parameters: dict[str, Mapping[str, float]],
+    ) -> None:
+        """The arm's FMUs (appended to `fmus` as they open), their connections and parameters:
+        each segment's drive cylinder, and one ArmBody for every segment (robot.model = "body")
+        or a FeaSegment per segment."""
+        from hil.fmu.slave import FmuSlave
+
+        r: PlanarArmSpec = scenario.robot
+        cylinders_given = self.given(scenario, "cylinder")
+        segments_given = self.given(scenario, "segment")
+        segments = self.parameters(scenario, "segment")
+        cylinders = self.parameters(scenario, "cylinder")
+        for n in range(1, r.segments + 1):
+            cylinder_values = dict(cylinders_given[n - 1])
+            if pistons[n - 1] != cylinders[n - 1]["x_start"]:
+                cylinder_values["x_start"] = pistons[n - 1]  # a segment that starts bent
+            # every FMU stays in initialisation mode until the master has passed the
+            # connected start values along (Algorithm._initialise)
+            cylinder = FmuSlave(
+                fmu_ref(scenario.source, r.cylinder_fmu),
+                f"cylinder{n}",
+                cylinder_values,
+                exit_initialization=False,
+            )
+            fmus.append(FmuParticipant(cylinder, r.cylinder_decimation))
+            parameters[f"cylinder{n}"] = cylinders[n - 1]
+        if body.present(scenario):
+            body_values = body.values(segments, cylinders)
+            arm = FmuSlave(body.FMU, body.NAME, body_values, exit_initialization=False)
+            fmus.append(FmuParticipant(arm, r.segment_decimation))
+            parameters[body.NAME] = body_values
+        else:
+            names = {
+                n for n, p in _interface(scenario, "segment").items() if p.causality == "parameter"
+            }
+            for n in range(1, r.segments + 1):
+                # the segment's gas circuit includes the cylinder: same bore and stroke, sealed
+                # where the piston starts
+                geometry = {
+                    "bore": cylinders[n - 1]["bore"],
+                    "stroke": cylinders[n - 1]["stroke"],
+                    "x_seal": cylinders[n - 1]["x_start"],
+                }
+                segment_values = {
+                    **{k: v for k, v in geometry.items() if k in names},
+                    **segments_given[n - 1],
+                }
+                segment = FmuSlave(
+                    fmu_ref(scenario.source, r.segment_fmu),
+                    f"segment{n}",
+                    segment_values,
+                    exit_initialization=False,
+                )
+                fmus.append(FmuParticipant(segment, r.segment_decimation))
+                parameters[f"segment{n}"] = {**segments[n - 1], **segment_values}
+        for n in range(1, r.segments + 1):
+            ports = body.arm_ports(scenario, n)
+            for source, target in (
+                *gripper.drive_connections(n, ports),
+                (ports["kappa"], f"camera.kappa_{n}"),
+            ):
+                connections[target] = Connection(source, target)
 
     def signals(self, scenario: Scenario) -> list[SignalSpec]:
         return arm_signals.signals(scenario)
@@ -338,6 +360,14 @@ class PlanarArm:
 
             return task_space_metrics(self, scenario, signals)
         return curvature_metrics(scenario, signals)
+
+
+def _split(interface: Mapping[str, Any]) -> tuple[set[str], set[str]]:
+    """An FMU's (outputs, inputs) by name."""
+    return (
+        {n for n, v in interface.items() if v.causality == "output"},
+        {n for n, v in interface.items() if v.causality == "input"},
+    )
 
 
 ROBOT = PlanarArm()

@@ -10,7 +10,7 @@ from hil.devices import HEARTBEAT_PERIOD
 from hil.rig import PlotSpec, SignalSpec
 from rigbus.protocol import Protocol
 from robots.planar_arm.controller.tasks import TASK_KINDS
-from robots.planar_arm.plant import environment, gripper
+from robots.planar_arm.plant import body, environment, gripper
 from robots.planar_arm.plant.configuration import markers
 
 if TYPE_CHECKING:
@@ -41,10 +41,6 @@ TASK_SIGNALS: tuple[tuple[str, str, str], ...] = (
     ("target_y", "m", "task-space reference point y, as the controller reported it"),
 )
 _SOURCES = {
-    "kappa": "segment{n}.kappa",
-    "theta": "segment{n}.theta",
-    "p_a": "segment{n}.p_a",
-    "p_b": "segment{n}.p_b",
     "x": "cylinder{n}.x",
     "x_ref": "drive{n}.x_ref",
     "v": "cylinder{n}.v",
@@ -56,11 +52,14 @@ _SOURCES = {
 def signals(scenario: Scenario) -> list[SignalSpec]:
     specs = []
     for n in range(1, scenario.robot.segments + 1):
+        arm = body.arm_ports(scenario, n)  # kappa, theta, p_a, p_b: the segment's or the body's
         for name, unit, description in PER_SEGMENT:
             column = f"{name}_{n}"
             text = f"segment {n}: {description}"
             if name in ("kappa_ref", "kappa_est"):
                 specs.append(SignalSpec(column, unit, text, frame=("ControllerState", n, name)))
+            elif name in arm:
+                specs.append(SignalSpec(column, unit, text, source=arm[name]))
             else:
                 specs.append(SignalSpec(column, unit, text, source=_SOURCES[name].format(n=n)))
     if gripper.present(scenario):
