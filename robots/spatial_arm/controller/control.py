@@ -1,7 +1,10 @@
 """The spatial arm's controller: plans each goal's bends (spatial IK on the gravity-loaded static
 model, or shape fitting), moves to them along a realisable trapezoidal bend-velocity profile, and
-tracks the profile with a cascade: a PI from bend error to the piston setpoints, around the
-static inverse (the pistons that hold the reference under gravity) as the feedforward, with a
+tracks the profile with a cascade: the static inverse (the pistons that hold the reference under
+gravity) as the feedforward, a PI from bend error to the piston setpoints around it (its gains,
+`kp` and `ki` in the configuration, are zero by default: the feedforward is exact where the
+controller's model is the arm, and the estimate's bend noise would only wander the pistons; the
+task-space correction below closes the loop on the well-observed tip instead), and a
 derivative part on the estimated bend rates that damps the arm's slow modes (the elastomer
 alone leaves them at a damping ratio near 0.05: a move would ring for seconds); the drive's
 position servo is the inner loop. Answers each cycle with a

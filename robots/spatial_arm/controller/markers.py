@@ -1,6 +1,6 @@
 """The spatial arm's markers and their Jacobian at one configuration, for the controller's loop:
 in C (`_markers.c`, complex-step derivatives) where it builds, else through `kinematics` (the
-same numbers to rounding; tests/test_spatial_loop.py compares them). The batch mathematics of
+same numbers to rounding; tests/test_spatial_arm.py compares them). The batch mathematics of
 `kinematics` serves planning and drawing; at one configuration its many small array operations
 cost about 1.2 ms, the C part a few microseconds, which is what lets the loop run many times
 faster than real time.
