@@ -8,22 +8,26 @@ Invariant: an estimate depends only on the sequence of `update` calls (bit-ident
 from __future__ import annotations
 
 import ctypes
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
 from filterpy.kalman import MerweScaledSigmaPoints
 from scipy.stats import chi2
 
-from controllers import cukf
+from controllers import cukf, kinematics
 from controllers.bend_filter import (
     GATE_PROBABILITY,
     CoupledBends,
     LatencyFilter,
     unmodelled_torque_std,
 )
-from controllers.estimation import BendModel, CameraNoise
+from controllers.estimation import BendModel, CameraNoise, DriveReading, Estimate, MarkerFrame
 from controllers.fast_linalg import einsum, inverse, robust_sqrt
+
+# relative change of the mass matrix (of its largest entry) at which `ukf` rediscretises a
+# multibody arm's prediction
+MASS_MATRIX_CHANGE = 0.02
 
 
 class ArmUnscentedEstimator(LatencyFilter):
@@ -49,23 +53,19 @@ class ArmUnscentedEstimator(LatencyFilter):
         control_period: float,
         latency_compensation: bool = True,
         torque_std: float | None = None,
-        mass_matrix: Sequence[Sequence[float]] | None = None,
+        masses: Sequence[float] | None = None,
     ) -> None:
         super().__init__(bends, base, camera, control_period, latency_compensation, torque_std)
         n = self.segments
-        self.coupled = (
-            None
-            if mass_matrix is None
-            else CoupledBends(
-                self.bends,
-                np.array(mass_matrix, dtype=float),
-                [
-                    (unmodelled_torque_std(b) if torque_std is None else torque_std) ** 2
-                    * control_period
-                    for b in self.bends
-                ],
-            )
-        )
+        # a multibody arm: its bends predicted coupled by the mass matrix at the estimated
+        # configuration (`_schedule`), else each alone
+        self.masses = None if masses is None else np.asarray(masses, dtype=float)
+        self.torque_psd = [
+            (unmodelled_torque_std(b) if torque_std is None else torque_std) ** 2 * control_period
+            for b in self.bends
+        ]
+        self.coupled: CoupledBends | None = None
+        self._scheduled: np.ndarray | None = None  # the mass matrix `coupled` was made with
         self.points_fn = MerweScaledSigmaPoints(
             2 * n, alpha=1.0, beta=2.0, kappa=0.0, sqrt_method=robust_sqrt
         )
@@ -79,6 +79,32 @@ class ArmUnscentedEstimator(LatencyFilter):
         self._Wc_diagonal = np.diag(self.points_fn.Wc)
         self._noise: dict[int, np.ndarray] = {}
         self._c = _CUkf(self) if cukf.load() is not None else None
+        if self.masses is not None:
+            self._schedule(np.zeros(n))  # the straight arm, the filter's prior
+
+    def update(
+        self, t: float, drives: Mapping[int, DriveReading], frames: Sequence[MarkerFrame]
+    ) -> Estimate:
+        estimate = super().update(t, drives, frames)
+        if self.masses is not None:
+            self._schedule(estimate.kappa * self.lengths)
+        return estimate
+
+    def _schedule(self, theta: np.ndarray) -> None:
+        """The coupled prediction with the mass matrix at bend angles `theta`, made anew where it
+        moved by more than MASS_MATRIX_CHANGE of its largest entry (curled, the six-segment
+        arm's base carries a third of the straight arm's inertia)."""
+        assert self.masses is not None
+        M = kinematics.mass_matrix(theta / self.lengths, self.lengths, self.masses)
+        if self._scheduled is not None:
+            change = float(np.max(np.abs(M - self._scheduled)))
+            if change <= MASS_MATRIX_CHANGE * float(np.max(np.abs(self._scheduled))):
+                return
+        self.coupled = CoupledBends(self.bends, M, self.torque_psd)
+        self._scheduled = M
+        self._arm_cache.clear()
+        if self._c is not None:
+            self._c.forget()
 
     def _initial(self) -> tuple[np.ndarray, np.ndarray]:
         var_theta, var_omega = self._initial_variances()
@@ -236,6 +262,10 @@ class _CUkf:
         self.ref = ctypes.byref(ws)
         # the arm matrices' addresses by dt (the estimator's cache keeps the arrays alive)
         self._matrices: dict[int, tuple[Any, Any, Any]] = {}
+
+    def forget(self) -> None:
+        """Drop the arm matrices' addresses: the estimator made new ones."""
+        self._matrices.clear()
 
     def predict(
         self, x: np.ndarray, P: np.ndarray, u: np.ndarray, dt: float

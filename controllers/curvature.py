@@ -23,7 +23,10 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+import numpy as np
 from scipy.optimize import brentq
+
+from controllers import kinematics
 
 
 @dataclass(frozen=True)
@@ -185,24 +188,55 @@ def design_pi(model: SegmentModel, crossover_hz: float = 2.0) -> PiGains:
 
 @dataclass(frozen=True)
 class ArmGains:
-    """The curvature loops of a multibody arm as one (`controllers.loop_design.arm_loop_gains`):
-    segment i's piston setpoint takes Kp[i] . e, the integral of Ki[i] . e and -Kd[i] . rate,
-    e the vector of curvature errors and rate the estimated curvature rates, each matrix
-    N x N [m per 1/m, m per (1/m) s, m per (1/m)/s], segment 1 first."""
+    """The curvature loops of a multibody arm as one (`controllers.loop_design.arm_loop_gains`),
+    scheduled on the arm's mass matrix M(q) at the estimated configuration: in torque per piston
+    travel T_i, for the errors e = theta_ref - theta of the bend angles,
+        T x = (3 p^2 M + wc D) e + (wc K + p^3 M) integral(e) - 3 p M theta'
+              + (D + 3 p M) theta_ref' + M theta_ref''   (the last two on a planned move),
+    D, K the bends' damping and stiffness (with the gas's), wc the crossover and p the
+    closed-loop pole of the inertial part. Per-segment values, segment 1 first."""
 
-    Kp: tuple[tuple[float, ...], ...]
-    Ki: tuple[tuple[float, ...], ...]
-    Kd: tuple[tuple[float, ...], ...]
+    crossover: float  # wc [rad/s]
+    pole: float  # p [rad/s]
+    lengths: tuple[float, ...]  # [m]
+    masses: tuple[float, ...]  # [kg]
+    torque: tuple[float, ...]  # T: torque per piston travel at the seal [N m/m]
+    damping: tuple[float, ...]  # d [N m s/rad]
+    stiffness: tuple[float, ...]  # k + k_gas [N m/rad]
+
+    def mass_matrix(self, kappa: Sequence[float]) -> np.ndarray:
+        """M at the curvatures `kappa` [kg m^2]."""
+        return kinematics.mass_matrix(kappa, self.lengths, self.masses)
+
+    def _per_curvature(self, matrix: np.ndarray) -> np.ndarray:
+        """A torque-per-bend-angle matrix as pistons per curvature: T_i^-1 matrix_ij L_j."""
+        return matrix * np.outer(1.0 / np.asarray(self.torque), self.lengths)
 
     def terms(
-        self, i: int, error: Sequence[float], rate: Sequence[float]
-    ) -> tuple[float, float, float]:
-        """Segment i's (0-based) proportional, integral-rate and damping terms [m, m/s, m]."""
-        return (
-            math.fsum(g * e for g, e in zip(self.Kp[i], error, strict=True)),
-            math.fsum(g * e for g, e in zip(self.Ki[i], error, strict=True)),
-            math.fsum(g * r for g, r in zip(self.Kd[i], rate, strict=True)),
-        )
+        self,
+        kappa: Sequence[float],
+        error: Sequence[float],
+        rate: Sequence[float],
+        motion: tuple[Sequence[float] | np.ndarray, Sequence[float] | np.ndarray] | None = None,
+    ) -> list[tuple[float, float, float]]:
+        """Each segment's proportional (with the move's feedforward), integral-rate and damping
+        terms [m, m/s, m] from the estimated curvatures, the curvature errors and rates, and
+        the references' rate and acceleration on a planned move."""
+        M = self.mass_matrix(kappa)
+        wc, p = self.crossover, self.pole
+        D, K = np.diag(self.damping), np.diag(self.stiffness)
+        e, r = np.asarray(error, dtype=float), np.asarray(rate, dtype=float)
+        proportional = self._per_curvature(3.0 * p * p * M + wc * D) @ e
+        integral = self._per_curvature(wc * K + p**3 * M) @ e
+        damping = self._per_curvature(3.0 * p * M) @ r
+        if motion is not None:
+            ref_rate, ref_acceleration = (np.asarray(v, dtype=float) for v in motion)
+            proportional += self._per_curvature(D + 3.0 * p * M) @ ref_rate
+            proportional += self._per_curvature(M) @ ref_acceleration
+        return [
+            (float(a), float(b), float(c))
+            for a, b, c in zip(proportional, integral, damping, strict=True)
+        ]
 
 
 @dataclass

@@ -72,7 +72,7 @@ def make_estimator(
     control_period: float,
     latency_compensation: bool = True,
     torque_std: float | None = None,
-    mass_matrix: Sequence[Sequence[float]] | None = None,
+    masses: Sequence[float] | None = None,
 ) -> Estimator:
     """The estimator called `name` ("raw", "kf" or "ukf").
 
@@ -93,10 +93,12 @@ def make_estimator(
     torque_std
         Unmodelled torque standard deviation [N m]; None derives it per segment
         (`unmodelled_torque_std`).
-    mass_matrix
-        The arm's mass matrix (N, N) [kg m^2] where its bends are one multibody arm: `ukf`
-        predicts them coupled by it, `kf` (one filter per segment) each with its diagonal entry
-        (the bends' `inertia`); None: each bend alone with its own inertia.
+    masses
+        The segments' masses [kg] where the bends are one multibody arm: `ukf` predicts them
+        coupled by the arm's mass matrix at the estimated configuration
+        (`controllers.kinematics.mass_matrix`), `kf` (one filter per segment) each with the
+        inertia its bend carries in the straight arm (the bends' `inertia`); None: each bend
+        alone with its own inertia.
     """
     if name == "raw":
         return RawEstimator(bends, base)
@@ -106,7 +108,7 @@ def make_estimator(
         )
     if name == "ukf":
         return ArmUnscentedEstimator(
-            bends, base, camera, control_period, latency_compensation, torque_std, mass_matrix
+            bends, base, camera, control_period, latency_compensation, torque_std, masses
         )
     raise ValueError(f"unknown estimator {name!r}: choose one of {', '.join(NAMES)}")
 

@@ -286,3 +286,32 @@ def tip_hessian(kappas: Floats, lengths: Floats, base: tuple[float, float, float
     """Second derivatives of the tip position with respect to the curvatures, shape (2, N, N)
     [m per (1/m)^2]; see `tip_derivatives`."""
     return tip_derivatives(kappas, lengths, base)[2]
+
+
+# Gauss-Legendre nodes and weights (summing to 1) on [0, 1]: 4 points, as the ArmBody FMU
+# lumps each arc's mass (exact for the straight arm, whose integrands are polynomials of degree 4)
+_NODES, _WEIGHTS = np.polynomial.legendre.leggauss(4)
+MASS_NODES = tuple(float(v) for v in 0.5 * (_NODES + 1.0))
+MASS_WEIGHTS = tuple(float(v) for v in 0.5 * _WEIGHTS)
+
+
+def mass_matrix(kappas: Floats, lengths: Floats, masses: Floats) -> np.ndarray:
+    """The planar arm's mass matrix on its bend angles theta_i = kappa_i L_i [kg m^2], shape
+    (N, N): M = sum over the arm's mass of J' J, J the point's Jacobian on the bend angles,
+    each segment's mass uniform along its arc, lumped at MASS_NODES (the ArmBody FMU's
+    particle form without end pieces or endplates). The base's pose does not enter."""
+    n = len(kappas)
+    if not len(lengths) == len(masses) == n:
+        raise ValueError(f"{n} curvatures, {len(lengths)} lengths and {len(masses)} masses")
+    base = (0.0, 0.0, 0.0)
+    joints = forward(kappas, lengths, base)
+    per_angle = 1.0 / np.asarray(lengths, dtype=float)
+    M = np.zeros((n, n))
+    for index in range(n):
+        length = float(lengths[index])
+        for xi, weight in zip(MASS_NODES, MASS_WEIGHTS, strict=True):
+            partial = xi * length
+            point = segment_end(tuple(joints[index]), float(kappas[index]), partial)
+            J = _columns(kappas, lengths, joints, point, index, partial)[:2] * per_angle
+            M += float(masses[index]) * weight * (J.T @ J)
+    return M

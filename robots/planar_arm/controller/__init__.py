@@ -49,7 +49,7 @@ def make_estimator(config: ControllerConfig) -> Any:
         config.control_period,
         config.latency_compensation,
         config.torque_std,
-        config.mass_matrix,
+        config.masses,
     )
     if config.objects == 0:
         return arm

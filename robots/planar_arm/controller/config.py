@@ -56,9 +56,9 @@ class ControllerConfig:
     plan: TaskPlan | None = None  # task-space task (point-to-point, path); None: the profile
     objects: int = 0  # object markers the camera reports after the arm's (ids segments + 1 ...)
     gripper: GripperConfig | None = None  # the finger pair at the tip and its drive
-    # the arm's mass matrix (straight, [kg m^2], row by row) where the segments are one
-    # multibody arm: the estimators predict the bends coupled by it; None: each bend alone
-    mass_matrix: tuple[tuple[float, ...], ...] | None = None
+    # the segments' masses [kg] where they are one multibody arm: the estimators predict the
+    # bends coupled by its mass matrix (controllers.kinematics.mass_matrix); None: each alone
+    masses: tuple[float, ...] | None = None
     # the curvature loops coupled through the arm's inertia (in place of `gains`); None: each
     # segment's own PI (`gains`)
     arm_gains: ArmGains | None = None

@@ -49,14 +49,17 @@ class CurvatureControl:
         references: Floats,
         estimate: Estimate,
         drives: Mapping[int, DriveReading],
+        motion: tuple[Floats, Floats] | None = None,
     ) -> list[Any]:
         """Each segment's PI towards its curvature reference: a DriveCommand and a
-        ControllerState frame per segment."""
+        ControllerState frame per segment. `motion`: the references' rate and acceleration
+        where they follow a planned move (a multibody arm's loops feed them forward)."""
         frames: list[Any] = []
         lo, hi = self.shown_range
         arm = self.config.arm_gains  # the loops of a multibody arm: coupled through its inertia
-        errors = [float(r) - float(k) for r, k in zip(references, estimate.kappa, strict=True)]
-        rates = [float(r) for r in estimate.kappa_rate]
+        if arm is not None:
+            errors = [float(r) - float(k) for r, k in zip(references, estimate.kappa, strict=True)]
+            terms = arm.terms(list(estimate.kappa), errors, list(estimate.kappa_rate), motion)
         for i, pi in enumerate(self.pis):
             node = i + 1
             kappa_ref = float(references[i])
@@ -66,7 +69,7 @@ class CurvatureControl:
             if arm is None:
                 setpoint = pi.update(kappa_ref, kappa_est, piston)
             else:
-                setpoint = pi.update_terms(kappa_ref, *arm.terms(i, errors, rates), piston)
+                setpoint = pi.update_terms(kappa_ref, *terms[i], piston)
             frames.append(DriveCommand(node, setpoint, True, cycle))
             frames.append(ControllerState(node, kappa_ref, min(max(kappa_est, lo), hi), cycle))
         return frames

@@ -30,6 +30,7 @@ drive's (CurvatureMove), and the gripper's setpoint only ramps between its three
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING, Any
@@ -97,6 +98,13 @@ class GraspControl:
         self.lower = np.array(self.plan.kappa_min)
         self.upper = np.array(self.plan.kappa_max)
         self.rates = np.array(self.plan.kappa_rate)
+        # a multibody arm's pistons per curvature acceleration: its moves' ramps are shaped to it
+        # a multibody arm's moves ramp over a period of its closed loop's poles (the inertial
+        # loop follows them; ramped faster, the drives swing against their stroke's ends)
+        arm = config.arm_gains
+        self.accel_time = self.plan.accel_time
+        if arm is not None:
+            self.accel_time = max(self.accel_time, 2.0 * math.pi / arm.pole)
         self.reference = np.zeros(config.segments)
         self.leg = 0
         self.phase = PHASE["idle"]
@@ -139,7 +147,9 @@ class GraspControl:
             else:
                 return self._hold(cycle, estimate, drives)
         self._advance(t, kappa)
-        frames = self.curvature.command(cycle, self.reference, estimate, drives)
+        moving = self.phase == PHASE["moving"] and self.move is not None
+        motion = self.move.motion(t - self.since) if moving and self.move else None
+        frames = self.curvature.command(cycle, self.reference, estimate, drives, motion)
         frames.append(DriveCommand(self.gripper.node, self._gripper_piston(t), True, cycle))
         point = self._reference_point()
         frames.append(
@@ -339,7 +349,7 @@ class GraspControl:
 
     def _move_to(self, t: float, goal: np.ndarray) -> None:
         goal = np.clip(goal, self.lower, self.upper)
-        self.move = CurvatureMove.plan(self.reference, goal, self.rates, self.plan.accel_time)
+        self.move = CurvatureMove.plan(self.reference, goal, self.rates, self.accel_time)
         self.since = t
 
     def _enter(self, t: float, phase: int) -> None:

@@ -59,6 +59,13 @@ class TaskSpaceControl:
         self.lower = np.array(self.plan.kappa_min)
         self.upper = np.array(self.plan.kappa_max)
         self.rates = np.array(self.plan.kappa_rate)
+        # a multibody arm's pistons per curvature acceleration: its moves' ramps are shaped to it
+        # a multibody arm's moves ramp over a period of its closed loop's poles (the inertial
+        # loop follows them; ramped faster, the drives swing against their stroke's ends)
+        arm = config.arm_gains
+        self.accel_time = self.plan.accel_time
+        if arm is not None:
+            self.accel_time = max(self.accel_time, 2.0 * math.pi / arm.pole)
         self.T = config.control_period
         self.reference = np.zeros(config.segments)  # curvature references handed to the PIs
         self.solution = np.zeros(config.segments)  # the last IK solution (warm start)
@@ -97,7 +104,9 @@ class TaskSpaceControl:
             self._solve(self.goal + self.correction, iterations=TRACK_IK_ITERATIONS)
         else:
             self._advance(t, tip)
-        frames = self.curvature.command(cycle, self.reference, estimate, drives)
+        moving = self.phase == PHASE["moving"] and self.move is not None
+        motion = self.move.motion(t - self.leg_start) if moving and self.move else None
+        frames = self.curvature.command(cycle, self.reference, estimate, drives, motion)
         index = self.leg if self.waypoints else min(self.leg, self.plan.legs() - 1)
         frames.append(
             TaskState(index, self.phase, float(self.goal[0]), float(self.goal[1]), cycle % 256)
@@ -128,7 +137,10 @@ class TaskSpaceControl:
                 self.leg += 1  # the next waypoint of the whole-arm plan, without stopping
                 self.leg_start = t
                 self.move = CurvatureMove.plan(
-                    self.reference, self.waypoints[self.leg], self.rates, self.plan.accel_time
+                    self.reference,
+                    self.waypoints[self.leg],
+                    self.rates,
+                    self.accel_time,
                 )
             elif tau >= self.move.duration:
                 self.phase = PHASE["settling"]
@@ -190,7 +202,7 @@ class TaskSpaceControl:
             self.reference = start.copy()
             self.solution = start.copy()
         self.solution = self._configuration_for(self.goal, start)
-        self.move = CurvatureMove.plan(start, self.solution, self.rates, self.plan.accel_time)
+        self.move = CurvatureMove.plan(start, self.solution, self.rates, self.accel_time)
         self.phase = PHASE["moving"]
 
     def _plan_pipe(self, t: float, estimated: np.ndarray) -> None:
@@ -227,7 +239,7 @@ class TaskSpaceControl:
         self.reference = start.copy()
         self.solution = self.waypoints[-1].copy()
         self.leg, self.leg_start = 0, t
-        self.move = CurvatureMove.plan(start, self.waypoints[0], self.rates, self.plan.accel_time)
+        self.move = CurvatureMove.plan(start, self.waypoints[0], self.rates, self.accel_time)
         self.phase = PHASE["moving"]
 
     def _next_leg(self, t: float) -> None:

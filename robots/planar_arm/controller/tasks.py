@@ -164,6 +164,13 @@ class CurvatureMove:
             tau, self.duration, self.ramp
         )
 
+    def motion(self, tau: float) -> tuple[np.ndarray, np.ndarray]:
+        """The curvatures' rate [1/(m s)] and acceleration [1/(m s^2)] `tau` [s] after the move
+        started (the trapezoid's, exactly)."""
+        rate, acceleration = trapezoid_derivatives(tau, self.duration, self.ramp)
+        delta = self.goal - self.start
+        return delta * rate, delta * acceleration
+
 
 def trapezoid_fraction(tau: float, duration: float, ramp: float) -> float:
     """Fraction 0..1 of a move of `duration` [s] covered at `tau` [s] with a trapezoidal
@@ -179,6 +186,18 @@ def trapezoid_fraction(tau: float, duration: float, ramp: float) -> float:
         return peak * (tau - 0.5 * ramp)
     rest = duration - tau
     return 1.0 - 0.5 * peak * rest * rest / ramp
+
+
+def trapezoid_derivatives(tau: float, duration: float, ramp: float) -> tuple[float, float]:
+    """The first and second time derivatives [1/s, 1/s^2] of `trapezoid_fraction`."""
+    if duration <= 0.0 or tau <= 0.0 or tau >= duration:
+        return 0.0, 0.0
+    peak = 1.0 / (duration - ramp)
+    if tau < ramp:
+        return peak * tau / ramp, peak / ramp
+    if tau <= duration - ramp:
+        return peak, 0.0
+    return peak * (duration - tau) / ramp, -peak / ramp
 
 
 def path_timing(length: float, speed: float, acceleration: float) -> tuple[float, float]:

@@ -193,7 +193,6 @@ def controller_config(scenario: Scenario) -> ControllerConfig:
     models = segment_models(scenario)
     segments = parameters(scenario, "segment")
     on_body = body.present(scenario)
-    mass_matrix = _mass_matrix(scenario, segments)
     gains = []
     delay = effective_delay(
         estimator_delay(c.estimator, scenario.timing.control_period, c.latency_compensation),
@@ -261,10 +260,12 @@ def controller_config(scenario: Scenario) -> ControllerConfig:
         ),
         objects=markers(scenario) - scenario.robot.segments - 1,
         gripper=gripper_config(scenario),
-        mass_matrix=mass_matrix,
+        masses=tuple(p["mass"] for p in segments) if on_body else None,
         arm_gains=(
-            arm_loop_gains(models, mass_matrix, delay, max_crossover_hz=c.crossover)
-            if mass_matrix is not None and c.kp is None and c.ki is None
+            arm_loop_gains(
+                models, [p["mass"] for p in segments], delay, max_crossover_hz=c.crossover
+            )
+            if on_body and c.kp is None and c.ki is None
             else None
         ),
     )
@@ -276,16 +277,6 @@ def _inertias(scenario: Scenario, segments: list[dict[str, float]]) -> list[floa
     if body.present(scenario):
         return body.bend_inertias([p["length"] for p in segments], [p["mass"] for p in segments])
     return [p["mass"] * p["length"] ** 2 / 20.0 for p in segments]
-
-
-def _mass_matrix(
-    scenario: Scenario, segments: list[dict[str, float]]
-) -> tuple[tuple[float, ...], ...] | None:
-    """The straight arm's mass matrix on the body (robot.model = "body"), else None."""
-    if not body.present(scenario):
-        return None
-    M = body.mass_matrix([p["length"] for p in segments], [p["mass"] for p in segments])
-    return tuple(tuple(row) for row in M)
 
 
 def markers(scenario: Scenario) -> int:

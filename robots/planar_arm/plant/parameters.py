@@ -100,8 +100,7 @@ class PlanarArmSpec:
         "segments",
         doc="the arm's model: segments, one FeaSegment FMU (or robot.segment_fmu) per segment, "
         "each with its own inertia only; body, one multibody ArmBody FMU for every segment (the "
-        "inertia between segments: robots/planar_arm/plant/body.py; the six-segment tasks do "
-        "not settle on it yet, README)",
+        "inertia between segments: robots/planar_arm/plant/body.py, README)",
         choices=("body", "segments"),
     )
     segment_fmu: str = setting(
