@@ -12,9 +12,10 @@ Modules that are slow to import (python-control, filterpy) are imported where th
 from __future__ import annotations
 
 from types import ModuleType
+from typing import TYPE_CHECKING
 
 from controllers import cukf, kinematics
-from controllers.config import ESTIMATORS, POLICIES, read_config
+from controllers.config import ESTIMATORS, POLICIES, CameraTiming, read_config
 from controllers.estimation import DriveReading, MarkerFrame
 from controllers.node import (
     CameraAssembler,
@@ -26,11 +27,15 @@ from controllers.node import (
 from controllers.trajectories import CurvatureProfile, Sine
 from robots.planar_arm.controller.config import ControllerConfig as ArmConfig
 
+if TYPE_CHECKING:
+    from hil.scenario import Scenario
+
 __all__ = [
     "ESTIMATORS",
     "ArmConfig",
     "POLICIES",
     "CameraAssembler",
+    "CameraTiming",
     "ControllerError",
     "ControllerNode",
     "CurvatureProfile",
@@ -67,3 +72,21 @@ def controller_program() -> ModuleType:
     from controllers import __main__ as module
 
     return module
+
+
+def camera_timing(scenario: Scenario, markers: int, dims: int = 2) -> CameraTiming:
+    """When the scenario's camera frames become available, as every robot kind's controller is
+    told it: its period, latency and the control period in ticks, the latest a jittered exposure
+    falls, and the markers a picture holds (`dims` 3 for 3-D markers)."""
+    from hil.vision import exposure_delay_bound
+
+    return CameraTiming(
+        period_ticks=scenario.camera_ticks,
+        latency_ticks=scenario.latency_ticks,
+        control_ticks=scenario.control_ticks,
+        delay_ticks=exposure_delay_bound(
+            scenario.camera.jitter, scenario.camera_ticks, scenario.timing.step
+        ),
+        markers=markers,
+        dims=dims,
+    )

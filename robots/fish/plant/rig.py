@@ -28,12 +28,11 @@ from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 
-from controllers.config import CameraTiming
 from hil.cosim import Connection, FmuParticipant, Participant
 from hil.devices import HEARTBEAT_PERIOD, CameraNode
 from hil.rig import PlotSpec, Rig, SignalSpec, fmu_ref, scenario_camera
 from hil.schema import Dbc, Key, Needs, OneOf, Range, Ref, Rule, Table, positive, setting
-from hil.vision import exposure_delay_bound
+from hil.seam import camera_timing
 from rigbus.protocol import Protocol
 from robots.fish.controller import CALIBRATION, TASKS, FishConfig
 from robots.fish.plant.devices import CanisterNode, ValveNode
@@ -499,15 +498,7 @@ class Fish:
             robot=self.name,
             control_period=scenario.timing.control_period,
             cycles=scenario.cycles,
-            camera_timing=CameraTiming(
-                period_ticks=scenario.camera_ticks,
-                latency_ticks=scenario.latency_ticks,
-                control_ticks=scenario.control_ticks,
-                delay_ticks=exposure_delay_bound(
-                    scenario.camera.jitter, scenario.camera_ticks, scenario.timing.step
-                ),
-                markers=len(CAMERA_MARKERS),
-            ),
+            camera_timing=camera_timing(scenario, len(CAMERA_MARKERS)),
             task=scenario.task.kind,
             start=r.start,
             side=r.side,

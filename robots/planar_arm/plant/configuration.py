@@ -10,7 +10,6 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from controllers.config import CameraTiming
 from controllers.curvature import PiGains, SegmentModel
 from controllers.estimation import BendModel, CameraNoise
 from controllers.loop_design import (
@@ -19,7 +18,7 @@ from controllers.loop_design import (
     estimator_delay,
     outer_loop_gains,
 )
-from hil.vision import exposure_delay_bound
+from hil.seam import camera_timing
 from robots.planar_arm.controller.config import ControllerConfig, GripperConfig
 from robots.planar_arm.controller.tasks import TASK_KINDS, TaskPlan, draw_paths, draw_targets
 from robots.planar_arm.plant import body, environment, gripper
@@ -249,15 +248,7 @@ def controller_config(scenario: Scenario) -> ControllerConfig:
         estimator=c.estimator,
         latency_compensation=c.latency_compensation,
         torque_std=c.torque_std,
-        camera_timing=CameraTiming(
-            period_ticks=scenario.camera_ticks,
-            latency_ticks=scenario.latency_ticks,
-            control_ticks=scenario.control_ticks,
-            delay_ticks=exposure_delay_bound(
-                scenario.camera.jitter, scenario.camera_ticks, scenario.timing.step
-            ),
-            markers=markers(scenario),
-        ),
+        camera_timing=camera_timing(scenario, markers(scenario)),
         objects=markers(scenario) - scenario.robot.segments - 1,
         gripper=gripper_config(scenario),
         masses=tuple(p["mass"] for p in segments) if on_body else None,

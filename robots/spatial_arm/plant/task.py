@@ -17,8 +17,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from controllers.config import CameraTiming
-from hil.vision import exposure_delay_bound
+from hil.seam import camera_timing
 
 if TYPE_CHECKING:
     from hil.scenario import Scenario
@@ -129,16 +128,7 @@ def controller_config(arm: SpatialArm, scenario: Scenario) -> SpatialConfig:
         robot=arm.name,
         control_period=scenario.timing.control_period,
         cycles=scenario.cycles,
-        camera_timing=CameraTiming(
-            period_ticks=scenario.camera_ticks,
-            latency_ticks=scenario.latency_ticks,
-            control_ticks=scenario.control_ticks,
-            delay_ticks=exposure_delay_bound(
-                scenario.camera.jitter, scenario.camera_ticks, scenario.timing.step
-            ),
-            markers=arm.markers(scenario),
-            dims=3,
-        ),
+        camera_timing=camera_timing(scenario, arm.markers(scenario), dims=3),
         segments=r.segments,
         body=tuple(sorted(body.items())),
         start=tuple(map(float, start_bends(arm, scenario))),
