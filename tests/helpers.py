@@ -1,11 +1,15 @@
-"""Helpers shared by the tests: FMU simulation, socket timeouts, interruptible children."""
+"""Helpers shared by the tests: FMU simulation, socket timeouts, interruptible children, a
+built-in scenario with some lines replaced and its run's summary."""
 
 from __future__ import annotations
 
 import contextlib
+import re
 import signal
 import socket
 from collections.abc import Callable, Iterator, Mapping
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -66,3 +70,28 @@ def interruptible() -> None:
     inherited "ignored" instead of installing its KeyboardInterrupt handler: the child would
     never see the test's Ctrl-C."""
     signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
+def scenario_variant(tmp_path: Path, name: str, replace: dict[str, str], extra: str = "") -> Path:
+    """The built-in scenario `name` with some `key = ...` lines replaced (the first line of each
+    key), and `extra` appended, written to tmp_path."""
+    from hil.scenario import resolve_scenario
+
+    text = resolve_scenario(name).read_text()
+    for key, line in replace.items():
+        text, found = re.subn(rf"(?m)^{re.escape(key)} = .*$", line, text, count=1)
+        assert found, key
+    path = tmp_path / f"{name}.toml"
+    path.write_text(text + extra)
+    return path
+
+
+def run_summary(path: Path, out: Path, inprocess: bool = True) -> dict[str, Any]:
+    """The summary of a run of the scenario file `path` into `out`."""
+    from hil.run import RunOptions, run_scenario
+    from hil.scenario import load_scenario
+
+    result = run_scenario(
+        load_scenario(path), RunOptions(out=out, inprocess=inprocess, progress=False)
+    )
+    return result.summary

@@ -18,31 +18,15 @@ import pytest
 from controllers.config import read_config
 from hil.cli import main
 from hil.devices import SyncContext
-from hil.run import RunOptions, controller_config, run_scenario
+from hil.run import controller_config
 from hil.scenario import ScenarioError, load_scenario, resolve_scenario
 from rigbus.protocol import GenericFrame
 from robots.fish.controller import CALIBRATION, FishConfig, open_time_for
 from robots.fish.plant.devices import CLOSED, OPEN, OPENING, VENTING, ValveNode
+from tests.helpers import run_summary as run
+from tests.helpers import scenario_variant as scenario_file
 
 OPEN_TIMES = (0.02, 0.04, 0.06, 0.08, 0.10, 0.12)
-
-
-def scenario_file(tmp_path: Path, name: str, replace: dict[str, str], extra: str = "") -> Path:
-    """A built-in fish scenario with some lines replaced (`key = ...` lines, by key)."""
-    text = resolve_scenario(name).read_text()
-    for key, line in replace.items():
-        text, found = re.subn(rf"(?m)^{re.escape(key)} = .*$", line, text, count=1)
-        assert found, key
-    path = tmp_path / f"{name}.toml"
-    path.write_text(text + extra)
-    return path
-
-
-def run(path: Path, out: Path, inprocess: bool = True) -> dict:
-    result = run_scenario(
-        load_scenario(path), RunOptions(out=out, inprocess=inprocess, progress=False)
-    )
-    return result.summary
 
 
 # ------------------------------------------------------------------ the escape sweep

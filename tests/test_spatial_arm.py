@@ -17,8 +17,7 @@ import pytest
 from controllers.estimation import MarkerFrame
 from controllers.node import CameraAssembler
 from hil.cli import main
-from hil.run import RunOptions, run_scenario
-from hil.scenario import ScenarioError, load_scenario, resolve_scenario
+from hil.scenario import ScenarioError, load_scenario
 from rigbus.protocol import CameraFrame, CameraMarker, CameraMarker3D, Protocol
 from robots.spatial_arm.controller import kinematics
 from robots.spatial_arm.controller.config import SpatialConfig
@@ -28,25 +27,8 @@ from robots.spatial_arm.controller.model import ArmModel
 from robots.spatial_arm.plant import metrics
 from robots.spatial_arm.plant.rig import drive_of, wiring
 from robots.spatial_arm.plant.signals import axis_of
-
-
-def scenario_file(tmp_path: Path, name: str, replace: dict[str, str], extra: str = "") -> Path:
-    """A built-in spatial scenario with some `key = ...` lines replaced."""
-    text = resolve_scenario(name).read_text()
-    for key, line in replace.items():
-        text, found = re.subn(rf"(?m)^{re.escape(key)} = .*$", line, text, count=1)
-        assert found, key
-    path = tmp_path / f"{name}.toml"
-    path.write_text(text + extra)
-    return path
-
-
-def run(path: Path, out: Path, inprocess: bool = True) -> dict:
-    result = run_scenario(
-        load_scenario(path), RunOptions(out=out, inprocess=inprocess, progress=False)
-    )
-    return result.summary
-
+from tests.helpers import run_summary as run
+from tests.helpers import scenario_variant as scenario_file
 
 # ------------------------------------------------------------------ the closed loop
 
