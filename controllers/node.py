@@ -33,6 +33,7 @@ from controllers.estimation import (
     MarkerFrame,
 )
 from rigbus.canbus import connection_closed, failure_text, send_all
+from rigbus.heap import frozen_heap
 from rigbus.protocol import (
     COUNTER_MODULO,
     CameraFrame,
@@ -261,8 +262,20 @@ class ControllerNode:
         writes and hub wake-ups per cycle. Otherwise (the real-time clock, as on a rig; other
         buses, where it would save nothing) they go out as soon as they are computed."""
         T = self.config.control_period
-        lateness = []
+        lateness: list[float] = []
         batching = not self.clock.realtime and hasattr(self.bus, "send_batch")
+        with frozen_heap():  # a full collection in the loop: only the loop's objects
+            self._cycles(lateness, batching)
+        self.report.notes = [str(n) for n in getattr(self.controller, "notes", ())]
+        if lateness:
+            self.report.max_lateness = max(lateness)
+            self.report.mean_lateness = float(np.mean(lateness))
+            self.report.overruns = sum(1 for late in lateness if late > T)
+        return self.report
+
+    def _cycles(self, lateness: list[float], batching: bool) -> None:
+        """Every cycle of `run`, each one's lateness appended to `lateness`."""
+        T = self.config.control_period
         for cycle in range(self.config.cycles + 1):
             lateness.append(self.clock.wait_for(cycle))
             t = cycle * T
@@ -278,12 +291,6 @@ class ControllerNode:
                 self._send(frame, t)
             if not batching:
                 self._flush()
-        self.report.notes = [str(n) for n in getattr(self.controller, "notes", ())]
-        if lateness:
-            self.report.max_lateness = max(lateness)
-            self.report.mean_lateness = float(np.mean(lateness))
-            self.report.overruns = sum(1 for late in lateness if late > T)
-        return self.report
 
     def _intrusion(self, what: str) -> None:
         """Count a frame that its one legitimate sender did not send; strict stops."""

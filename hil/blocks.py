@@ -36,9 +36,12 @@ import csv
 import io
 import json
 import numbers
+import operator
 import re
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
+from itertools import compress, repeat
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 
@@ -87,7 +90,9 @@ def encode_block(
     if types.count(float) != len(types):  # the rare block: look at the other columns' cells
         for c in range(width):
             kinds = types[c::width]
-            if kinds.count(float) != len(kinds):
+            if kinds.count(float) != len(kinds) and not _plain_integers(
+                columns[c], kinds, cells[c::width], integers
+            ):
                 _odd_cells(columns[c], list(cells[c::width]), first_row, integers, booleans)
     data = np.array(cells, dtype=np.float64).reshape(rows, width).T
     for found in (integers, booleans):
@@ -103,6 +108,25 @@ def encode_block(
         FIRST_ROW: str(first_row),
     }
     return encode_table(columns, data, metadata)
+
+
+def _plain_integers(
+    column: str,
+    kinds: list[type],
+    values: Sequence[object],
+    integers: dict[str, list[int] | None],
+) -> bool:
+    """Note the integer cells of one column of a block whose cells are all ints and floats
+    (a counter's, a fault code's), read by `map` without a step per cell; False for any other
+    column, or an integer beyond 2^53, which `_odd_cells` then reads (and refuses) cell by cell."""
+    if kinds.count(int) + kinds.count(float) != len(kinds):
+        return False
+    whole = list(map(operator.is_, kinds, repeat(int)))
+    found = cast(Iterable[int], compress(values, whole))
+    if max(map(abs, found), default=0) > EXACT_INTEGER:
+        return False
+    integers[column] = list(compress(range(len(kinds)), whole))
+    return True
 
 
 def _odd_cells(

@@ -180,42 +180,65 @@ class _Reader:
 # ------------------------------------------------------------------ tables
 
 
+_CHUNK_HEAD = bytes([2 << 4 | _I64])  # a ColumnChunk's field 2 (its file offset) first
+_META_HEAD = bytes([1 << 4 | _STRUCT])  # then field 3 (its metadata)
+_NAMED: dict[str, bytes] = {}  # a column's metadata up to its name (fields 1-3), by name
+
+
+def _named(name: str) -> bytes:
+    """A ColumnMetaData's fields 1-3 (type, encodings, path) of column `name`."""
+    found = _NAMED.get(name)
+    if found is None:
+        meta = _Struct().i32(1, DOUBLE).items(2, _I32, [_zigzag(PLAIN)])
+        found = _NAMED[name] = bytes(meta.items(3, _BINARY, [_text(name)]).data)
+    return found
+
+
+_LEAVES: dict[str, bytes] = {}  # a column's schema element, by name
+
+
+def _leaf(name: str) -> bytes:
+    """The schema element of column `name`: a required double."""
+    found = _LEAVES.get(name)
+    if found is None:
+        found = _LEAVES[name] = _Struct().i32(1, DOUBLE).i32(3, REQUIRED).text(4, name).end()
+    return found
+
+
 def encode_table(names: Sequence[str], columns: np.ndarray, metadata: Mapping[str, str]) -> bytes:
     """The Parquet file of `columns` (shape (len(names), rows), float64), one row group."""
     columns = np.ascontiguousarray(columns, dtype="<f8")
     if columns.ndim != 2 or columns.shape[0] != len(names):
         raise ValueError(f"{columns.shape} columns for {len(names)} names")
     rows = columns.shape[1]
+    size = 8 * rows  # a column's plain data page
+    # every column's page header is the same; its chunk's metadata differs only by its name
+    # (fields 1-3, made once per name) and its offset (field 9): the rest is made once
+    header = (
+        _Struct()
+        .i32(1, DATA_PAGE)
+        .i32(2, size)
+        .i32(3, size)
+        .struct(5, _Struct().i32(1, rows).i32(2, PLAIN).i32(3, RLE).i32(4, RLE))
+        .end()
+    )
+    size += len(header)
+    middle = _Struct()
+    middle.last = 3  # after the name
+    middle = middle.i32(4, UNCOMPRESSED).i64(5, rows).i64(6, size).i64(7, size)
+    middle.data.append((9 - 7) << 4 | _I64)  # field 9 (the offset) follows
+    between = bytes(middle.data)
     body = [MAGIC]
     offset = len(MAGIC)
     chunks = []
     for name, column in zip(names, columns, strict=True):
-        data = column.tobytes()
-        header = (
-            _Struct()
-            .i32(1, DATA_PAGE)
-            .i32(2, len(data))
-            .i32(3, len(data))
-            .struct(5, _Struct().i32(1, rows).i32(2, PLAIN).i32(3, RLE).i32(4, RLE))
-            .end()
-        )
-        size = len(header) + len(data)
-        meta = (
-            _Struct()
-            .i32(1, DOUBLE)
-            .items(2, _I32, [_zigzag(PLAIN)])
-            .items(3, _BINARY, [_text(name)])
-            .i32(4, UNCOMPRESSED)
-            .i64(5, rows)
-            .i64(6, size)
-            .i64(7, size)
-            .i64(9, offset)
-        )
-        chunks.append(_Struct().i64(2, offset).struct(3, meta).end())
-        body += [header, data]
+        at = _zigzag(offset)
+        # ColumnChunk: file_offset (2), meta_data (3) ending with data_page_offset (9)
+        chunks.append(_CHUNK_HEAD + at + _META_HEAD + _named(name) + between + at + b"\x00\x00")
+        body += [header, column.tobytes()]
         offset += size
     schema = [_Struct().text(4, "schema").i32(5, len(names)).end()]
-    schema += [_Struct().i32(1, DOUBLE).i32(3, REQUIRED).text(4, n).end() for n in names]
+    schema += map(_leaf, names)
     group = _Struct().items(1, _STRUCT, chunks).i64(2, offset - len(MAGIC)).i64(3, rows)
     pairs = [_Struct().text(1, k).text(2, v).end() for k, v in metadata.items()]
     footer = (

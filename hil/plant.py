@@ -28,6 +28,7 @@ from hil.recording import CanLogger, SignalRecorder
 from hil.rig import Rig
 from hil.scenario import Scenario
 from rigbus.canbus import connection_closed, failure_text, send_all
+from rigbus.heap import frozen_heap
 from rigbus.protocol import (
     COUNTER_MODULO,
     EMCY_COMMAND_TIMEOUT,
@@ -142,41 +143,42 @@ class Plant:
         if startup_timeout is None:
             startup_timeout = max(STARTUP_TIMEOUT, self.scenario.controller.timeout)
         try:
-            while self.cycle < final:
-                try:
-                    message = self.bus.recv(timeout=0.1)
-                except (can.CanError, OSError) as exc:
-                    raise BusError(
-                        f"the bus failed {self._when()}: "
-                        f"{failure_text(exc)}; is the loopback hub gone?"
-                    ) from None
-                if message is None:
-                    if connection_closed(self.bus):
-                        raise BusError(f"the loopback hub closed the bus {self._when()}")
-                    gone = peer_alive()
-                    if gone is not None:
-                        raise ProtocolError(f"{gone}; the plant stopped {self._when()}")
-                    # a controller program still starting (imports on a loaded machine) gets
-                    # startup_timeout for its first SYNC; after that the scenario's timeout
-                    limit = self.scenario.controller.timeout
-                    if self.cycle < 0:
-                        limit = startup_timeout
-                    if time.monotonic() - last_heard > limit:
-                        if self.cycle < 0 and not self.stats.startup_time:
+            with frozen_heap():  # a full collection in the loop: only the loop's objects
+                while self.cycle < final:
+                    try:
+                        message = self.bus.recv(timeout=0.1)
+                    except (can.CanError, OSError) as exc:
+                        raise BusError(
+                            f"the bus failed {self._when()}: "
+                            f"{failure_text(exc)}; is the loopback hub gone?"
+                        ) from None
+                    if message is None:
+                        if connection_closed(self.bus):
+                            raise BusError(f"the loopback hub closed the bus {self._when()}")
+                        gone = peer_alive()
+                        if gone is not None:
+                            raise ProtocolError(f"{gone}; the plant stopped {self._when()}")
+                        # a controller program still starting (imports on a loaded machine) gets
+                        # startup_timeout for its first SYNC; after that the scenario's timeout
+                        limit = self.scenario.controller.timeout
+                        if self.cycle < 0:
+                            limit = startup_timeout
+                        if time.monotonic() - last_heard > limit:
+                            if self.cycle < 0 and not self.stats.startup_time:
+                                raise ProtocolError(
+                                    f"no SYNC(0) from the controller within {limit:g} s of the "
+                                    "start; the plant stopped"
+                                )
                             raise ProtocolError(
-                                f"no SYNC(0) from the controller within {limit:g} s of the "
-                                "start; the plant stopped"
+                                f"no frame from the controller for {limit:g} s {self._when()}"
                             )
-                        raise ProtocolError(
-                            f"no frame from the controller for {limit:g} s {self._when()}"
-                        )
-                    continue
-                last_heard = time.monotonic()
-                if self.cycle < 0 and not self.stats.startup_time:
-                    first = time.perf_counter()
-                    self.stats.startup_time = first - started
-                    started = first
-                self._handle(message, progress)
+                        continue
+                    last_heard = time.monotonic()
+                    if self.cycle < 0 and not self.stats.startup_time:
+                        first = time.perf_counter()
+                        self.stats.startup_time = first - started
+                        started = first
+                    self._handle(message, progress)
         finally:
             self._count()
             self.stats.wall_time = time.perf_counter() - started
@@ -213,7 +215,8 @@ class Plant:
             execution.policy, execution.spin = StepAhead.WORKER, overlap
             execution.min_cost = overlap_min_cost
         try:
-            driver()
+            with frozen_heap():  # a full collection in the loop: only the loop's objects
+                driver()
             if self.cycle < self.scenario.cycles:
                 raise ProtocolError(
                     f"the controller stopped after SYNC {self.cycle} of {self.scenario.cycles}"

@@ -8,8 +8,8 @@
 
    Invariant: either function returns None for anything but the plain case (a value that is not
    a float, or an int for a signal without scale and offset; a value outside the codec's quick
-   range, which also leaves out every sequence number its modulo would change; an index that
-   does not match), and the caller then takes the Python path, which encodes it or raises the
+   range, a sequence number given as an int taken modulo its range first as the Python path
+   does; an index that does not match), and the caller then takes the Python path, which encodes it or raises the
    error it always raises. So this file never decides what is an error, only how fast the plain
    case is.
 
@@ -44,6 +44,7 @@ typedef struct {
     double offset;
     double lo, hi;   /* the codec's quick range */
     double raw_lo, raw_hi; /* the raw values the field holds */
+    long long modulus; /* a sequence number's range, taken modulo when given as an int; 0: none */
 } EncodeSignal;
 
 typedef struct {
@@ -102,7 +103,7 @@ static void encoder_free(PyObject *capsule) {
 }
 
 /* compile_encoder(length, ((start, mask, identity, scale, skip_offset, offset, lo, hi, raw_lo,
-   raw_hi), ...)) -> capsule, the signals in the order of the codec's values */
+   raw_hi, modulus), ...)) -> capsule, the signals in the order of the codec's values */
 static PyObject *compile_encoder(PyObject *self, PyObject *args) {
     Py_ssize_t length;
     PyObject *signals;
@@ -130,9 +131,9 @@ static PyObject *compile_encoder(PyObject *self, PyObject *args) {
         PyObject *scale, *offset, *lo, *hi;
         unsigned long long mask;
         long long raw_lo, raw_hi;
-        if (!PyArg_ParseTuple(PyTuple_GET_ITEM(signals, k), "iKpOpOOOLL", &s->start, &mask,
+        if (!PyArg_ParseTuple(PyTuple_GET_ITEM(signals, k), "iKpOpOOOLLL", &s->start, &mask,
                               &s->identity, &scale, &s->skip_offset, &offset, &lo, &hi,
-                              &raw_lo, &raw_hi)) {
+                              &raw_lo, &raw_hi, &s->modulus)) {
             Py_DECREF(capsule);
             return NULL;
         }
@@ -176,6 +177,13 @@ static double raw_value(const EncodeSignal *s, PyObject *v, int *plain) {
             PyErr_Clear();
             *plain = 0;
             return 0.0;
+        }
+        if (s->modulus > 0 && PyLong_CheckExact(v)) {
+            /* a sequence number given as an int: modulo its range, as Python's % (never < 0) */
+            i %= s->modulus;
+            if (i < 0) {
+                i += s->modulus;
+            }
         }
         double raw = (double)i;
         if (!(s->lo <= raw && raw <= s->hi)) {

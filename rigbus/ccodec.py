@@ -84,6 +84,7 @@ def encoder(codec: MessageCodec) -> Any | None:
             f.low,
             f.high,
             *_raw_range(f.length, f.signed),
+            f.modulus,
         )
         for f in codec.fields
     )

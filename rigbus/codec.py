@@ -181,8 +181,9 @@ class Field:
     """One value of a `MessageCodec` as its quick path encodes and decodes it: its bits in the
     payload (little-endian, from bit `start`), its conversion (the Python types of the scale and
     offset are those of the decoded value's arithmetic), whether encoding subtracts the offset
-    (the codec leaves out offsets that are all 0), and the quick range (`low` <= value <=
-    `high`; anything else takes the checks)."""
+    (the codec leaves out offsets that are all 0), the quick range (`low` <= value <=
+    `high`; anything else takes the checks), and for a sequence number the modulus an int is
+    taken modulo before that (0: none)."""
 
     name: str
     start: int
@@ -193,6 +194,7 @@ class Field:
     subtracts_offset: bool
     low: float
     high: float
+    modulus: int
 
 
 def _applied_offsets(signals: Sequence[_Signal]) -> tuple[tuple | None, tuple | None]:
@@ -215,7 +217,18 @@ def _field(signal: _Signal, subtracts_offset: bool) -> Field:
         subtracts_offset,
         signal.quick_low,
         signal.quick_high,
+        signal.modulus or 0,
     )
+
+
+def _wrapped(values: Sequence[Any], wraps: tuple[tuple[int, int], ...]) -> Sequence[Any]:
+    """`values` with each sequence number given as an int (not a bool) taken modulo its range,
+    as the checks take it."""
+    wrapped = list(values)
+    for k, modulus in wraps:
+        if type(wrapped[k]) is int:
+            wrapped[k] %= modulus
+    return wrapped
 
 
 class MessageCodec:
@@ -244,6 +257,10 @@ class MessageCodec:
         self._offsets, self._decode_offsets = _applied_offsets(self._signals)
         self._lows = tuple(s.quick_low for s in self._signals)
         self._highs = tuple(s.quick_high for s in self._signals)
+        # the sequence numbers: (position, modulus), an int taken modulo it on the quick path
+        self._wraps = tuple(
+            (k, s.modulus) for k, s in enumerate(self._signals) if s.modulus is not None
+        )
         layout = _layout(message, signals) if compiled else None
         self.compiled = layout is not None  # False: cantools encodes and decodes
         # what the C path compiles (`rigbus.ccodec`): each value's field and quick path
@@ -258,6 +275,8 @@ class MessageCodec:
         """The payload of the signals' `values` (in the order of `names`; `MISSING` for a value
         the frame lacks); FrameError naming the message and signal of a value it refuses."""
         if self.compiled:
+            if self._wraps:
+                values = _wrapped(values, self._wraps)
             try:
                 if all(map(operator.le, self._lows, values)) and all(
                     map(operator.le, values, self._highs)

@@ -132,8 +132,9 @@ def test_c_encoding_equals_the_python_codec_value_by_value() -> None:
 @needs_c
 def test_plain_floats_and_counters_are_encoded_in_c() -> None:
     """The loop's common frame, floats in range and its counter, takes the C path (so the
-    speed-up is real) and gives the Python bytes; a counter past its modulus is the Python
-    path's to wrap."""
+    speed-up is real) and gives the Python bytes; a counter past its modulus (as a sender's
+    running count is, from the 256th frame on) is wrapped in C too, as Python's % wraps it, and
+    the bytes are those of the checked path."""
     assert module is not None
     codec = Protocol()._by_name["DriveStatus2"].codec
     encoder = ccodec.encoder(codec)
@@ -145,8 +146,15 @@ def test_plain_floats_and_counters_are_encoded_in_c() -> None:
     wrapped = codec.values_of(
         {"piston_position": 0.0311, "p_a": 2345.6, "p_b": -0.0, "fault": 3, "counter": 300}
     )
-    assert module.pack(encoder, wrapped) is None
+    assert module.pack(encoder, wrapped) == codec.encode(wrapped) == codec._encode_checked(wrapped)
     assert codec.encode(wrapped)[7] == 300 % 256
+    for counter in (256, 511, -1, -257, 2**40 + 7):
+        values = codec.values_of({**codec.as_mapping(wrapped), "counter": counter})
+        assert module.pack(encoder, values) == codec._encode_checked(values)
+        assert module.pack(encoder, values)[7] == counter % 256
+    # a bool is not a sequence number's int: it is never taken modulo (True is 1 either way)
+    values = codec.values_of({**codec.as_mapping(wrapped), "counter": True})
+    assert module.pack(encoder, values) == codec._encode_checked(values)
 
 
 @needs_c
@@ -158,7 +166,7 @@ def test_a_raw_value_its_field_does_not_hold_is_never_packed() -> None:
     for signed, bounds in ((True, (-128, 127)), (False, (0, 255))):
         low, high = ccodec._raw_range(8, signed)
         assert (low, high) == bounds
-        encoder = module.compile_encoder(1, ((0, 0xFF, True, 1, True, 0, -1e3, 1e3, low, high),))
+        encoder = module.compile_encoder(1, ((0, 0xFF, True, 1, True, 0, -1e3, 1e3, low, high, 0),))
         assert module.pack(encoder, (high,)) == bytes([high & 0xFF])
         assert module.pack(encoder, (low,)) == bytes([low & 0xFF])
         assert module.pack(encoder, (high + 1,)) is None, signed
