@@ -68,7 +68,9 @@ def _inner(segments: int, seconds: float) -> int:
 
     Plant.run_driven = counted  # type: ignore[method-assign,assignment]
     scenario = budget_scenario(
-        load_scenario(ROOT / "hil" / "scenarios" / "default.toml"), seconds, segments
+        load_scenario(ROOT / "robots" / "planar_arm" / "scenarios" / "default.toml"),
+        seconds,
+        segments,
     )
     with tempfile.TemporaryDirectory() as out:
         run_scenario(scenario, RunOptions(out=Path(out), inprocess=True, progress=False))

@@ -306,13 +306,17 @@ class CameraNode:
 
     def _in_view(self, points: list[list[float]]) -> list[int]:
         """The markers seen: inside the field of view and present (no NaN coordinate); on the
-        picture's points as floats (a handful of markers: cheaper than array operations)."""
-        field = self.field
+        picture's points as floats (a handful of markers: cheaper than array operations). A NaN
+        coordinate compares false: not seen."""
+        if self.dims == 2:
+            (x0, x1), (y0, y1) = self.field
+            return [m for m, (x, y) in enumerate(points) if x0 <= x <= x1 and y0 <= y <= y1]
+        (x0, x1), (y0, y1), (z0, z1) = self.field
         return [
             m
-            for m, point in enumerate(points)
-            if all(lo <= value <= hi for value, (lo, hi) in zip(point, field, strict=True))
-        ]  # a NaN coordinate compares false: not seen
+            for m, (x, y, z) in enumerate(points)
+            if x0 <= x <= x1 and y0 <= y <= y1 and z0 <= z <= z1
+        ]
 
     def accepts(self, frame: Frame) -> bool:
         return False
