@@ -133,3 +133,71 @@ def test_coupled_bends_of_the_six_segment_arm_are_finite_and_positive() -> None:
     assert max(abs(np.linalg.eigvals(F))) < 1.0
     assert np.allclose(Q, Q.T) and min(np.linalg.eigvalsh(Q)) > 0.0
     assert np.all(np.isfinite(G))
+
+
+def test_the_ukf_predicts_a_curled_arm_with_its_own_mass_matrix() -> None:
+    """Held curled in front of the camera, the whole-arm UKF of a multibody arm rediscretises
+    its prediction with the mass matrix at its estimate: the base's entry a third of the
+    straight arm's, equal to `mass_matrix` at the estimated curvatures to the 2 % it allows."""
+    from controllers.estimation import CameraNoise, MarkerFrame
+    from controllers.estimators import make_estimator
+    from controllers.kinematics import markers
+
+    lengths, masses = [MODEL.length] * N, [MASS] * N
+    curled = np.array([-11.9, -16.0, -16.2, -12.2, -7.0, -2.2])
+    bends = [BendModel(MODEL.length, 1e-3, MODEL.k_bend, MODEL.d_bend, MODEL.G_a)] * N
+    estimator = make_estimator(
+        "ukf",
+        bends,
+        (0.0, 0.0, 0.0),
+        CameraNoise(noise=1e-4),
+        PERIOD,
+        torque_std=0.05,
+        masses=masses,
+    )
+    points = markers(curled, lengths, (0.0, 0.0, 0.0))
+    for cycle in range(1, 60):
+        estimate = estimator.update(cycle * PERIOD, {}, [MarkerFrame((cycle - 1) * PERIOD, points)])
+    assert estimate.kappa == pytest.approx(curled, abs=0.2)
+    scheduled = estimator._scheduled  # type: ignore[attr-defined]
+    straight = mass_matrix([0.0] * N, lengths, masses)
+    assert scheduled[0, 0] < 0.4 * straight[0, 0]
+    here = mass_matrix(estimate.kappa, lengths, masses)
+    assert np.max(np.abs(scheduled - here)) <= 0.02 * np.max(np.abs(scheduled))
+
+
+def test_a_planned_move_feeds_the_inverse_dynamics_to_the_pistons() -> None:
+    """The planar controller on the body: the same cycle with and without a planned move's
+    rate and acceleration differs, segment by segment, by the arm loops' feedforward."""
+    from pathlib import Path
+
+    from controllers.estimation import Estimate
+    from hil.scenario import load_scenario
+    from rigbus.protocol import DriveCommand, Protocol
+    from robots.planar_arm.controller.curvature_control import CurvatureControl
+    from robots.planar_arm.plant.rig import ROBOT
+
+    scenario = load_scenario(
+        Path(__file__).parents[1] / "robots/planar_arm/scenarios/planar-point-to-point.toml"
+    )
+    config = ROBOT.controller_config(scenario)
+    gains = config.arm_gains
+    assert gains is not None
+    zero = np.zeros(N)
+    estimate = Estimate(zero, zero, zero)
+    motion = (np.array([1.0, -2.0, 0.5, 0.0, 3.0, -1.0]), np.array([5.0, 0.0, -4.0, 2.0, 0.0, 1.0]))
+
+    def pistons(with_motion: bool) -> list[float]:
+        control = CurvatureControl(config, Protocol())
+        frames = control.command(0, zero, estimate, {}, motion if with_motion else None)
+        return [f.piston_setpoint for f in frames if isinstance(f, DriveCommand)]
+
+    moved, still = pistons(True), pistons(False)
+    forward = [
+        a[0] - b[0]
+        for a, b in zip(
+            gains.terms(zero, zero, zero, motion), gains.terms(zero, zero, zero), strict=True
+        )
+    ]
+    assert np.subtract(moved, still) == pytest.approx(forward, rel=1e-9, abs=1e-12)
+    assert max(abs(v) for v in forward) > 1e-4  # a tenth of a millimetre and more
