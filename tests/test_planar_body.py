@@ -125,11 +125,20 @@ def test_a_bent_start_is_held_on_the_body(tmp_path: Path) -> None:
     rig = build_rig(scenario)
     try:
         master = Algorithm(rig.participants, rig.connections, scenario.timing.step)
+        bent = [master.values[f"body.kappa_x_{n}"] for n in range(1, 7)]
+        base_inertia = master.values["body.M_11"]
         master.advance_to(100)
         kappa = [master.values[f"body.kappa_x_{n}"] for n in (1, 2, 3)]
     finally:
         rig.close()
     assert kappa == pytest.approx([0.6 / LENGTHS[0], -0.4 / LENGTHS[1], 0.0], abs=0.05)
+    # the mass matrix the controller schedules its loops on is the body's, bent as well
+    from controllers.kinematics import mass_matrix
+
+    assert bent[:2] == pytest.approx([0.6 / LENGTHS[0], -0.4 / LENGTHS[1]], rel=1e-12)
+    controller_side = mass_matrix(bent, LENGTHS, MASSES)[0, 0]
+    assert controller_side == pytest.approx(base_inertia, rel=1e-9)
+    assert base_inertia < 0.99 * hand_count_base_inertia(LENGTHS, MASSES)  # bent: less
 
 
 @pytest.mark.parametrize(
