@@ -518,3 +518,20 @@ def test_a_marker_outside_the_field_of_view_is_not_seen() -> None:
     assert seen[20] == [0]
     assert all(ids == [0] for tick, ids in seen.items() if tick <= 20)  # 0.1 m is out: never 1
     assert all(0 not in ids for tick, ids in seen.items() if tick > 20)  # x > 0.02 m: 0 is gone
+
+
+@pytest.mark.parametrize("dims", [2, 3])
+def test_the_field_of_view_bounds_every_axis_on_both_sides_edges_included(dims: int) -> None:
+    """A marker is seen inside the field, on its edges too; beyond any bound of any axis, or
+    with a NaN coordinate, it is not."""
+    model = Camera(CameraEffects(), np.random.default_rng(0), 5e-3, 1e-3)
+    field = ((-0.1, 0.2), (-0.3, 0.4), (-0.5, 0.6))[:dims]
+    node = CameraNode(["kappa_1"], marker_model, 0, model, field=field, dims=dims)
+    inside = [0.0] * dims
+    points = [inside, [lo for lo, _ in field], [hi for _, hi in field]]  # seen: 0, 1, 2
+    for axis, (lo, hi) in enumerate(field):
+        for value in (lo - 1e-9, hi + 1e-9, math.nan):
+            point = list(inside)
+            point[axis] = value
+            points.append(point)
+    assert node._in_view(points) == [0, 1, 2]
