@@ -12,8 +12,11 @@ layers), from which the recording's share of a SYNC before and after.
 
 The other checkout is the commit's tree (`git archive`), run with `PYTHONPATH` at it and the
 same FMU cache, so both use the same compiler and flags; this checkout is the working tree.
+The defaults (7 runs of 10 simulated seconds, 1001 SYNCs) are the least that reads a ratio to a
+few per cent on a shared 2-core virtual machine, where single runs of the same code spread by
+15-20 % and a 3-second run's SYNCs never pass the counter's wrap or a full garbage collection.
 
-    PYTHONPATH=. python bench/compare.py --before e271ff8 [--repeat 5] [--seconds 3]
+    PYTHONPATH=. python bench/compare.py --before e271ff8 [--repeat 7] [--seconds 10]
     [--segments 6] [--no-budget] [--json out.json]
 """
 
@@ -85,8 +88,8 @@ def budget(checkout: Path) -> dict[str, Any]:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--before", required=True, help="the commit to compare against")
-    parser.add_argument("--repeat", type=int, default=5, help="runs per checkout and mode")
-    parser.add_argument("--seconds", type=float, default=3.0, help="simulated seconds a run")
+    parser.add_argument("--repeat", type=int, default=7, help="runs per checkout and mode")
+    parser.add_argument("--seconds", type=float, default=10.0, help="simulated seconds a run")
     parser.add_argument("--segments", type=int, default=6)
     parser.add_argument("--no-budget", action="store_true", help="skip the per-SYNC budgets")
     parser.add_argument("--json", type=Path, help="also write the figures as JSON")
