@@ -24,9 +24,17 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import brentq
 
 from controllers import kinematics
+
+
+def brentq(*args: object, **kwargs: object) -> float:
+    """scipy's brentq, imported on first use: scipy.optimize costs 0.7 s of every process that
+    imports this module (every `hil` command does, through the scenario's sections) and most
+    never solve for a curvature."""
+    from scipy.optimize import brentq as solve
+
+    return float(solve(*args, **kwargs))  # type: ignore[arg-type]
 
 
 @dataclass(frozen=True)

@@ -5,3 +5,5 @@ configuration, estimator and controllers), registered together in `rigbus.robots
 A plant side imports `hil`, `rigbus` and its own controller side (to write the controller's
 configuration); a controller side imports `controllers` and `rigbus`, never `hil`.
 """
+
+import rigbus  # noqa: F401  # first: python-can without asammdf (rigbus.pycan)
