@@ -73,6 +73,7 @@ class FrameType:
 
 
 _REGISTRY: dict[str, FrameType] = {}
+_REGISTERED = [0]  # how many registrations `_REGISTRY` has seen (a Protocol's layout depends on it)
 
 
 def _to_bool(value: Any) -> bool:
@@ -93,6 +94,7 @@ def frame_type(kind: str, index: str | None = None) -> Callable[[type], type]:
             for f in fields(cls)
         }
         _REGISTRY[kind] = FrameType(kind, cls, index, kinds)
+        _REGISTERED[0] += 1
         cls.kind = kind  # type: ignore[attr-defined]
         return cls
 
@@ -289,6 +291,9 @@ class Protocol:
     # the codecs of the cached databases' messages (which live as long as the cache), by
     # message: a Protocol is made in many places
     _codecs: ClassVar[dict[int, tuple[Message, MessageCodec]]] = {}
+    # the entries by id, name and (kind, index) of a DBC's messages, by its path and the frame
+    # types registered when they were made: checked once, shared by every Protocol (read only)
+    _layouts: ClassVar[dict[tuple[Path, int], tuple[dict, dict, dict]]] = {}
 
     def __init__(self, dbc_path: Path = DBC_PATH) -> None:
         try:
@@ -302,9 +307,10 @@ class Protocol:
         Protocol._cache[dbc_path] = database
         self.database = database
         self.path = dbc_path
-        self._by_id: dict[int, _Entry] = {}
-        self._by_name: dict[str, _Entry] = {}
-        self._by_key: dict[tuple[str, int | None], _Entry] = {}
+        self._by_id: dict[int, _Entry]
+        self._by_name: dict[str, _Entry]
+        self._by_key: dict[tuple[str, int | None], _Entry]
+        self._by_id, self._by_name, self._by_key = self._layout(database, dbc_path)
         # `_entry_of`'s memory: the index field of each typed frame class met, and by (class,
         # int index) the CAN id, values getter and encoders of each typed frame met (`encode`'s
         # first lines): the C codec's plain case and its capsule (`rigbus.ccodec`), then the
@@ -319,6 +325,18 @@ class Protocol:
         self._unpack = _no_c if module is None else module.unpack
         made_in_c = c_messages()  # the message of a frame the C codec packed, made in C too
         self._data_message = data_message if made_in_c is None else made_in_c.data_message
+
+    @staticmethod
+    def _layout(database: Database, dbc_path: Path) -> tuple[dict, dict, dict]:
+        """The entries of `database`'s messages by CAN id, by name and by (kind, index), each
+        registered type checked against its message (FrameError)."""
+        key = (dbc_path, _REGISTERED[0])
+        known = Protocol._layouts.get(key)
+        if known is not None:
+            return known
+        by_id: dict[int, _Entry] = {}
+        by_name: dict[str, _Entry] = {}
+        by_key: dict[tuple[str, int | None], _Entry] = {}
         for message in database.messages:
             match = _NAME.match(message.name)
             assert match is not None  # the pattern matches every string
@@ -328,9 +346,11 @@ class Protocol:
             entry = _Entry(kind, index, message, ftype, Protocol._codec(message))
             if ftype is not None:
                 _check_layout(entry)
-            self._by_id[message.frame_id] = entry
-            self._by_name[message.name] = entry
-            self._by_key[(kind, index)] = entry
+            by_id[message.frame_id] = entry
+            by_name[message.name] = entry
+            by_key[(kind, index)] = entry
+        Protocol._layouts[key] = (by_id, by_name, by_key)
+        return by_id, by_name, by_key
 
     @staticmethod
     def _codec(message: Message) -> MessageCodec:

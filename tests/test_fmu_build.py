@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import ctypes
+import os
 import re
 import shutil
 import zipfile
@@ -129,6 +130,27 @@ def test_malformed_model_toml_names_file_and_key(private_sources: Path) -> None:
     toml.write_text(toml.read_text().replace('unit = "kg"', 'unit = "furlong"', 1))
     with pytest.raises(BuildError, match=r"model.toml: parameters.mass.unit 'furlong'"):
         build_fmu("FeaSegment")
+
+
+def test_a_spec_is_read_once_and_again_when_its_file_changes(private_sources: Path) -> None:
+    """load_spec keeps what it read by file: the same object while model.toml is unchanged, a
+    new reading once it changes, even at the same size (a sweep's plan asks thousands of
+    times)."""
+    folder = private_sources / "FeaSegment"
+    first = load_spec(folder)
+    assert load_spec(folder) is first
+    toml = folder / "model.toml"
+    text = toml.read_text()
+    old = first.variable("mass").description
+    assert old and old[0] != "X"
+    toml.write_text(text.replace(old, "X" + old[1:], 1))  # the same size
+    stat = toml.stat()
+    os.utime(toml, ns=(stat.st_atime_ns, stat.st_mtime_ns + 1_000_000))
+    second = load_spec(folder)
+    assert second is not first and second.variable("mass").description == "X" + old[1:]
+    toml.write_text(text.replace('unit = "kg"', 'unit = "furlong"', 1))
+    with pytest.raises(BuildError, match=r"parameters.mass.unit 'furlong'"):
+        load_spec(folder)
 
 
 def test_cache_location_follows_environment(

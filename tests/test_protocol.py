@@ -766,3 +766,29 @@ def test_data_message_is_can_message_field_for_field(data: bytes, maker: str) ->
         assert getattr(quick, name) == getattr(made, name), name
         assert type(getattr(quick, name)) is type(getattr(made, name)), name
     assert quick.equals(made, check_channel=True, check_direction=True)
+
+
+def test_protocols_share_one_checked_layout_until_a_frame_type_is_registered() -> None:
+    """The DBC's entries are made and checked once per registry state: every Protocol shares
+    them, and a type registered later (a robot's plug-in) is checked by the next Protocol."""
+    from rigbus import protocol as module
+
+    first, second = Protocol(), Protocol()
+    assert first._by_id is second._by_id and first._by_key is second._by_key
+    saved = module._REGISTRY["Heartbeat"]
+    try:
+
+        @module.frame_type("Heartbeat", index="node")
+        @dataclasses.dataclass(frozen=True, slots=True)
+        class Wrong:
+            node: int
+            nmt_status: int  # the DBC's signal is nmt_state
+
+        with pytest.raises(FrameError, match=r"Heartbeat\d*: the DBC's signals .*nmt_state"):
+            Protocol()
+    finally:
+        module._REGISTRY["Heartbeat"] = saved
+        module._REGISTERED[0] += 1
+    third = Protocol()
+    assert third._by_id is not first._by_id
+    assert third.decode(third.encode(Heartbeat(node=3, nmt_state=5))) == Heartbeat(3, 5)

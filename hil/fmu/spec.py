@@ -174,9 +174,30 @@ class ModelSpec:
         return [v for v in self.variables if v.causality == causality]
 
 
+# model.toml read and checked, by path, with the (mtime_ns, size) it had: a scenario's check asks
+# for each model's spec a dozen times (its ports, defaults, parameters), a sweep's plan for every
+# grid point, and parsing one costs 2-6 ms; a spec is immutable, so one object serves them all
+_SPECS: dict[Path, tuple[tuple[int, int], ModelSpec]] = {}
+
+
 def load_spec(folder: Path) -> ModelSpec:
-    """Read and check `folder/model.toml`; every problem names the file and key."""
+    """Read and check `folder/model.toml`; every problem names the file and key. The spec is
+    read again only when the file changes (its modification time or size)."""
     path = folder / "model.toml"
+    try:
+        stat = path.stat()
+    except OSError as exc:
+        raise BuildError(f"{path}: {exc}") from exc
+    stamp = (stat.st_mtime_ns, stat.st_size)
+    known = _SPECS.get(path)
+    if known is not None and known[0] == stamp:
+        return known[1]
+    spec = _read_spec(folder, path)
+    _SPECS[path] = (stamp, spec)
+    return spec
+
+
+def _read_spec(folder: Path, path: Path) -> ModelSpec:
     try:
         data = tomllib.loads(path.read_text())
     except (OSError, tomllib.TOMLDecodeError) as exc:

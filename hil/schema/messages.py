@@ -4,6 +4,7 @@ value as TOML writes it), `got` and `number`, and `Context` (a scenario's keys b
 from __future__ import annotations
 
 import datetime as dt
+import functools
 from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any
 
@@ -56,6 +57,15 @@ def number(value: float) -> str:
 # ---------------------------------------------------------------------- the values of keys
 
 
+@functools.cache
+def _default_protocol() -> Protocol:
+    """The protocol over softhil's DBC, made once a process: the checks only read it, and a
+    sweep's plan checks every grid point's scenario (5 ms each to make)."""
+    from rigbus.protocol import Protocol
+
+    return Protocol()
+
+
 class Context:
     """What the checks read: the scenario being checked (keys by dotted path), the tables read
     so far, and the protocol (made once, on first use)."""
@@ -69,9 +79,7 @@ class Context:
     @property
     def protocol(self) -> Protocol:
         if self._protocol is None:
-            from rigbus.protocol import Protocol
-
-            self._protocol = Protocol()  # the DBC bounds what the bus can carry
+            self._protocol = _default_protocol()  # the DBC bounds what the bus can carry
         return self._protocol
 
     def value(self, path: str) -> Any:
