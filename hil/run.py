@@ -65,6 +65,9 @@ class RunOptions:
     mf4: bool | None = None  # overriding [recording] mf4
     overwrite: bool = False  # replace the files an earlier run wrote in `out` (never others)
     animate: str | None = None  # write the robot's animation in this format ("gif", "mp4")
+    # the reports drawn after the run: the estimators' report, the plots and figures (not the
+    # summary's scores, signals or CAN log, which are the run's own); False: `--no-reports`
+    reports: bool = True
     # score the estimators (estimation.png, summary "estimation") in a child process while this
     # one draws the plots: `hil run` does, on a machine with a core to spare (not in batches,
     # whose trials already take the cores)
@@ -384,30 +387,35 @@ def _reports(
 ) -> None:
     """The reports drawn from the recorded run: the estimators' report (the planar arm's, from
     a CAN log with directions; in a child process with `parallel_report`), the rig's plots and
-    figures, the animation asked for."""
+    figures (none of these with `reports` False), the animation asked for."""
     out = folder.out
     with ExitStack() as post:
         estimation = None
-        if can_log.endswith((".log", ".blf", ".asc", ".trc")) and getattr(
-            robot, "estimation_report", True
+        if (
+            options.reports
+            and can_log.endswith((".log", ".blf", ".asc", ".trc"))
+            and getattr(robot, "estimation_report", True)
         ):  # the curvature estimators' report: the planar arm's
             folder.claim("estimation.png")
             summary["estimation"] = None  # its place in summary.json; filled below
             estimation = post.enter_context(
                 _estimation_report(out, options.parallel_report, can_log)
             )
-        from hil.plots import plot_run
+        animation = rig.animation if options.animate is not None else None
+        if options.reports or animation is not None:
+            recorded = read_signals(out / "signals.csv")
+            if options.reports:
+                from hil.plots import plot_run
 
-        for spec in rig.plots:
-            folder.claim(f"{spec.name}.png")
-        recorded = read_signals(out / "signals.csv")
-        plot_run(recorded, rig.plots, out)
-        for name, draw in rig.figures:
-            draw(recorded, folder.claim(f"{name}.png"))
-        if options.animate is not None and rig.animation is not None:
-            name, animate = rig.animation
-            summary["animation"] = f"{name}.{options.animate}"
-            animate(recorded, folder.claim(summary["animation"]), options.animate)
+                for spec in rig.plots:
+                    folder.claim(f"{spec.name}.png")
+                plot_run(recorded, rig.plots, out)
+                for name, draw in rig.figures:
+                    draw(recorded, folder.claim(f"{name}.png"))
+            if animation is not None:
+                name, animate = animation
+                summary["animation"] = f"{name}.{options.animate}"
+                animate(recorded, folder.claim(summary["animation"]), options.animate)
         if estimation is not None:
             scores, error = estimation()
             summary["estimation"] = scores if error is None else {"error": error}

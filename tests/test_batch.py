@@ -59,9 +59,15 @@ def builtins(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
         yield folder
 
 
-def hil(capsys: pytest.CaptureFixture[str], *argv: str) -> tuple[int, str, list[str]]:
-    """Exit code, stdout and the lines of stderr of `hil ARGV`."""
-    code = main([*map(str, argv)])
+def hil(
+    capsys: pytest.CaptureFixture[str], *argv: str | int | Path, reports: bool = False
+) -> tuple[int, str, list[str]]:
+    """Exit code, stdout and the lines of stderr of `hil ARGV`; a batch, sweep or run without
+    its trials' plots and reports (`--no-reports`) unless `reports`."""
+    words = [*map(str, argv)]
+    if not reports and words[0] in ("batch", "sweep", "run"):
+        words.append("--no-reports")
+    code = main(words)
     out, err = capsys.readouterr()
     return code, out, err.splitlines()
 
@@ -84,13 +90,20 @@ def load(path: Path) -> dict:
 def test_a_batch_run_twice_writes_the_same_batch_json(
     local_batch: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    """Acceptance; the second run has one worker, so neither the worker count nor the order in
-    which trials finish may show in the file."""
+    """Acceptance; the second run has one worker and draws no trial's reports, so neither the
+    worker count, the order in which trials finish nor --no-reports may show in the file."""
     out = tmp_path / "again"
     code, stdout, _ = hil(capsys, "batch", "short", "--trials", 3, "--workers", 1, "--out", out,
                           "--no-progress")  # fmt: skip
     assert code == 0 and "3 completed" in stdout
     assert (out / "batch.json").read_bytes() == (local_batch / "batch.json").read_bytes()
+    drawn = sorted(p.name for p in (local_batch / "trial-002").glob("*.png"))
+    assert drawn == ["curvature.png", "estimation.png", "piston.png", "pressures.png"]
+    assert not list(out.glob("trial-*/*.png")) and (out / "batch.png").is_file()
+    for name in ("can.log", "signals.csv"):
+        assert (out / "trial-002" / name).read_bytes() == (
+            local_batch / "trial-002" / name
+        ).read_bytes()
 
 
 def test_batch_json_trials_seeds_and_aggregates(local_batch: Path) -> None:

@@ -321,6 +321,37 @@ def test_the_report_scored_in_a_child_process_is_the_same(tmp_path: Path) -> Non
     assert png[0] == png[1]
 
 
+def test_no_reports_writes_the_run_s_own_files_the_same_and_draws_nothing(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`hil run --no-reports`: the same CAN log, signals and summary (but its estimation
+    scores), no plot, figure or estimation report; the line naming the results says so."""
+    from hil.cli import main
+
+    path = scenario(tmp_path, "short", ("duration = 10.0", "duration = 0.5"))
+    drawn = run_scenario(
+        load_scenario(path), RunOptions(out=tmp_path / "drawn", inprocess=True, progress=False)
+    )
+    bare = tmp_path / "bare"
+    argv = ["run", str(path), "--inprocess", "--no-progress", "--no-reports", "--out", str(bare)]
+    assert main(argv) == 0
+    assert sorted(p.name for p in drawn.out.glob("*.png")) == [
+        "curvature.png", "estimation.png", "piston.png", "pressures.png"
+    ]  # fmt: skip
+    assert list(bare.glob("*.png")) == []
+    for name in ("can.log", "signals.csv"):
+        assert (bare / name).read_bytes() == (drawn.out / name).read_bytes(), name
+    summary = json.loads((bare / "summary.json").read_text())
+    timing = {"wall_time", "real_time_factor", "startup_time", "controller", "plant"}
+    timing.add("periods_on_kernel_thread")  # the CLI steps ahead on a spare core
+    assert "estimation" not in summary and "estimation" in drawn.summary
+    assert {k: v for k, v in summary.items() if k not in timing} == {
+        k: v for k, v in drawn.summary.items() if k not in timing | {"estimation"}
+    }
+    out = capsys.readouterr().out
+    assert f"results in {bare}/ (signals.csv, can.log, summary.json)" in out
+
+
 @pytest.mark.parametrize("parallel", [False, True])
 def test_a_run_without_a_readable_log_reports_why_in_either_way(
     tmp_path: Path, parallel: bool

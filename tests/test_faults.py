@@ -82,8 +82,12 @@ def summary(out: Path) -> dict:
     return json.loads((out / "summary.json").read_text())
 
 
-def run_cli(capsys: pytest.CaptureFixture[str], *argv: str) -> tuple[int, list[str]]:
-    code = hil_main(["run", *argv, "--no-progress"])
+def run_cli(
+    capsys: pytest.CaptureFixture[str], *argv: str, reports: bool = False
+) -> tuple[int, list[str]]:
+    """`hil run ARGV` (without the plots and reports unless `reports`): its code and the lines
+    of stderr but warnings."""
+    code = hil_main(["run", *argv, "--no-progress", *([] if reports else ["--no-reports"])])
     err = capsys.readouterr().err
     assert "Traceback" not in err
     return code, [line for line in err.splitlines() if not line.startswith("  warning")]
@@ -252,8 +256,9 @@ def test_disk_full(tmp_path: Path, capsys, monkeypatch, budget: int, only: str, 
     out = tmp_path / "run"
     with disk_full(monkeypatch, budget, only):
         code, lines = run_cli(
-            capsys, str(scenario_file(tmp_path, 1.0)), "--inprocess", "--out", str(out)
-        )  # noqa: E501
+            capsys, str(scenario_file(tmp_path, 1.0)), "--inprocess", "--out", str(out),
+            reports=True,  # the plots are the last files a run writes
+        )  # fmt: skip
     assert code == 1 and len(lines) == 1, lines
     assert "No space left on device" in lines[0]
     assert not [p for p in out.iterdir() if p.stat().st_size == 0 and p.name != "controller.log"]
@@ -410,7 +415,7 @@ def test_injected_commands_on_the_hub_from_a_second_client(tmp_path: Path) -> No
             # 20 s: long enough for the intruder to join after the first block is on disk
             # (the recorders flush in blocks of up to 0.25 s), the run being 15-25x real time
             "run", str(scenario_file(tmp_path, 20.0, HOLD)), "--bus", f"loopback:127.0.0.1:{port}",
-            "--out", str(tmp_path / "run"), "--no-progress",
+            "--out", str(tmp_path / "run"), "--no-progress", "--no-reports",
         )  # fmt: skip
         wait_for(lambda: recorded(tmp_path / "run"), "progress")
         from rigbus.canbus import BusSpec, open_bus
@@ -559,7 +564,14 @@ def scenario_file_static(duration: float) -> Path:
 )
 def test_hil_run_signalled(tmp_path: Path, sig, code: int, line: str, status: str) -> None:
     out = tmp_path / "run"
-    run = hil_process("run", str(scenario_file(tmp_path, LONG)), "--out", str(out), "--no-progress")  # noqa: E501
+    run = hil_process(
+        "run",
+        str(scenario_file(tmp_path, LONG)),
+        "--out",
+        str(out),
+        "--no-progress",
+        "--no-reports",
+    )  # noqa: E501
     wait_for(lambda: recorded(out), "progress")
     run.send_signal(sig)
     _, err = run.communicate(timeout=60)
@@ -586,7 +598,14 @@ def test_hil_run_killed_hard_leaves_blocks_that_hil_csv_writes_the_csv_from(
     every 0.25 s stay; `hil csv` writes the CSV of their rows (taking the dead run's lock), one
     row a SYNC from the first, each complete."""
     out = tmp_path / "run"
-    run = hil_process("run", str(scenario_file(tmp_path, LONG)), "--out", str(out), "--no-progress")  # noqa: E501
+    run = hil_process(
+        "run",
+        str(scenario_file(tmp_path, LONG)),
+        "--out",
+        str(out),
+        "--no-progress",
+        "--no-reports",
+    )  # noqa: E501
     wait_for(lambda: recorded(out), "progress")
     run.kill()
     run.communicate(timeout=60)
@@ -608,7 +627,14 @@ def test_hil_run_killed_hard_leaves_blocks_that_hil_csv_writes_the_csv_from(
 @pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGTERM], ids=["KILL", "TERM"])
 def test_controller_killed(tmp_path: Path, sig) -> None:
     out = tmp_path / "run"
-    run = hil_process("run", str(scenario_file(tmp_path, LONG)), "--out", str(out), "--no-progress")  # noqa: E501
+    run = hil_process(
+        "run",
+        str(scenario_file(tmp_path, LONG)),
+        "--out",
+        str(out),
+        "--no-progress",
+        "--no-reports",
+    )  # noqa: E501
     wait_for(lambda: recorded(out) and rows(out / "controller.pid") > 0, "progress")  # noqa: E501
     os.kill(int((out / "controller.pid").read_text()), sig)
     _, err = run.communicate(timeout=60)
@@ -626,7 +652,12 @@ def test_controller_frozen_times_out(tmp_path: Path) -> None:
     out = tmp_path / "run"
     short_wait = ('policy = "strict"', 'policy = "strict"\ntimeout = 0.5')
     run = hil_process(
-        "run", str(scenario_file(tmp_path, LONG, short_wait)), "--out", str(out), "--no-progress"
+        "run",
+        str(scenario_file(tmp_path, LONG, short_wait)),
+        "--out",
+        str(out),
+        "--no-progress",
+        "--no-reports",
     )  # noqa: E501
     wait_for(lambda: recorded(out) and rows(out / "controller.pid") > 0, "progress")  # noqa: E501
     pid = int((out / "controller.pid").read_text())
@@ -651,7 +682,7 @@ def test_hub_killed_under_a_running_plant(tmp_path: Path) -> None:
     out = tmp_path / "run"
     run = hil_process(
         "run", str(scenario_file(tmp_path, LONG)), "--bus", f"loopback:127.0.0.1:{port}",
-        "--out", str(out), "--no-progress",
+        "--out", str(out), "--no-progress", "--no-reports",
     )  # fmt: skip
     wait_for(lambda: recorded(out), "progress")
     hub.kill()

@@ -59,6 +59,7 @@ class TrialSpec:
     # the controller program (hil.program): softhil's, in the trial's own process, or a user's
     # command line, a process of its own beside it
     controller: str = SOFTHIL
+    reports: bool = True  # draw each trial's plots and reports (`--no-reports`: not)
 
 
 @dataclass(frozen=True)
@@ -188,6 +189,7 @@ def make_plan(
     seed: int | None = None,
     overrides: Sequence[Override] = (),
     controller: str = SOFTHIL,
+    reports: bool = True,
 ) -> Plan:
     """Every trial of a batch (no overrides) or sweep, checked before anything runs: each value
     of each --set option, then each grid point, loads as a scenario, or a one-line error names
@@ -249,6 +251,7 @@ def make_plan(
                     name=name,
                     scenario_text=_trial_text(data, point, trial_seed, index, kind, source),
                     controller=controller,
+                    reports=reports,
                 )
             )
     return Plan(

@@ -69,6 +69,7 @@ def run_trial(spec: TrialSpec) -> dict[str, Any]:
                 progress=False,
                 overwrite=True,
                 controller=spec.controller,
+                reports=spec.reports,
             )
             run_scenario(scenario, options)
             summary = json.loads((folder / "summary.json").read_text(encoding="utf-8"))

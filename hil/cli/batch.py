@@ -121,6 +121,12 @@ def _common(parser: argparse.ArgumentParser, trials: int) -> None:
         "trial's process), or your command line with {config} {bus} ... (a process beside "
         "each trial; on a dask cluster, where every worker finds it)",
     )
+    parser.add_argument(
+        "--no-reports",
+        action="store_true",
+        help="skip each trial's plots and reports, as hil run --no-reports does (batch.json and "
+        "every trial's CAN log, signals and summary are the same)",
+    )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -149,6 +155,7 @@ def _execute(args: argparse.Namespace, kind: str, overrides: list[Override]) -> 
         seed=args.seed,
         overrides=overrides,
         controller=args.controller,
+        reports=not args.no_reports,
     )
     content = run_plan(
         plan,
@@ -168,8 +175,9 @@ def _execute(args: argparse.Namespace, kind: str, overrides: list[Override]) -> 
 
 
 def _command(args: argparse.Namespace, kind: str) -> str:
-    """The options that decide the results: batch.json records them, not --out or where the
-    trials ran (so local and Dask runs write the same file)."""
+    """The options that decide the results: batch.json records them, not --out, where the
+    trials ran or whether they drew their reports (so local and Dask runs, with --no-reports
+    or without, write the same file)."""
     words = ["hil", kind, args.scenario, "--trials", str(args.trials)]
     if args.seed is not None:
         words += ["--seed", str(args.seed)]

@@ -101,6 +101,12 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
         help="also write the robot's animation of the run (arm.gif; mp4 needs ffmpeg on PATH); "
         "a bare --animate writes a GIF",
     )
+    parser.add_argument(
+        "--no-reports",
+        action="store_true",
+        help="skip the reports drawn after the run (the plots, figures and the estimators' "
+        "report): the CAN log, signals and summary are written as always",
+    )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.set_defaults(handler=_run)
 
@@ -130,6 +136,7 @@ def _run(args: argparse.Namespace) -> int:
             mf4=args.mf4,
             overwrite=args.overwrite,
             animate=args.animate,
+            reports=not args.no_reports,
             parallel_report=(os.cpu_count() or 1) > 1,
             controller=args.controller,
             wait=args.wait,
@@ -154,9 +161,11 @@ def _run(args: argparse.Namespace) -> int:
         )
     for warning in s["warnings"]:
         print(f"  warning: {warning}", file=sys.stderr)
+    drawn = "" if args.no_reports else ", *.png"
     animation = f", {s['animation']}" if "animation" in s else ""
     print(
-        f"  results in {result.out}/ (signals.csv, {s['can_log']}, *.png{animation}, summary.json)"
+        f"  results in {result.out}/ (signals.csv, {s['can_log']}{drawn}{animation}, "
+        "summary.json)"
     )
     return 0
 
