@@ -86,12 +86,14 @@ def scenario_variant(tmp_path: Path, name: str, replace: dict[str, str], extra: 
     return path
 
 
-def run_summary(path: Path, out: Path, inprocess: bool = True) -> dict[str, Any]:
-    """The summary of a run of the scenario file `path` into `out`."""
+def run_summary(
+    path: Path, out: Path, inprocess: bool = True, reports: bool = False
+) -> dict[str, Any]:
+    """The summary of a run of the scenario file `path` into `out` (the plots and reports drawn
+    only with `reports`)."""
     from hil.run import RunOptions, run_scenario
     from hil.scenario import load_scenario
 
-    result = run_scenario(
-        load_scenario(path), RunOptions(out=out, inprocess=inprocess, progress=False)
-    )
+    options = RunOptions(out=out, inprocess=inprocess, progress=False, reports=reports)
+    result = run_scenario(load_scenario(path), options)
     return result.summary

@@ -56,10 +56,12 @@ def edited(tmp_path: Path, *edits: tuple[str, str], name: str = "s.toml") -> Pat
     return path
 
 
-def run_inprocess(scenario: Scenario, out: Path, realtime: bool = False):
-    return run_scenario(
-        scenario, RunOptions(out=out, inprocess=True, realtime=realtime, progress=False)
+def run_inprocess(scenario: Scenario, out: Path, realtime: bool = False, reports: bool = False):
+    """A run in this process (its plots and reports drawn only with `reports`)."""
+    options = RunOptions(
+        out=out, inprocess=True, realtime=realtime, progress=False, reports=reports
     )
+    return run_scenario(scenario, options)
 
 
 @pytest.fixture(scope="module")
@@ -76,7 +78,7 @@ def default_run(tmp_path_factory: pytest.TempPathFactory):
         text = text.replace(old, new)
     path = out / "ideal-camera.toml"
     path.write_text(text)
-    return run_inprocess(load_scenario(path), out / "run")
+    return run_inprocess(load_scenario(path), out / "run", reports=True)  # it checks the plots
 
 
 def test_default_scenario_tracks_curvature_steps(default_run) -> None:

@@ -43,7 +43,8 @@ def write(tmp_path: Path, text: str) -> Path:
 def wall_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict, dict]:
     tmp = tmp_path_factory.mktemp("wall")
     scenario = load_scenario(write(tmp, SCENARIO))
-    summary = run_scenario(scenario, RunOptions(out=tmp / "run", inprocess=True, progress=False))
+    options = RunOptions(out=tmp / "run", inprocess=True, progress=False, reports=False)
+    summary = run_scenario(scenario, options)
     return summary.summary, read_signals(tmp / "run" / "signals.csv")
 
 

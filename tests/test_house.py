@@ -60,7 +60,7 @@ def short_default(tmp_path: Path, extra: str = "") -> Path:
 def run(tmp_path: Path, scenario: Path, out: str, **options: object):
     return run_scenario(
         load_scenario(scenario),
-        RunOptions(out=tmp_path / out, inprocess=True, progress=False, **options),  # type: ignore[arg-type]
+        RunOptions(out=tmp_path / out, inprocess=True, progress=False, reports=False, **options),  # type: ignore[arg-type]
     )
 
 

@@ -518,7 +518,7 @@ def test_closed_loop_files_are_identical_with_and_without_the_kernel(
         monkeypatch.setenv("SOFTHIL_KERNEL_THREAD", worker)
         out = tmp_path / f"{kernel}{worker}"
         started.clear()
-        run_scenario(scenario, RunOptions(out=out, inprocess=True, progress=False))
+        run_scenario(scenario, RunOptions(out=out, inprocess=True, progress=False, reports=False))
         # every period (after SYNC 0 .. after the last SYNC but one) on the thread, where on
         assert started == ([True] * scenario.cycles if worker == "1" else []), worker
         summary = json.loads((out / "summary.json").read_text())
@@ -543,7 +543,7 @@ def test_a_camera_with_jitter_steps_every_tick_and_the_files_stay_identical(
     for worker in ("0", "1"):
         monkeypatch.setenv("SOFTHIL_KERNEL_THREAD", worker)
         out = tmp_path / worker
-        run_scenario(scenario, RunOptions(out=out, inprocess=True, progress=False))
+        run_scenario(scenario, RunOptions(out=out, inprocess=True, progress=False, reports=False))
         files[worker] = {name: (out / name).read_bytes() for name in ("can.log", "signals.csv")}
     assert files["1"] == files["0"]
     assert files["1"]["can.log"].count(b" 281#") > 40  # camera frames were sent
@@ -850,12 +850,16 @@ def test_unset_the_switch_times_the_first_periods_and_uses_the_thread_where_it_p
     monkeypatch.setattr(Algorithm, "start_advance", spy)
     scenario = load_scenario()
     scenario = replace(scenario, duration=1.0, robot=replace(scenario.robot, segments=2), seed=3)
-    run_scenario(scenario, RunOptions(out=tmp_path / "auto", inprocess=True, progress=False))
+    run_scenario(
+        scenario, RunOptions(out=tmp_path / "auto", inprocess=True, progress=False, reports=False)
+    )
     assert len(calls) == starts
     if starts:
         assert calls[0] == 13 * scenario.control_ticks  # after SYNC 12: the probes are done
     monkeypatch.setenv("SOFTHIL_KERNEL_THREAD", "0")
-    run_scenario(scenario, RunOptions(out=tmp_path / "turn", inprocess=True, progress=False))
+    run_scenario(
+        scenario, RunOptions(out=tmp_path / "turn", inprocess=True, progress=False, reports=False)
+    )
     for name in ("can.log", "signals.csv"):
         assert (tmp_path / "auto" / name).read_bytes() == (tmp_path / "turn" / name).read_bytes()
 

@@ -121,7 +121,8 @@ def test_path_task_tracks_the_line_within_the_acceptance(tmp_path: Path) -> None
         },
     )
     summary = run_scenario(
-        load_scenario(path), RunOptions(out=tmp_path / "run", inprocess=True, progress=False)
+        load_scenario(path),
+        RunOptions(out=tmp_path / "run", inprocess=True, progress=False, reports=False),
     ).summary
     assert summary["paths_tracked"] == 1
     assert summary["path_rms"] < PATH_RMS
@@ -137,9 +138,9 @@ def test_task_runs_are_identical_across_process_modes(tmp_path: Path) -> None:
     )
     scenario = load_scenario(path)
     inprocess = run_scenario(
-        scenario, RunOptions(out=tmp_path / "a", inprocess=True, progress=False)
+        scenario, RunOptions(out=tmp_path / "a", inprocess=True, progress=False, reports=False)
     )
-    process = run_scenario(scenario, RunOptions(out=tmp_path / "b", progress=False))
+    process = run_scenario(scenario, RunOptions(out=tmp_path / "b", progress=False, reports=False))
     assert process.summary["controller_process"] == "process"
     for name in ("can.log", "signals.csv"):
         assert (tmp_path / "a" / name).read_bytes() == (tmp_path / "b" / name).read_bytes(), name
