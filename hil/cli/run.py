@@ -164,8 +164,7 @@ def _run(args: argparse.Namespace) -> int:
     drawn = "" if args.no_reports else ", *.png"
     animation = f", {s['animation']}" if "animation" in s else ""
     print(
-        f"  results in {result.out}/ (signals.csv, {s['can_log']}{drawn}{animation}, "
-        "summary.json)"
+        f"  results in {result.out}/ (signals.csv, {s['can_log']}{drawn}{animation}, summary.json)"
     )
     return 0
 
