@@ -22,6 +22,32 @@ def shoot(effects: CameraEffects, frames: int, seed: int = 7, true=TRUE) -> list
     return [camera.picture(j, j * PERIOD, true) for j in range(frames)]
 
 
+def test_pictures_drawn_in_blocks_are_the_pictures_drawn_one_by_one() -> None:
+    """The noise and dropout streams are drawn DRAW_BLOCK pictures at a time: every picture,
+    across block boundaries and as the marker count changes, is bit for bit the picture of one
+    draw per stream per picture (M x dims normals, M uniforms, M uniforms + M x dims normals)."""
+    from hil.vision import DRAW_BLOCK
+
+    effects = CameraEffects(noise=5e-4, dropout=0.2, outlier_rate=0.1, outlier_distance=0.02)
+    camera = Camera(effects, np.random.default_rng(11), PERIOD, H)
+    _, noise, dropout, outlier, _ = np.random.default_rng(11).spawn(5)
+    frames = 2 * DRAW_BLOCK + 37
+    for j in range(frames):
+        true = TRUE if j % 97 < 60 else TRUE[:3]  # a marker fewer now and then
+        markers = len(true)
+        picture = camera.picture(j, j * PERIOD, true)
+        expected = true + noise.normal(0.0, 1.0, (markers, 2)) * effects.noise
+        dropped = dropout.random(markers) < effects.dropout
+        hit = outlier.random(markers) < effects.outlier_rate
+        direction = outlier.normal(0.0, 1.0, (markers, 2))
+        direction /= np.maximum(np.linalg.norm(direction, axis=1, keepdims=True), 1e-300)
+        expected[hit] += effects.outlier_distance * direction[hit]
+        expected[dropped] = np.nan
+        assert picture.points.view(np.int64).tolist() == expected.view(np.int64).tolist(), j
+        assert picture.dropped.tolist() == dropped.tolist()
+        assert picture.outlier.tolist() == (hit & ~dropped).tolist()
+
+
 def binomial_ok(count: int, trials: int, p: float, z: float = 4.5) -> bool:
     """count within z standard deviations of trials p (a 4.5 sigma band: ~1e-5 false failures)."""
     return abs(count - trials * p) <= z * math.sqrt(trials * p * (1.0 - p)) + 1.0
