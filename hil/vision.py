@@ -250,8 +250,8 @@ class Camera:
         points = true_points + self._noise_block[at : at + count].reshape(markers, dims)
         at = self._dropped_at
         if at + markers > len(self._dropped_block):
-            fresh = self._rng_dropout.random(markers * DRAW_BLOCK) < e.dropout
-            self._dropped_block = np.concatenate((self._dropped_block[at:], fresh))
+            verdicts = self._rng_dropout.random(markers * DRAW_BLOCK) < e.dropout
+            self._dropped_block = np.concatenate((self._dropped_block[at:], verdicts))
             at = 0
         self._dropped_at = at + markers
         dropped = self._dropped_block[at : at + markers]
