@@ -236,16 +236,23 @@ def test_a_full_disk_leaves_no_animation_behind(
 # ---------------------------------------------------------------------- the command
 
 
+@pytest.mark.parametrize("reports", [True, False])
 def test_hil_run_animate_writes_arm_gif_and_lists_it(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], reports: bool
 ) -> None:
+    """--animate draws arm.gif, with the plots or, asked for by name, with --no-reports alone."""
     scenario = tmp_path / "tiny.toml"
     scenario.write_text(TINY)
     out = tmp_path / "run"
     # can.csv: no estimation report, which this test does not need (a second saved)
     argv = ["run", str(scenario), "--inprocess", "--no-progress", "--out", str(out)]
+    argv += [] if reports else ["--no-reports"]
     assert hil_main([*argv, "--can-log", "can.csv", "--animate"]) == 0
-    assert "*.png, arm.gif, summary.json" in capsys.readouterr().out
+    listed = (
+        "can.csv, *.png, arm.gif, summary.json" if reports else "can.csv, arm.gif, summary.json"
+    )
+    assert listed in capsys.readouterr().out
+    assert bool(list(out.glob("*.png"))) is reports
     assert "arm.gif" in (out / ".softhil-manifest").read_text().split()
     assert '"animation": "arm.gif"' in (out / "summary.json").read_text()
     rows = frame_rows(read_signals(out / "signals.csv")["time"])
