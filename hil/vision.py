@@ -11,6 +11,7 @@ the draws of the others.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -130,6 +131,27 @@ def exposure_delay_bound(jitter: float, period_ticks: int, macro_step: float) ->
     return min(period_ticks - 1, math.ceil(JITTER_SIGMAS * jitter / macro_step))
 
 
+class _Drawn:
+    """A random stream's values (as `draw(n)` gives n of them), drawn DRAW_BLOCK pictures at a
+    time and taken in order. A stream's values do not depend on how many are drawn at once
+    (numpy's Generator keeps nothing between calls), so what `take` gives is, bit for bit, what
+    a draw each time would give, in a fraction of the calls."""
+
+    def __init__(self, draw: Callable[[int], np.ndarray]) -> None:
+        self._draw = draw
+        self._values = draw(0)  # none yet, of the draw's dtype
+        self._at = 0
+
+    def take(self, count: int) -> np.ndarray:
+        """The next `count` values (a view: read, never written)."""
+        at = self._at
+        if at + count > len(self._values):
+            self._values = np.concatenate((self._values[at:], self._draw(count * DRAW_BLOCK)))
+            at = 0
+        self._at = at + count
+        return self._values[at : at + count]
+
+
 class Camera:
     """The camera's imperfection model: takes pictures of true marker positions.
 
@@ -163,14 +185,10 @@ class Camera:
         ) = rng.spawn(5)
         self._jitter_ticks: dict[int, int] = {}
         self._next_frame = 0
-        # the noise stream's draws (scaled by the noise) and the dropout stream's verdicts, drawn
-        # DRAW_BLOCK pictures at a time and taken in order: a stream's values do not depend on
-        # how many are drawn at once (numpy's Generator keeps nothing between calls), so the
-        # pictures are the same bit for bit as with a draw each, in a third of the time
-        self._noise_block: np.ndarray = np.empty(0)
-        self._noise_at = 0
-        self._dropped_block: np.ndarray = np.empty(0, dtype=bool)
-        self._dropped_at = 0
+        # the noise stream's draws (scaled by the noise) and the dropout stream's verdicts
+        noise, dropout = self._rng_noise, self._rng_dropout
+        self._noise = _Drawn(lambda n: noise.standard_normal(n) * effects.noise)
+        self._dropped = _Drawn(lambda n: dropout.random(n) < effects.dropout)
         # occlusion bursts: (start, end, marker draw in [0, 1)) in time order
         self._bursts: list[tuple[float, float, float]] = []
         self._next_burst = self._draw_gap(0.0)
@@ -240,21 +258,8 @@ class Camera:
         time = tick * self.macro_step
         e = self.effects
         # fixed draw counts per picture: M x dims normals, M uniforms, M uniforms + M x dims normals
-        count = markers * dims
-        at = self._noise_at
-        if at + count > len(self._noise_block):
-            fresh = self._rng_noise.standard_normal(count * DRAW_BLOCK) * e.noise
-            self._noise_block = np.concatenate((self._noise_block[at:], fresh))
-            at = 0
-        self._noise_at = at + count
-        points = true_points + self._noise_block[at : at + count].reshape(markers, dims)
-        at = self._dropped_at
-        if at + markers > len(self._dropped_block):
-            verdicts = self._rng_dropout.random(markers * DRAW_BLOCK) < e.dropout
-            self._dropped_block = np.concatenate((self._dropped_block[at:], verdicts))
-            at = 0
-        self._dropped_at = at + markers
-        dropped = self._dropped_block[at : at + markers]
+        points = true_points + self._noise.take(markers * dims).reshape(markers, dims)
+        dropped = self._dropped.take(markers)
         outlier_draws = self._rng_outlier.random(markers)
         direction = self._rng_outlier.standard_normal((markers, dims))
         outlier = outlier_draws < e.outlier_rate
