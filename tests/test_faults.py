@@ -406,16 +406,24 @@ def hil_process(*argv: str) -> subprocess.Popen[str]:
     )
 
 
+def hil_run_process(scenario: Path, out: Path, *more: str) -> subprocess.Popen[str]:
+    """`hil run SCENARIO --out OUT MORE` in a process of its own, without progress bar, plots
+    or reports (these tests look at what a run records and how it ends)."""
+    return hil_process(
+        "run", str(scenario), "--out", str(out), "--no-progress", "--no-reports", *more
+    )
+
+
 def test_injected_commands_on_the_hub_from_a_second_client(tmp_path: Path) -> None:
     port = free_port()
     hub = hil_process("bus", "serve", "--port", str(port))
     try:
         wait_for(lambda: _listening(port), "the hub")
-        run = hil_process(
+        run = hil_run_process(
             # 20 s: long enough for the intruder to join after the first block is on disk
             # (the recorders flush in blocks of up to 0.25 s), the run being 15-25x real time
-            "run", str(scenario_file(tmp_path, 20.0, HOLD)), "--bus", f"loopback:127.0.0.1:{port}",
-            "--out", str(tmp_path / "run"), "--no-progress", "--no-reports",
+            scenario_file(tmp_path, 20.0, HOLD), tmp_path / "run",
+            "--bus", f"loopback:127.0.0.1:{port}",
         )  # fmt: skip
         wait_for(lambda: recorded(tmp_path / "run"), "progress")
         from rigbus.canbus import BusSpec, open_bus
@@ -564,14 +572,7 @@ def scenario_file_static(duration: float) -> Path:
 )
 def test_hil_run_signalled(tmp_path: Path, sig, code: int, line: str, status: str) -> None:
     out = tmp_path / "run"
-    run = hil_process(
-        "run",
-        str(scenario_file(tmp_path, LONG)),
-        "--out",
-        str(out),
-        "--no-progress",
-        "--no-reports",
-    )  # noqa: E501
+    run = hil_run_process(scenario_file(tmp_path, LONG), out)
     wait_for(lambda: recorded(out), "progress")
     run.send_signal(sig)
     _, err = run.communicate(timeout=60)
@@ -598,14 +599,7 @@ def test_hil_run_killed_hard_leaves_blocks_that_hil_csv_writes_the_csv_from(
     every 0.25 s stay; `hil csv` writes the CSV of their rows (taking the dead run's lock), one
     row a SYNC from the first, each complete."""
     out = tmp_path / "run"
-    run = hil_process(
-        "run",
-        str(scenario_file(tmp_path, LONG)),
-        "--out",
-        str(out),
-        "--no-progress",
-        "--no-reports",
-    )  # noqa: E501
+    run = hil_run_process(scenario_file(tmp_path, LONG), out)
     wait_for(lambda: recorded(out), "progress")
     run.kill()
     run.communicate(timeout=60)
@@ -627,14 +621,7 @@ def test_hil_run_killed_hard_leaves_blocks_that_hil_csv_writes_the_csv_from(
 @pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGTERM], ids=["KILL", "TERM"])
 def test_controller_killed(tmp_path: Path, sig) -> None:
     out = tmp_path / "run"
-    run = hil_process(
-        "run",
-        str(scenario_file(tmp_path, LONG)),
-        "--out",
-        str(out),
-        "--no-progress",
-        "--no-reports",
-    )  # noqa: E501
+    run = hil_run_process(scenario_file(tmp_path, LONG), out)
     wait_for(lambda: recorded(out) and rows(out / "controller.pid") > 0, "progress")  # noqa: E501
     os.kill(int((out / "controller.pid").read_text()), sig)
     _, err = run.communicate(timeout=60)
@@ -651,14 +638,7 @@ def test_controller_killed(tmp_path: Path, sig) -> None:
 def test_controller_frozen_times_out(tmp_path: Path) -> None:
     out = tmp_path / "run"
     short_wait = ('policy = "strict"', 'policy = "strict"\ntimeout = 0.5')
-    run = hil_process(
-        "run",
-        str(scenario_file(tmp_path, LONG, short_wait)),
-        "--out",
-        str(out),
-        "--no-progress",
-        "--no-reports",
-    )  # noqa: E501
+    run = hil_run_process(scenario_file(tmp_path, LONG, short_wait), out)
     wait_for(lambda: recorded(out) and rows(out / "controller.pid") > 0, "progress")  # noqa: E501
     pid = int((out / "controller.pid").read_text())
     os.kill(pid, signal.SIGSTOP)
@@ -680,10 +660,7 @@ def test_hub_killed_under_a_running_plant(tmp_path: Path) -> None:
     hub = hil_process("bus", "serve", "--port", str(port))
     wait_for(lambda: _listening(port), "the hub")
     out = tmp_path / "run"
-    run = hil_process(
-        "run", str(scenario_file(tmp_path, LONG)), "--bus", f"loopback:127.0.0.1:{port}",
-        "--out", str(out), "--no-progress", "--no-reports",
-    )  # fmt: skip
+    run = hil_run_process(scenario_file(tmp_path, LONG), out, "--bus", f"loopback:127.0.0.1:{port}")
     wait_for(lambda: recorded(out), "progress")
     hub.kill()
     hub.wait(timeout=10)

@@ -41,11 +41,15 @@ EXAMPLE_COMMAND = (
 )
 
 
+# what `hil run` and `hil batch` are given here beside the run's own options: no progress bar,
+# and no plots or reports unless a test looks at them
+QUIET = ["--no-progress", "--no-reports"]
+
+
 def _run(path: Path, out: Path, reports: bool = False, **options: object) -> dict:
     """The summary of a run of `path` into `out` (its plots and reports only with `reports`)."""
-    options = {"progress": False, "reports": reports, **options}
-    result = run_scenario(load_scenario(path), RunOptions(out=out, **options))  # type: ignore[arg-type]
-    return result.summary
+    given = RunOptions(out=out, progress=False, reports=reports, **options)
+    return run_scenario(load_scenario(path), given).summary
 
 
 @pytest.fixture(scope="module")
@@ -84,17 +88,7 @@ def test_a_controller_started_by_hand_on_the_run_s_bus_gives_the_same_bytes(
     path, reference = default_run
     out = tmp_path / "run dir"  # given relative, with a space: the line must still work
     run = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "hil",
-            "run",
-            str(path),
-            "--out",
-            "run dir",
-            "--no-progress",
-            "--no-reports",
-        ]
+        [sys.executable, "-m", "hil", "run", str(path), "--out", "run dir", *QUIET]
         + ["--controller", "external", "--wait", "60"],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
@@ -127,16 +121,7 @@ def test_an_external_controller_that_never_comes_fails_the_run_in_one_line_after
 ) -> None:
     path = shortened(tmp_path, 0.2)
     out = tmp_path / "run"
-    argv = [
-        "run",
-        str(path),
-        "--out",
-        str(out),
-        "--no-progress",
-        "--no-reports",
-        "--controller",
-        "external",
-    ]
+    argv = ["run", str(path), "--out", str(out), *QUIET, "--controller", "external"]
     assert hil_main([*argv, "--wait", "0.3"]) == 1
     lines = capsys.readouterr().err.strip().splitlines()
     assert lines[0].startswith("hil: note: waiting 0.3 s for a controller")
@@ -191,17 +176,7 @@ def test_a_hand_started_controller_that_leaves_mid_run_is_noticed_by_its_closed_
     path = shortened(tmp_path, 1.0, ("crossover = 1.0", "crossover = 1.0\ntimeout = 30.0"))
     out = tmp_path / "run"
     run = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "hil",
-            "run",
-            str(path),
-            "--out",
-            str(out),
-            "--no-progress",
-            "--no-reports",
-        ]
+        [sys.executable, "-m", "hil", "run", str(path), "--out", str(out), *QUIET]
         + ["--controller", "external", "--wait", "60"],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
@@ -329,7 +304,7 @@ def test_a_program_that_exits_early_is_told_where_the_run_was(
     for a program that never sent one (not "after SYNC -1"), else the time and the last SYNC
     of all; a replay says the cycle of all the same way."""
     path = shortened(tmp_path, 0.3)
-    argv = ["run", str(path), "--no-progress", "--no-reports", "--controller"]
+    argv = ["run", str(path), *QUIET, "--controller"]
     early = "hil: error: the controller exited with code 0 before the run's final SYNC; the plant"
     for k, (program, where) in enumerate(
         [
@@ -509,16 +484,7 @@ def test_a_user_program_that_fails_is_named_with_its_last_words(
     path = shortened(tmp_path, 0.2)
     out = tmp_path / "run"
     program = f"{PYTHON} -c \"print('no rig for me'); raise SystemExit(3)\""
-    argv = [
-        "run",
-        str(path),
-        "--out",
-        str(out),
-        "--no-progress",
-        "--no-reports",
-        "--controller",
-        program,
-    ]
+    argv = ["run", str(path), "--out", str(out), *QUIET, "--controller", program]
     assert hil_main(argv) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("hil: error: the controller exited with code 3 "
@@ -561,7 +527,7 @@ def test_a_controller_that_cannot_run_is_one_line_before_the_results_folder(
     (tmp_path / "plain.txt").write_text("not a program\n")
     monkeypatch.chdir(tmp_path)
     argv = [arg.replace("{tmp}", str(tmp_path)) for arg in argv]
-    assert hil_main(["run", "--out", str(out), "--no-progress", "--no-reports", *argv]) == 1
+    assert hil_main(["run", "--out", str(out), *QUIET, *argv]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("hil: error: ") and message in err[0], err
     assert not out.exists()
@@ -593,7 +559,7 @@ def test_a_batch_of_your_controller_gives_the_bytes_of_softhil_s_in_process_batc
     processes; softhil's controller as that program writes every trial's CAN log and signals
     as the in-process batch does, and batch.json records the command."""
     path = default_run[0]
-    base = ["batch", str(path), "--trials", "2", "--workers", "1", "--no-progress", "--no-reports"]
+    base = ["batch", str(path), "--trials", "2", "--workers", "1", *QUIET]
     assert hil_main([*base, "--out", str(tmp_path / "a")]) == 0
     assert hil_main([*base, "--out", str(tmp_path / "b"), "--controller", SOFTHIL_AS_COMMAND]) == 0
     for trial in ("trial-000", "trial-001"):
@@ -623,7 +589,7 @@ def test_a_program_that_serves_on_after_the_final_sync_is_stopped_with_a_warning
     path, reference = default_run
     out = tmp_path / "run"
     program = f"{PYTHON} -m controllers --config {{config}} --bus {{bus}}; exec sleep 600"
-    argv = ["run", str(path), "--out", str(out), "--no-progress", "--no-reports"]
+    argv = ["run", str(path), "--out", str(out), *QUIET]
     assert hil_main([*argv, "--controller", f"sh -c {shlex.quote(program)}"]) == 0
     warning = (
         "the controller program had not exited 5 s after the final SYNC; the run stopped it "
@@ -660,7 +626,7 @@ def test_a_program_s_children_end_with_it_in_run_and_replay(
         'sleep 300 & echo $! > "$SOFTHIL_CONFIG.job"; '
         f"exec {PYTHON} -m controllers --config {{config}} --bus {{bus}}"
     )
-    argv = ["run", str(path), "--out", str(out), "--no-progress", "--no-reports"]
+    argv = ["run", str(path), "--out", str(out), *QUIET]
     assert hil_main([*argv, "--controller", f"sh -c {shlex.quote(program)}"]) == 0
     job = int((out / "controller.json.job").read_text())
     assert _gone(job)
@@ -681,7 +647,7 @@ def test_a_program_that_ignores_sigterm_is_killed_and_the_warning_says_so(
     path = default_run[0]
     out = tmp_path / "run"
     program = f"trap '' TERM; {PYTHON} -m controllers --config {{config}} --bus {{bus}}; sleep 600"
-    argv = ["run", str(path), "--out", str(out), "--no-progress", "--no-reports"]
+    argv = ["run", str(path), "--out", str(out), *QUIET]
     assert hil_main([*argv, "--controller", f"sh -c {shlex.quote(program)}"]) == 0
     summary = json.loads((out / "summary.json").read_text())
     assert summary["warnings"] == [
@@ -696,14 +662,7 @@ def test_a_program_may_change_folder_its_paths_are_absolute(
     path, reference = default_run
     monkeypatch.chdir(tmp_path)
     program = f"cd / && exec {PYTHON} -m controllers --config {{config}} --bus {{bus}}"
-    argv = [
-        "run",
-        str(path),
-        "--out",
-        "run",
-        "--no-progress",
-        "--no-reports",
-    ]  # a relative results folder
+    argv = ["run", str(path), "--out", "run", *QUIET]  # a relative results folder
     monkeypatch.setenv("PYTHONPATH", str(ROOT))  # `cd /` leaves the checkout's packages behind
     assert hil_main([*argv, "--controller", f"sh -c {shlex.quote(program)}"]) == 0
     _same_run(reference, tmp_path / "run")
@@ -734,7 +693,7 @@ def test_a_report_too_deep_or_too_big_is_left_out_and_the_run_completes(
         f"{PYTHON} -m controllers --config {{config}} --bus {{bus}} && "
         f"cp {shlex.quote(str(tmp_path / 'report.json'))} {{report}}"
     )
-    argv = ["run", str(path), "--out", str(out), "--no-progress", "--no-reports"]
+    argv = ["run", str(path), "--out", str(out), *QUIET]
     assert hil_main([*argv, "--controller", f"sh -c {shlex.quote(program)}"]) == 0
     summary = json.loads((out / "summary.json").read_text())
     assert summary["status"] == "completed" and summary["controller"] == {}
@@ -773,16 +732,7 @@ def test_wait_bounds_a_program_s_start_too(
 ) -> None:
     path = shortened(tmp_path, 0.2)
     program = f"sleep 3; exec {PYTHON} -m controllers --config {{config}} --bus {{bus}}"
-    argv = [
-        "run",
-        str(path),
-        "--out",
-        str(tmp_path / "run"),
-        "--no-progress",
-        "--no-reports",
-        "--wait",
-        "0.5",
-    ]
+    argv = ["run", str(path), "--out", str(tmp_path / "run"), *QUIET, "--wait", "0.5"]
     assert hil_main([*argv, "--controller", f"sh -c {shlex.quote(program)}"]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert err == [
